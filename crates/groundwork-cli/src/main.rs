@@ -1,0 +1,233 @@
+//! `groundwork`: thin command-line front end over the core, io and eval crates.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use groundwork_core::{Segmenter, SegmenterConfig};
+use groundwork_eval::{Protocol, Sequence, evaluate, median};
+use groundwork_io::{load_config, parse_config, read_scan, scan_stem, write_outputs};
+use indicatif::{ProgressBar, ProgressStyle};
+use tracing::{error, info};
+
+/// The HDL-64E preset, embedded so the binary works from any directory.
+const DEFAULT_PRESET: &str = include_str!("../../../config/sensors/hdl64e.toml");
+
+#[derive(Parser, Debug)]
+#[command(name = "groundwork", version, about = "GMM LiDAR ground segmentation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(clap::Args, Debug)]
+struct Common {
+    /// Sensor/segmenter configuration (TOML). Default: the built-in HDL-64E preset
+    /// (config/sensors/hdl64e.toml).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Multi-frame history length N_f (1 = single frame); overrides the config.
+    #[arg(long)]
+    frames: Option<u32>,
+    /// KITTI poses.txt (default: <sequence>/poses.txt if present).
+    #[arg(long)]
+    poses: Option<PathBuf>,
+    /// KITTI calib.txt with Tr (default: <sequence>/calib.txt if present).
+    #[arg(long)]
+    calib: Option<PathBuf>,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Segment scans: writes <out>/<scan>.prob (f32 per point) and <out>/<scan>.ground (u8).
+    Segment {
+        #[command(flatten)]
+        common: Common,
+        /// Output folder (created if missing).
+        #[arg(long)]
+        out: PathBuf,
+        /// Scan files, or folders of scans (a sequence folder with velodyne/ works too).
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+    },
+    /// Evaluate against SemanticKITTI labels: per scan and pooled metrics, plus speed.
+    Eval {
+        #[command(flatten)]
+        common: Common,
+        /// Sequence folder with velodyne/ and labels/ (poses.txt, calib.txt optional).
+        sequence: PathBuf,
+        /// Label protocol: gmm (vegetation ignored) or terraseg (vegetation is non-ground).
+        #[arg(long, value_enum, default_value_t = ProtocolArg::Gmm)]
+        protocol: ProtocolArg,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Copy, Clone, Debug, ValueEnum)]
+enum ProtocolArg {
+    Gmm,
+    Terraseg,
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Cli::parse()) {
+        Ok(code) => code,
+        Err(e) => {
+            error!("{e:#}");
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Segment {
+            common,
+            out,
+            inputs,
+        } => segment(&common, &out, &inputs),
+        Command::Eval {
+            common,
+            sequence,
+            protocol,
+            json,
+        } => eval(&common, &sequence, protocol, json),
+    }
+}
+
+fn load(common: &Common) -> Result<SegmenterConfig> {
+    let mut cfg = match &common.config {
+        Some(p) => load_config(p)?,
+        None => parse_config(Path::new("<built-in hdl64e preset>"), DEFAULT_PRESET)?,
+    };
+    if let Some(n) = common.frames {
+        cfg.history.frames = n;
+        cfg.validate().context("--frames")?;
+    }
+    Ok(cfg)
+}
+
+fn progress(len: usize, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} scans, {per_sec}, eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb.set_message(what.to_string());
+    pb
+}
+
+fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
+    let cfg = load(common)?;
+    let thr = cfg.ground.ground_threshold;
+    let max = cfg.sensor.max_points;
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+
+    // Each input is a scan file or a folder; a folder may carry poses for history.
+    let mut jobs: Vec<(PathBuf, Option<groundwork_core::Pose>)> = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            let seq = Sequence::open(input, common.poses.as_deref(), common.calib.as_deref())?;
+            let poses = seq.poses.clone();
+            for (i, s) in seq.scans.into_iter().enumerate() {
+                jobs.push((s, poses.as_ref().and_then(|p| p.get(i).copied())));
+            }
+        } else if input.is_file() {
+            jobs.push((input.clone(), None));
+        } else {
+            bail!("{}: no such file or folder", input.display());
+        }
+    }
+    if cfg.history.frames > 1 && jobs.iter().all(|j| j.1.is_none()) {
+        info!("no poses found: scans are segmented single-frame");
+    }
+    let mut seg = Segmenter::new(cfg)?;
+    let pb = progress(jobs.len(), "segment");
+    let (mut failed, mut times) = (0usize, Vec::with_capacity(jobs.len()));
+    let mut probs = Vec::new();
+    for (path, pose) in &jobs {
+        let result = (|| -> Result<()> {
+            let points = read_scan(path, max)?;
+            probs.resize(points.len(), 0.0);
+            let t = Instant::now();
+            seg.segment(&points, pose.as_ref(), &mut probs)
+                .with_context(|| path.display().to_string())?;
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            write_outputs(out, &scan_stem(path), &probs, thr)?;
+            Ok(())
+        })();
+        if let Err(e) = result {
+            // One bad scan never costs the others.
+            failed += 1;
+            pb.suspend(|| error!("skipped: {e:#}"));
+        }
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    seg.log_state();
+    info!(
+        scans = jobs.len(),
+        failed,
+        median_ms = median(times),
+        out = %out.display(),
+        "segmentation done"
+    );
+    Ok(if failed > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+fn eval(common: &Common, dir: &Path, protocol: ProtocolArg, json: bool) -> Result<ExitCode> {
+    let cfg = load(common)?;
+    let seq = Sequence::open(dir, common.poses.as_deref(), common.calib.as_deref())?;
+    if cfg.history.frames > 1 && seq.poses.is_none() {
+        info!("no poses.txt + calib.txt: multi-frame history is not used");
+    }
+    let mut seg = Segmenter::new(cfg)?;
+    let protocol = match protocol {
+        ProtocolArg::Gmm => Protocol::Gmm,
+        ProtocolArg::Terraseg => Protocol::Terraseg,
+    };
+    let pb = progress(seq.scans.len(), "eval");
+    let report = evaluate(&seq, &mut seg, protocol, |_| pb.inc(1))?;
+    pb.finish_and_clear();
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", report.to_table());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_preset_is_valid() {
+        let c = parse_config(Path::new("preset"), DEFAULT_PRESET).unwrap();
+        assert_eq!(c.sensor.name, "hdl64e");
+        assert!((c.sensor.mount.height - 1.73).abs() < 1e-12);
+    }
+
+    #[test]
+    fn cli_parses() {
+        use clap::CommandFactory;
+        Cli::command().debug_assert();
+    }
+}

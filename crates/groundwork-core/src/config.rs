@@ -1,0 +1,471 @@
+//! Every parameter of the segmenter, with the GMM paper's values as defaults.
+//!
+//! The structs deserialize from TOML (see `config/sensors/*.toml`); unknown keys are
+//! rejected so that a typo never silently falls back to a default.
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::ConfigError;
+
+/// Complete configuration of one segmenter instance.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct SegmenterConfig {
+    /// Sensor mount and input limits.
+    pub sensor: SensorConfig,
+    /// Concentric zone model (Patchwork++'s CZM).
+    pub zones: ZoneConfig,
+    /// Per-segment GMM fit.
+    pub gmm: GmmConfig,
+    /// Ground likelihoods of the fitted components, outlier rule and decision threshold.
+    pub ground: GroundConfig,
+    /// Zone-1 adaptive sensor-height filter (paper §III-D).
+    pub height_filter: HeightFilterConfig,
+    /// Multi-frame history (paper §III-F).
+    pub history: HistoryConfig,
+}
+
+/// How the sensor sits on the vehicle, and what the segmenter accepts from it.
+///
+/// The segmenter works in a ground-aligned frame: x forward, y left, z up, origin on the
+/// ground below the sensor. `mount` maps sensor coordinates into that frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorConfig {
+    /// Human-readable preset name (only used in logs and reports).
+    pub name: String,
+    /// Sensor to ground-aligned frame.
+    pub mount: MountConfig,
+    /// Points closer than this horizontal radius belong to the ego vehicle (TerraSeg's
+    /// OmniLiDAR standardisation). They get ground probability 0, like every point closer
+    /// than `zones.min_range`.
+    pub ego_radius: f64,
+    /// Scans with more points are rejected (protects the service's fixed-size buffers).
+    pub max_points: usize,
+}
+
+impl Default for SensorConfig {
+    fn default() -> Self {
+        Self {
+            name: "generic".into(),
+            mount: MountConfig::default(),
+            ego_radius: 0.0,
+            max_points: 400_000,
+        }
+    }
+}
+
+/// Sensor pose relative to the ground-aligned frame: either height + roll/pitch/yaw, or a
+/// full 4×4 row-major matrix (which then wins; giving both is an error).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct MountConfig {
+    /// Height of the sensor origin above the ground, metres.
+    pub height: f64,
+    /// Rotation of the sensor about the ground frame's x axis, radians.
+    pub roll: f64,
+    /// Rotation about y, radians.
+    pub pitch: f64,
+    /// Rotation about z, radians.
+    pub yaw: f64,
+    /// Optional 4×4 row-major homogeneous matrix, ground-aligned from sensor.
+    pub matrix: Option<[[f64; 4]; 4]>,
+}
+
+/// What a point beyond `zones.max_range` gets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BeyondRangePolicy {
+    /// Query the GMM of the outermost ring of the point's sector (the nearest model).
+    OuterRing,
+    /// Probability 0: treated as non-ground.
+    NonGround,
+}
+
+/// The concentric zone model. Zone boundaries default to Patchwork++'s
+/// min, (7·min+max)/8, (3·min+max)/4, (min+max)/2, max.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZoneConfig {
+    /// Inner edge of the model, metres (horizontal range). Closer points get probability 0.
+    pub min_range: f64,
+    /// Outer edge of the model, metres (horizontal range).
+    pub max_range: f64,
+    /// Explicit zone boundaries (len = zones + 1, increasing); derived from the ranges if
+    /// absent.
+    pub boundaries: Option<Vec<f64>>,
+    /// Rings per zone.
+    pub rings: Vec<u32>,
+    /// Sectors per zone.
+    pub sectors: Vec<u32>,
+    /// Treatment of points beyond `max_range`.
+    pub beyond_max_range: BeyondRangePolicy,
+}
+
+impl Default for ZoneConfig {
+    fn default() -> Self {
+        Self {
+            min_range: 2.7,
+            max_range: 80.0,
+            boundaries: None,
+            rings: vec![2, 4, 4, 4],
+            sectors: vec![16, 32, 54, 32],
+            beyond_max_range: BeyondRangePolicy::OuterRing,
+        }
+    }
+}
+
+impl ZoneConfig {
+    /// The zone boundaries in use: explicit ones, or Patchwork++'s derived from the ranges
+    /// (only defined for four zones; other zone counts must give `boundaries`).
+    pub fn resolved_boundaries(&self) -> Result<Vec<f64>, ConfigError> {
+        if let Some(b) = &self.boundaries {
+            return Ok(b.clone());
+        }
+        let (lo, hi) = (self.min_range, self.max_range);
+        if self.rings.len() != 4 {
+            return Err(ConfigError::invalid(
+                "zones.boundaries",
+                "must be given when the model does not have exactly 4 zones",
+            ));
+        }
+        Ok(vec![
+            lo,
+            (7.0 * lo + hi) / 8.0,
+            (3.0 * lo + hi) / 4.0,
+            (lo + hi) / 2.0,
+            hi,
+        ])
+    }
+}
+
+/// Per-segment GMM and its EM fit.
+///
+/// The paper gives no stopping rule; EM stops after `max_iterations` or when the mean
+/// log-likelihood per point improves by less than `tolerance` (nats), whichever comes first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GmmConfig {
+    /// One component per `n_min` points (N_min).
+    pub n_min: u32,
+    /// Upper bound on components per segment (K_max).
+    pub k_max: u32,
+    /// Components that are the most likely one for fewer points are removed (τ_N).
+    pub tau_n: u32,
+    /// Hard cap on EM iterations per segment.
+    pub max_iterations: u32,
+    /// Per-segment convergence test: stop when the mean log-likelihood per point changes
+    /// by less than this between iterations.
+    pub tolerance: f64,
+    /// Added to the covariance diagonal after every M-step (m²) so that no component can
+    /// become singular (e.g. on a perfectly planar patch or a segment of repeated points).
+    pub covariance_regularization: f64,
+}
+
+impl Default for GmmConfig {
+    fn default() -> Self {
+        Self {
+            n_min: 20,
+            k_max: 8,
+            tau_n: 10,
+            max_iterations: 20,
+            tolerance: 1e-3,
+            covariance_regularization: 1e-4,
+        }
+    }
+}
+
+/// Slope and offset of an inverted sigmoid p(x) = 1 − 1/(1 + e^{−α(x−β)}).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sigmoid {
+    /// Slope α.
+    pub alpha: f64,
+    /// Offset β: the input at which the likelihood is 0.5.
+    pub beta: f64,
+}
+
+/// Ground likelihoods, outlier rule and the decision threshold.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GroundConfig {
+    /// Flatness: on the smallest covariance eigenvalue (m²).
+    pub flatness: Sigmoid,
+    /// Orientation: on the angle between the smallest eigenvector and the vertical (rad).
+    pub orientation: Sigmoid,
+    /// Elevation: on the component mean's height above the segment's lowest inlier (m).
+    pub elevation: Sigmoid,
+    /// Points more than this far below the lowest retained component mean are outliers
+    /// and do not define the segment's lowest point (τ_o, metres).
+    pub outlier_threshold: f64,
+    /// Points with ground probability ≥ this are ground (τ_g).
+    pub ground_threshold: f32,
+}
+
+impl Default for GroundConfig {
+    fn default() -> Self {
+        Self {
+            flatness: Sigmoid {
+                alpha: 40.0,
+                beta: 0.06,
+            },
+            orientation: Sigmoid {
+                alpha: 4.0,
+                beta: 0.8,
+            },
+            elevation: Sigmoid {
+                alpha: 4.0,
+                beta: 0.8,
+            },
+            outlier_threshold: 0.5,
+            ground_threshold: 0.5,
+        }
+    }
+}
+
+/// The zone-1 sensor-height filter: per zone-1 segment an exponentially weighted mean and
+/// standard deviation of the height of high-ground-likelihood components over frames.
+/// Components below mean − `sigmas`·std are ignored when finding the lowest component
+/// (they are multipath reflections below the road).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HeightFilterConfig {
+    /// Switch the filter off entirely.
+    pub enabled: bool,
+    /// Weight of the newest frame in the moving average (0 < w ≤ 1). 0.1 ≈ a 10-frame
+    /// memory: bounded, and it follows a real change of ground height within a second.
+    pub smoothing: f64,
+    /// Components below mean − sigmas·std are excluded (the paper uses 3).
+    pub sigmas: f64,
+    /// Floor on the standard deviation (m), so that a perfectly steady history does not
+    /// exclude ground components a few centimetres low.
+    pub min_std: f64,
+    /// Frames a segment must have observed before it filters anything.
+    pub warmup_frames: u32,
+    /// A component counts as "high ground likelihood" at or above this probability.
+    pub min_ground_likelihood: f64,
+}
+
+impl Default for HeightFilterConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            smoothing: 0.1,
+            sigmas: 3.0,
+            min_std: 0.05,
+            warmup_frames: 3,
+            min_ground_likelihood: 0.5,
+        }
+    }
+}
+
+/// Multi-frame history.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HistoryConfig {
+    /// Number of fitted models queried per scan, the current one included (N_f, 1…16).
+    pub frames: u32,
+    /// A pose jump larger than this (metres of translation between consecutive frames)
+    /// clears the history: the old models describe another place.
+    pub max_translation_jump: f64,
+    /// Same for rotation (radians).
+    pub max_rotation_jump: f64,
+}
+
+impl Default for HistoryConfig {
+    fn default() -> Self {
+        Self {
+            frames: 1,
+            max_translation_jump: 5.0,
+            max_rotation_jump: 0.5,
+        }
+    }
+}
+
+/// Largest supported history length.
+pub const MAX_HISTORY_FRAMES: u32 = 16;
+
+impl SegmenterConfig {
+    /// Checks every value for consistency; the error names the offending field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let z = &self.zones;
+        if !(z.min_range.is_finite() && z.min_range >= 0.0) {
+            return Err(ConfigError::invalid(
+                "zones.min_range",
+                "must be finite and ≥ 0",
+            ));
+        }
+        if !(z.max_range.is_finite() && z.max_range > z.min_range) {
+            return Err(ConfigError::invalid(
+                "zones.max_range",
+                "must be finite and greater than zones.min_range",
+            ));
+        }
+        if z.rings.is_empty() || z.rings.len() != z.sectors.len() {
+            return Err(ConfigError::invalid(
+                "zones.rings / zones.sectors",
+                "must be non-empty and of equal length (one entry per zone)",
+            ));
+        }
+        if z.rings.iter().chain(&z.sectors).any(|&n| n == 0 || n > 4096) {
+            return Err(ConfigError::invalid(
+                "zones.rings / zones.sectors",
+                "every entry must be in 1..=4096",
+            ));
+        }
+        let b = z.resolved_boundaries()?;
+        if b.len() != z.rings.len() + 1 {
+            return Err(ConfigError::invalid(
+                "zones.boundaries",
+                "must have one more entry than there are zones",
+            ));
+        }
+        if b.windows(2).any(|w| !(w[1] > w[0])) || b.iter().any(|v| !v.is_finite()) {
+            return Err(ConfigError::invalid(
+                "zones.boundaries",
+                "must be finite and strictly increasing",
+            ));
+        }
+        let g = &self.gmm;
+        if g.n_min == 0 || g.k_max == 0 || g.k_max > 64 {
+            return Err(ConfigError::invalid(
+                "gmm.n_min / gmm.k_max",
+                "n_min must be ≥ 1 and k_max in 1..=64",
+            ));
+        }
+        if g.max_iterations == 0 {
+            return Err(ConfigError::invalid("gmm.max_iterations", "must be ≥ 1"));
+        }
+        if !(g.tolerance.is_finite() && g.tolerance >= 0.0) {
+            return Err(ConfigError::invalid("gmm.tolerance", "must be finite and ≥ 0"));
+        }
+        if !(g.covariance_regularization.is_finite() && g.covariance_regularization > 0.0) {
+            return Err(ConfigError::invalid(
+                "gmm.covariance_regularization",
+                "must be finite and > 0 (a zero regulariser lets covariances become singular)",
+            ));
+        }
+        let gr = &self.ground;
+        for (name, s) in [
+            ("ground.flatness", gr.flatness),
+            ("ground.orientation", gr.orientation),
+            ("ground.elevation", gr.elevation),
+        ] {
+            if !(s.alpha.is_finite() && s.beta.is_finite()) {
+                return Err(ConfigError::invalid(name, "alpha and beta must be finite"));
+            }
+        }
+        if !(gr.outlier_threshold.is_finite() && gr.outlier_threshold >= 0.0) {
+            return Err(ConfigError::invalid(
+                "ground.outlier_threshold",
+                "must be finite and ≥ 0",
+            ));
+        }
+        if !(0.0..=1.0).contains(&gr.ground_threshold) {
+            return Err(ConfigError::invalid(
+                "ground.ground_threshold",
+                "must be in [0, 1]",
+            ));
+        }
+        let h = &self.height_filter;
+        if !(h.smoothing > 0.0 && h.smoothing <= 1.0) {
+            return Err(ConfigError::invalid(
+                "height_filter.smoothing",
+                "must be in (0, 1]",
+            ));
+        }
+        if !(h.sigmas.is_finite() && h.sigmas > 0.0 && h.min_std.is_finite() && h.min_std >= 0.0)
+        {
+            return Err(ConfigError::invalid(
+                "height_filter.sigmas / min_std",
+                "sigmas must be > 0 and min_std ≥ 0",
+            ));
+        }
+        if !(1..=MAX_HISTORY_FRAMES).contains(&self.history.frames) {
+            return Err(ConfigError::invalid(
+                "history.frames",
+                "must be in 1..=16",
+            ));
+        }
+        if !(self.history.max_translation_jump > 0.0 && self.history.max_rotation_jump > 0.0) {
+            return Err(ConfigError::invalid(
+                "history.max_translation_jump / max_rotation_jump",
+                "must be > 0",
+            ));
+        }
+        let s = &self.sensor;
+        if !(s.ego_radius.is_finite() && s.ego_radius >= 0.0) {
+            return Err(ConfigError::invalid("sensor.ego_radius", "must be finite and ≥ 0"));
+        }
+        if s.max_points == 0 || s.max_points > u32::MAX as usize {
+            return Err(ConfigError::invalid(
+                "sensor.max_points",
+                "must be in 1..=4294967295",
+            ));
+        }
+        let m = &s.mount;
+        let angles = [m.height, m.roll, m.pitch, m.yaw];
+        if angles.iter().any(|v| !v.is_finite()) {
+            return Err(ConfigError::invalid(
+                "sensor.mount",
+                "height, roll, pitch and yaw must be finite",
+            ));
+        }
+        if let Some(mat) = &m.matrix {
+            if angles.iter().any(|&v| v != 0.0) {
+                return Err(ConfigError::invalid(
+                    "sensor.mount",
+                    "give either matrix or height/roll/pitch/yaw, not both",
+                ));
+            }
+            if mat.iter().flatten().any(|v| !v.is_finite()) || mat[3] != [0.0, 0.0, 0.0, 1.0] {
+                return Err(ConfigError::invalid(
+                    "sensor.mount.matrix",
+                    "must be finite with last row [0, 0, 0, 1]",
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_the_papers_values_and_valid() {
+        let c = SegmenterConfig::default();
+        c.validate().unwrap();
+        assert_eq!(c.gmm.n_min, 20);
+        assert_eq!(c.gmm.k_max, 8);
+        assert_eq!(c.gmm.tau_n, 10);
+        assert_eq!(c.ground.flatness.alpha, 40.0);
+        assert_eq!(c.ground.flatness.beta, 0.06);
+        assert_eq!(c.ground.outlier_threshold, 0.5);
+        let b = c.zones.resolved_boundaries().unwrap();
+        assert_eq!(b.len(), 5);
+        assert!((b[1] - (7.0 * 2.7 + 80.0) / 8.0).abs() < 1e-12);
+        assert!((b[3] - (2.7 + 80.0) / 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn rejects_inconsistent_values_naming_the_field() {
+        let mut c = SegmenterConfig::default();
+        c.zones.max_range = 1.0;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("zones.max_range"), "{e}");
+
+        let mut c = SegmenterConfig::default();
+        c.history.frames = 17;
+        assert!(c.validate().unwrap_err().to_string().contains("history.frames"));
+
+        let mut c = SegmenterConfig::default();
+        c.gmm.covariance_regularization = 0.0;
+        assert!(c.validate().is_err());
+
+        let mut c = SegmenterConfig::default();
+        c.zones.rings = vec![2, 4, 4];
+        assert!(c.validate().is_err());
+    }
+}

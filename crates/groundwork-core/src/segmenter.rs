@@ -1,0 +1,409 @@
+//! The segmenter stage: validates a scan, fits it, queries it (with history) and keeps the
+//! state that lives between frames. The same stage runs in tests, benchmarks, the offline
+//! CLI and the service process.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use nalgebra::Isometry3;
+use rayon::prelude::*;
+use tracing::{debug, info, warn};
+
+use crate::config::SegmenterConfig;
+use crate::error::{ConfigError, SegmentError};
+use crate::height_filter::HeightFilter;
+use crate::model::{FrameModel, SegmentedPoints, fit_frame};
+use crate::point::{Pose, PointXyz, mount_transform};
+use crate::query::{BEYOND, NEAR, QueryFrame, pack, query};
+use crate::zones::ZoneModel;
+
+/// What happened to one scan.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameReport {
+    /// Points in the scan.
+    pub points: usize,
+    /// Points inside the near disc (min range / ego radius): probability 0.
+    pub near_points: usize,
+    /// Points beyond max range.
+    pub beyond_points: usize,
+    /// Segments that ended with at least one component.
+    pub fitted_segments: usize,
+    /// Components over all segments.
+    pub components: usize,
+    /// EM iterations summed over segments.
+    pub em_iterations: u64,
+    /// Points excluded from elevation references as outliers.
+    pub outliers: u64,
+    /// Components vetoed by the zone-1 height filter.
+    pub height_filtered: u64,
+    /// Models queried (1 = single frame).
+    pub frames_queried: usize,
+    /// Whether the scan came with a pose.
+    pub posed: bool,
+    /// Whether this scan's pose jump cleared the history.
+    pub history_cleared: bool,
+    /// Ground points at the configured threshold.
+    pub ground_points: usize,
+    /// Binning + EM + likelihoods.
+    pub fit_time: Duration,
+    /// Query (all frames).
+    pub query_time: Duration,
+}
+
+/// Counters over the segmenter's life.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SegmenterCounters {
+    /// Scans segmented.
+    pub scans: u64,
+    /// Scans rejected (bad input).
+    pub rejected: u64,
+    /// Scans that came without a pose (segmented single-frame).
+    pub without_pose: u64,
+    /// Times a pose jump cleared the history.
+    pub history_resets: u64,
+}
+
+/// A past frame kept for multi-frame queries.
+#[derive(Debug, Clone)]
+struct PastFrame {
+    model: FrameModel,
+    /// World from sensor.
+    pose: Pose,
+}
+
+/// The GMM ground segmenter with its between-frame state.
+#[derive(Debug)]
+pub struct Segmenter {
+    cfg: SegmenterConfig,
+    zones: ZoneModel,
+    mount: Isometry3<f64>,
+    height: HeightFilter,
+    history: VecDeque<PastFrame>,
+    counters: SegmenterCounters,
+    // Scratch reused between frames so steady-state segmentation does not allocate more.
+    ground: Vec<[f64; 3]>,
+    bins: Vec<u32>,
+    sorted: SegmentedPoints,
+}
+
+impl Segmenter {
+    /// Validates the configuration and builds an empty segmenter.
+    pub fn new(cfg: SegmenterConfig) -> Result<Self, ConfigError> {
+        cfg.validate()?;
+        let zones = ZoneModel::new(&cfg.zones, cfg.sensor.ego_radius)?;
+        let mount = mount_transform(&cfg.sensor.mount)?;
+        let height = HeightFilter::new(cfg.height_filter.clone(), zones.first_zone_segments());
+        Ok(Self {
+            history: VecDeque::with_capacity(cfg.history.frames as usize),
+            cfg,
+            zones,
+            mount,
+            height,
+            counters: SegmenterCounters::default(),
+            ground: Vec::new(),
+            bins: Vec::new(),
+            sorted: SegmentedPoints::default(),
+        })
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &SegmenterConfig {
+        &self.cfg
+    }
+
+    /// The zone model in use.
+    pub fn zones(&self) -> &ZoneModel {
+        &self.zones
+    }
+
+    /// The zone-1 height filter's state.
+    pub fn height_filter(&self) -> &HeightFilter {
+        &self.height
+    }
+
+    /// Lifetime counters.
+    pub fn counters(&self) -> SegmenterCounters {
+        self.counters
+    }
+
+    /// Past frames currently held for multi-frame queries.
+    pub fn history_len(&self) -> usize {
+        self.history.len()
+    }
+
+    /// Component count over all stored frames: memory use of the history is proportional.
+    pub fn history_components(&self) -> usize {
+        self.history.iter().map(|f| f.model.components().len()).sum()
+    }
+
+    /// Forgets the history and the height filter (e.g. on a new sequence).
+    pub fn reset(&mut self) {
+        self.history.clear();
+        self.height.reset();
+    }
+
+    /// Forgets only the zone-1 height filter.
+    pub fn reset_height_filter(&mut self) {
+        self.height.reset();
+    }
+
+    /// Segments one scan, writing one ground probability in [0, 1] per input point, in
+    /// input order, into `out`. `pose` is the sensor's world pose (world from sensor); a
+    /// scan without one is segmented single-frame and leaves the history untouched.
+    ///
+    /// A rejected scan leaves all state untouched.
+    pub fn segment<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        pose: Option<&Pose>,
+        out: &mut [f32],
+    ) -> Result<FrameReport, SegmentError> {
+        let checked = self.check(points, pose, out);
+        if let Err(e) = checked {
+            self.counters.rejected += 1;
+            return Err(e);
+        }
+        let t0 = Instant::now();
+        let mut report = FrameReport {
+            points: points.len(),
+            posed: pose.is_some(),
+            ..Default::default()
+        };
+        self.bin_points(points);
+        self.group_by_segment();
+        let height = &self.height;
+        let first_zone = self.zones.first_zone_segments();
+        let (model, stats) = fit_frame(&self.sorted, &self.cfg, |s| {
+            if s < first_zone {
+                height.lower_bound(s)
+            } else {
+                None
+            }
+        });
+        self.update_height_filter(&model);
+        report.fit_time = t0.elapsed();
+
+        for st in &stats {
+            report.em_iterations += u64::from(st.iterations);
+            report.outliers += u64::from(st.outliers);
+            report.height_filtered += u64::from(st.height_filtered);
+        }
+        report.fitted_segments = model.fitted_segments();
+        report.components = model.components().len();
+        report.near_points = self.bins.iter().filter(|&&b| b == NEAR).count();
+        report.beyond_points = self
+            .bins
+            .iter()
+            .filter(|&&b| b != NEAR && b & BEYOND != 0)
+            .count();
+
+        let t1 = Instant::now();
+        match pose {
+            Some(pose) => {
+                report.history_cleared = self.check_pose_jump(pose);
+                let transforms: Vec<Isometry3<f64>> = self
+                    .history
+                    .iter()
+                    .map(|f| self.mount * f.pose.inverse() * pose * self.mount.inverse())
+                    .collect();
+                let mut frames = Vec::with_capacity(self.history.len() + 1);
+                frames.push(QueryFrame {
+                    model: &model,
+                    transform: None,
+                });
+                frames.extend(self.history.iter().zip(&transforms).map(|(f, t)| QueryFrame {
+                    model: &f.model,
+                    transform: Some(t),
+                }));
+                query(
+                    &self.zones,
+                    &frames,
+                    &self.ground,
+                    &self.bins,
+                    self.cfg.zones.beyond_max_range,
+                    out,
+                );
+                report.frames_queried = frames.len();
+                let keep = self.cfg.history.frames as usize - 1;
+                if keep > 0 {
+                    if self.history.len() == keep {
+                        self.history.pop_back();
+                    }
+                    self.history.push_front(PastFrame { model, pose: *pose });
+                }
+            }
+            None => {
+                self.counters.without_pose += 1;
+                let frames = [QueryFrame {
+                    model: &model,
+                    transform: None,
+                }];
+                query(
+                    &self.zones,
+                    &frames,
+                    &self.ground,
+                    &self.bins,
+                    self.cfg.zones.beyond_max_range,
+                    out,
+                );
+                report.frames_queried = 1;
+            }
+        }
+        report.query_time = t1.elapsed();
+        let thr = self.cfg.ground.ground_threshold;
+        report.ground_points = out.iter().filter(|&&p| p >= thr).count();
+        self.counters.scans += 1;
+        debug!(
+            points = report.points,
+            ground = report.ground_points,
+            components = report.components,
+            frames = report.frames_queried,
+            fit_us = report.fit_time.as_micros() as u64,
+            query_us = report.query_time.as_micros() as u64,
+            "segmented scan"
+        );
+        Ok(report)
+    }
+
+    fn check<P: PointXyz + Sync>(
+        &self,
+        points: &[P],
+        pose: Option<&Pose>,
+        out: &[f32],
+    ) -> Result<(), SegmentError> {
+        if out.len() != points.len() {
+            return Err(SegmentError::OutputSize {
+                expected: points.len(),
+                got: out.len(),
+            });
+        }
+        if points.len() > self.cfg.sensor.max_points {
+            return Err(SegmentError::TooManyPoints {
+                points: points.len(),
+                max: self.cfg.sensor.max_points,
+            });
+        }
+        if let Some(index) = points
+            .par_iter()
+            .position_first(|p| p.xyz().iter().any(|v| !v.is_finite()))
+        {
+            let [x, y, z] = points[index].xyz();
+            return Err(SegmentError::NonFinitePoint { index, x, y, z });
+        }
+        if let Some(p) = pose {
+            let ok = p.translation.vector.iter().all(|v| v.is_finite())
+                && p.rotation.coords.iter().all(|v| v.is_finite());
+            if !ok {
+                return Err(SegmentError::InvalidPose("non-finite entry".into()));
+            }
+        }
+        Ok(())
+    }
+
+    /// Mount transform and zone binning of every point, in input order.
+    fn bin_points<P: PointXyz + Sync>(&mut self, points: &[P]) {
+        let n = points.len();
+        self.ground.resize(n, [0.0; 3]);
+        self.bins.resize(n, 0);
+        let (mount, zones) = (&self.mount, &self.zones);
+        self.ground
+            .par_iter_mut()
+            .zip(self.bins.par_iter_mut())
+            .zip(points.par_iter())
+            .with_min_len(4096)
+            .for_each(|((g, b), p)| {
+                let [x, y, z] = p.xyz();
+                let q = mount * nalgebra::Point3::new(f64::from(x), f64::from(y), f64::from(z));
+                *g = [q.x, q.y, q.z];
+                *b = pack(zones.bin(q.x, q.y));
+            });
+    }
+
+    /// Counting sort of the in-range points into contiguous per-segment runs.
+    fn group_by_segment(&mut self) {
+        let segs = self.zones.segment_count();
+        let s = &mut self.sorted;
+        s.start.clear();
+        s.start.resize(segs + 1, 0);
+        for &b in &self.bins {
+            if b & BEYOND == 0 {
+                s.start[b as usize + 1] += 1;
+            }
+        }
+        for i in 0..segs {
+            s.start[i + 1] += s.start[i];
+        }
+        let total = s.start[segs] as usize;
+        s.xs.resize(total, 0.0);
+        s.ys.resize(total, 0.0);
+        s.zs.resize(total, 0.0);
+        let mut cursor: Vec<u32> = s.start[..segs].to_vec();
+        for (&b, g) in self.bins.iter().zip(&self.ground) {
+            if b & BEYOND == 0 {
+                let c = &mut cursor[b as usize];
+                let i = *c as usize;
+                s.xs[i] = g[0];
+                s.ys[i] = g[1];
+                s.zs[i] = g[2];
+                *c += 1;
+            }
+        }
+    }
+
+    /// Feeds each zone-1 segment's ground-component height (weight-averaged over components
+    /// at or above the filter's likelihood threshold) into the height filter.
+    fn update_height_filter(&mut self, model: &FrameModel) {
+        let thr = self.height.min_ground_likelihood();
+        for s in 0..self.zones.first_zone_segments() {
+            let (mut w, mut h) = (0.0, 0.0);
+            for c in model.segment(s as u32) {
+                if c.ground_likelihood() >= thr {
+                    w += c.gaussian.weight;
+                    h += c.gaussian.weight * c.gaussian.mean[2];
+                }
+            }
+            if w > 0.0 {
+                self.height.observe(s, h / w);
+            }
+        }
+    }
+
+    /// Clears the history if the new pose is too far from the last stored one.
+    fn check_pose_jump(&mut self, pose: &Pose) -> bool {
+        let Some(last) = self.history.front() else {
+            return false;
+        };
+        let rel = last.pose.inverse() * pose;
+        let dt = rel.translation.vector.norm();
+        let dr = rel.rotation.angle();
+        let h = &self.cfg.history;
+        if dt > h.max_translation_jump || dr > h.max_rotation_jump || !dt.is_finite() {
+            warn!(
+                translation_m = dt,
+                rotation_rad = dr,
+                dropped_frames = self.history.len(),
+                "pose jump beyond the configured limit: multi-frame history cleared"
+            );
+            self.history.clear();
+            self.counters.history_resets += 1;
+            return true;
+        }
+        false
+    }
+
+    /// Logs the height filter state (for long runs: call now and then).
+    pub fn log_state(&self) {
+        let s = self.height.summary();
+        info!(
+            active_segments = s.active_segments,
+            mean_height_m = s.mean_height,
+            mean_std_m = s.mean_std,
+            history_frames = self.history.len(),
+            scans = self.counters.scans,
+            rejected = self.counters.rejected,
+            without_pose = self.counters.without_pose,
+            history_resets = self.counters.history_resets,
+            "segmenter state"
+        );
+    }
+}

@@ -1,0 +1,8 @@
+//! groundwork-eval: metrics, the SemanticKITTI protocols of both papers, and the runner
+//! that segments a sequence folder and scores it.
+
+pub mod metrics;
+pub mod sequence;
+
+pub use metrics::{Confusion, Metrics, Protocol};
+pub use sequence::{EvalReport, ScanResult, Sequence, SequenceError, evaluate, median};

@@ -1,0 +1,175 @@
+//! Confusion counts and the metrics both papers report.
+
+use serde::Serialize;
+
+/// Which SemanticKITTI classes count as ground, non-ground or ignored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Protocol {
+    /// GMM paper (and Patchwork++): vegetation (70) is ignored.
+    Gmm,
+    /// TerraSeg: vegetation counts as non-ground.
+    Terraseg,
+}
+
+/// Ground classes: road, parking, sidewalk, other-ground, lane-marking, terrain.
+pub const GROUND_CLASSES: [u16; 6] = [40, 44, 48, 49, 60, 72];
+/// Ignored by both protocols: unlabeled, outlier.
+pub const IGNORED_CLASSES: [u16; 2] = [0, 1];
+/// Vegetation: ignored by the GMM protocol, non-ground in TerraSeg's.
+pub const VEGETATION: u16 = 70;
+
+impl Protocol {
+    /// `Some(true)` for ground, `Some(false)` for non-ground, `None` for ignored.
+    pub fn truth(self, semantic: u16) -> Option<bool> {
+        if IGNORED_CLASSES.contains(&semantic) {
+            None
+        } else if GROUND_CLASSES.contains(&semantic) {
+            Some(true)
+        } else if semantic == VEGETATION && self == Self::Gmm {
+            None
+        } else {
+            Some(false)
+        }
+    }
+}
+
+/// Point counts of a binary ground / non-ground confusion matrix.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct Confusion {
+    /// Ground predicted as ground.
+    pub tp: u64,
+    /// Non-ground predicted as ground.
+    pub fp: u64,
+    /// Ground predicted as non-ground.
+    pub fn_: u64,
+    /// Non-ground predicted as non-ground.
+    pub tn: u64,
+    /// Points the protocol ignores.
+    pub ignored: u64,
+}
+
+/// Metrics in percent. A metric whose denominator is zero is reported as 100 when the
+/// numerator is zero too (nothing to get wrong) — see `ratio`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Metrics {
+    /// Ground precision.
+    pub precision: f64,
+    /// Ground recall.
+    pub recall: f64,
+    /// Ground F1.
+    pub f1: f64,
+    /// Accuracy over non-ignored points.
+    pub accuracy: f64,
+    /// Ground IoU.
+    pub iou_ground: f64,
+    /// Non-ground IoU.
+    pub iou_nonground: f64,
+    /// Mean of the two IoUs.
+    pub miou: f64,
+}
+
+fn ratio(num: u64, den: u64) -> f64 {
+    if den == 0 {
+        100.0
+    } else {
+        100.0 * num as f64 / den as f64
+    }
+}
+
+impl Confusion {
+    /// Counts predictions (probability ≥ `threshold` = ground) against semantic labels.
+    /// Panics never: extra predictions or labels beyond the shorter slice are ignored, and
+    /// callers check lengths when reading the files.
+    pub fn from_predictions(probs: &[f32], labels: &[u16], protocol: Protocol, threshold: f32) -> Self {
+        let mut c = Self::default();
+        for (&p, &l) in probs.iter().zip(labels) {
+            c.add(p >= threshold, protocol.truth(l));
+        }
+        c
+    }
+
+    /// Adds one point.
+    #[inline]
+    pub fn add(&mut self, predicted_ground: bool, truth: Option<bool>) {
+        match (predicted_ground, truth) {
+            (_, None) => self.ignored += 1,
+            (true, Some(true)) => self.tp += 1,
+            (true, Some(false)) => self.fp += 1,
+            (false, Some(true)) => self.fn_ += 1,
+            (false, Some(false)) => self.tn += 1,
+        }
+    }
+
+    /// Pools another confusion into this one.
+    pub fn merge(&mut self, o: &Self) {
+        self.tp += o.tp;
+        self.fp += o.fp;
+        self.fn_ += o.fn_;
+        self.tn += o.tn;
+        self.ignored += o.ignored;
+    }
+
+    /// The metrics of these counts.
+    pub fn metrics(&self) -> Metrics {
+        let (tp, fp, fn_, tn) = (self.tp, self.fp, self.fn_, self.tn);
+        let precision = ratio(tp, tp + fp);
+        let recall = ratio(tp, tp + fn_);
+        let f1 = if precision + recall > 0.0 {
+            2.0 * precision * recall / (precision + recall)
+        } else {
+            0.0
+        };
+        let iou_ground = ratio(tp, tp + fp + fn_);
+        let iou_nonground = ratio(tn, tn + fp + fn_);
+        Metrics {
+            precision,
+            recall,
+            f1,
+            accuracy: ratio(tp + tn, tp + fp + fn_ + tn),
+            iou_ground,
+            iou_nonground,
+            miou: (iou_ground + iou_nonground) / 2.0,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn protocols_differ_only_on_vegetation() {
+        for l in 0u16..300 {
+            let (g, t) = (Protocol::Gmm.truth(l), Protocol::Terraseg.truth(l));
+            if l == VEGETATION {
+                assert_eq!((g, t), (None, Some(false)));
+            } else {
+                assert_eq!(g, t, "label {l}");
+            }
+        }
+        assert_eq!(Protocol::Gmm.truth(40), Some(true));
+        assert_eq!(Protocol::Gmm.truth(72), Some(true));
+        assert_eq!(Protocol::Gmm.truth(0), None);
+        assert_eq!(Protocol::Gmm.truth(10), Some(false)); // car
+    }
+
+    #[test]
+    fn metrics_of_a_known_matrix() {
+        // labels: road, road, car, car, vegetation, unlabeled
+        let labels = [40, 40, 10, 10, 70, 0];
+        let probs = [0.9, 0.2, 0.7, 0.1, 0.9, 0.9];
+        let c = Confusion::from_predictions(&probs, &labels, Protocol::Gmm, 0.5);
+        assert_eq!((c.tp, c.fn_, c.fp, c.tn, c.ignored), (1, 1, 1, 1, 2));
+        let m = c.metrics();
+        assert!((m.precision - 50.0).abs() < 1e-12);
+        assert!((m.recall - 50.0).abs() < 1e-12);
+        assert!((m.iou_ground - 100.0 / 3.0).abs() < 1e-12);
+        assert!((m.accuracy - 50.0).abs() < 1e-12);
+        let t = Confusion::from_predictions(&probs, &labels, Protocol::Terraseg, 0.5);
+        assert_eq!((t.fp, t.ignored), (2, 1));
+        let mut pooled = c;
+        pooled.merge(&t);
+        assert_eq!(pooled.tp, 2);
+    }
+}

@@ -1,0 +1,281 @@
+//! Running the segmenter over a KITTI-layout sequence folder and scoring it.
+//!
+//! Layout: `<dir>/velodyne/*.bin`, optional `<dir>/labels/<stem>.label`, optional
+//! `<dir>/poses.txt` + `<dir>/calib.txt` (then multi-frame history is available).
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use groundwork_core::{FrameReport, Pose, Segmenter};
+use groundwork_io::{FormatError, lidar_poses, list_scans, read_calib_tr, read_labels, read_poses, read_scan, scan_stem};
+use serde::Serialize;
+use thiserror::Error;
+use tracing::warn;
+
+use crate::metrics::{Confusion, Metrics, Protocol};
+
+/// Why a sequence could not be evaluated.
+#[derive(Debug, Error)]
+pub enum SequenceError {
+    /// A file could not be read.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// The folder does not look like a sequence.
+    #[error("{}: {message}", path.display())]
+    Layout {
+        /// The folder.
+        path: PathBuf,
+        /// What is missing.
+        message: String,
+    },
+    /// The segmenter rejected a scan.
+    #[error("{}: {source}", path.display())]
+    Segment {
+        /// The scan file.
+        path: PathBuf,
+        /// Why.
+        source: groundwork_core::SegmentError,
+    },
+}
+
+/// The files of one sequence.
+#[derive(Debug, Clone)]
+pub struct Sequence {
+    /// Scan files, sorted.
+    pub scans: Vec<PathBuf>,
+    /// Label file of each scan, where one exists.
+    pub labels: Vec<Option<PathBuf>>,
+    /// LiDAR world pose of each scan (inv(Tr)·P·Tr), where poses and calibration exist.
+    pub poses: Option<Vec<Pose>>,
+}
+
+impl Sequence {
+    /// Opens `<dir>` (with `velodyne/`) or a plain folder of scans. `poses`/`calib` override
+    /// the default `<dir>/poses.txt` and `<dir>/calib.txt`; without both, scans have no pose.
+    pub fn open(dir: &Path, poses: Option<&Path>, calib: Option<&Path>) -> Result<Self, SequenceError> {
+        let velodyne = dir.join("velodyne");
+        let scan_dir = if velodyne.is_dir() { velodyne } else { dir.to_path_buf() };
+        let scans = list_scans(&scan_dir)?;
+        if scans.is_empty() {
+            return Err(SequenceError::Layout {
+                path: scan_dir,
+                message: "no scan files (*.bin, *.pcd.bin)".into(),
+            });
+        }
+        let label_dir = dir.join("labels");
+        let labels = scans
+            .iter()
+            .map(|s| {
+                let l = label_dir.join(format!("{}.label", scan_stem(s)));
+                l.is_file().then_some(l)
+            })
+            .collect();
+        let poses_path = poses.map(Path::to_path_buf).unwrap_or_else(|| dir.join("poses.txt"));
+        let calib_path = calib.map(Path::to_path_buf).unwrap_or_else(|| dir.join("calib.txt"));
+        let explicit = poses.is_some() || calib.is_some();
+        let poses = if poses_path.is_file() && calib_path.is_file() {
+            let cam = read_poses(&poses_path)?;
+            let tr = read_calib_tr(&calib_path)?;
+            if cam.len() < scans.len() {
+                return Err(SequenceError::Layout {
+                    path: poses_path,
+                    message: format!("{} poses for {} scans", cam.len(), scans.len()),
+                });
+            }
+            Some(lidar_poses(&cam, &tr))
+        } else if explicit {
+            return Err(SequenceError::Layout {
+                path: dir.to_path_buf(),
+                message: format!(
+                    "poses need both {} and {}",
+                    poses_path.display(),
+                    calib_path.display()
+                ),
+            });
+        } else {
+            None
+        };
+        Ok(Self { scans, labels, poses })
+    }
+}
+
+/// One scan's outcome.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScanResult {
+    /// File stem.
+    pub name: String,
+    /// Points in the scan.
+    pub points: usize,
+    /// Confusion counts, if the scan has labels.
+    pub confusion: Option<Confusion>,
+    /// Metrics, if the scan has labels.
+    pub metrics: Option<Metrics>,
+    /// Models queried.
+    pub frames_queried: usize,
+    /// Fit time, ms.
+    pub fit_ms: f64,
+    /// Query time, ms.
+    pub query_ms: f64,
+    /// Fit + query, ms.
+    pub total_ms: f64,
+}
+
+/// A whole evaluation.
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    /// Protocol used.
+    pub protocol: Protocol,
+    /// History length configured.
+    pub history_frames: u32,
+    /// Per scan.
+    pub scans: Vec<ScanResult>,
+    /// Pooled counts over labeled scans.
+    pub pooled: Confusion,
+    /// Pooled metrics.
+    pub pooled_metrics: Metrics,
+    /// Labeled scans.
+    pub labeled_scans: usize,
+    /// Median segmentation time (fit + query) per scan, ms.
+    pub median_ms: f64,
+    /// Scans per second at that median.
+    pub scans_per_second: f64,
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// Segments every scan of the sequence in order (so history builds up) and scores the
+/// labeled ones. `on_scan` is called after each scan (progress reporting).
+pub fn evaluate(
+    seq: &Sequence,
+    segmenter: &mut Segmenter,
+    protocol: Protocol,
+    mut on_scan: impl FnMut(&ScanResult),
+) -> Result<EvalReport, SequenceError> {
+    let max = segmenter.config().sensor.max_points;
+    let thr = segmenter.config().ground.ground_threshold;
+    let mut scans = Vec::with_capacity(seq.scans.len());
+    let mut pooled = Confusion::default();
+    let mut probs = Vec::new();
+    for (i, path) in seq.scans.iter().enumerate() {
+        let points = read_scan(path, max)?;
+        let pose = seq.poses.as_ref().and_then(|p| p.get(i));
+        probs.resize(points.len(), 0.0);
+        let t = Instant::now();
+        let report: FrameReport = segmenter
+            .segment(&points, pose, &mut probs)
+            .map_err(|source| SequenceError::Segment { path: path.clone(), source })?;
+        let total = t.elapsed();
+        let confusion = match &seq.labels[i] {
+            Some(l) => {
+                let labels = read_labels(l, points.len())?;
+                Some(Confusion::from_predictions(&probs, &labels, protocol, thr))
+            }
+            None => None,
+        };
+        if let Some(c) = &confusion {
+            pooled.merge(c);
+        }
+        let r = ScanResult {
+            name: scan_stem(path),
+            points: points.len(),
+            metrics: confusion.as_ref().map(Confusion::metrics),
+            confusion,
+            frames_queried: report.frames_queried,
+            fit_ms: ms(report.fit_time),
+            query_ms: ms(report.query_time),
+            total_ms: ms(total),
+        };
+        on_scan(&r);
+        scans.push(r);
+    }
+    let labeled_scans = scans.iter().filter(|s| s.confusion.is_some()).count();
+    if labeled_scans == 0 {
+        warn!("no scan of the sequence has labels: only timing is reported");
+    }
+    let median_ms = median(scans.iter().map(|s| s.total_ms).collect());
+    Ok(EvalReport {
+        protocol,
+        history_frames: segmenter.config().history.frames,
+        pooled_metrics: pooled.metrics(),
+        pooled,
+        labeled_scans,
+        median_ms,
+        scans_per_second: if median_ms > 0.0 { 1e3 / median_ms } else { 0.0 },
+        scans,
+    })
+}
+
+/// Median of a list (mean of the middle two for even lengths); 0 for an empty list.
+pub fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
+}
+
+impl EvalReport {
+    /// A table a person reads at a glance.
+    pub fn to_table(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "protocol {:?}, {} history frame(s), {} scans ({} labeled)",
+            self.protocol,
+            self.history_frames,
+            self.scans.len(),
+            self.labeled_scans
+        );
+        let _ = writeln!(
+            s,
+            "{:<10} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8}",
+            "scan", "prec", "recall", "F1", "acc", "IoU_g", "IoU_ng", "mIoU", "frames", "fit ms", "query ms"
+        );
+        let row = |s: &mut String, name: &str, m: Option<&Metrics>, frames: String, fit: String, q: String| {
+            let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2}"));
+            let _ = writeln!(
+                s,
+                "{:<10} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8}",
+                name,
+                f(m.map(|m| m.precision)),
+                f(m.map(|m| m.recall)),
+                f(m.map(|m| m.f1)),
+                f(m.map(|m| m.accuracy)),
+                f(m.map(|m| m.iou_ground)),
+                f(m.map(|m| m.iou_nonground)),
+                f(m.map(|m| m.miou)),
+                frames,
+                fit,
+                q
+            );
+        };
+        for r in &self.scans {
+            row(
+                &mut s,
+                &r.name,
+                r.metrics.as_ref(),
+                r.frames_queried.to_string(),
+                format!("{:.2}", r.fit_ms),
+                format!("{:.2}", r.query_ms),
+            );
+        }
+        row(
+            &mut s,
+            "pooled",
+            (self.labeled_scans > 0).then_some(&self.pooled_metrics),
+            String::new(),
+            String::new(),
+            String::new(),
+        );
+        let _ = writeln!(
+            s,
+            "median {:.2} ms per scan (fit + query) = {:.1} scans/s",
+            self.median_ms, self.scans_per_second
+        );
+        s
+    }
+}

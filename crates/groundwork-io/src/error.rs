@@ -1,0 +1,109 @@
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+/// A file that could not be read or written, with the file named in the message.
+#[derive(Debug, Error)]
+pub enum FormatError {
+    /// The operating system refused (missing file, permissions, disk full, …).
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The file's size does not fit its format: truncated or not that format.
+    #[error("{}: {size} bytes is not a whole number of {record}-byte records (truncated, or not this format)", path.display())]
+    Size {
+        /// The file.
+        path: PathBuf,
+        /// Its size in bytes.
+        size: u64,
+        /// Bytes per record of the format.
+        record: usize,
+    },
+    /// The file holds no points.
+    #[error("{}: empty scan (0 points)", path.display())]
+    Empty {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A coordinate is NaN or infinite.
+    #[error("{}: point {index} has a non-finite coordinate ({x}, {y}, {z})", path.display())]
+    NonFinite {
+        /// The file.
+        path: PathBuf,
+        /// Index of the first bad point.
+        index: usize,
+        /// Its coordinates.
+        x: f32,
+        /// Its coordinates.
+        y: f32,
+        /// Its coordinates.
+        z: f32,
+    },
+    /// More points than the configured maximum.
+    #[error("{}: {points} points, more than the configured maximum of {max}", path.display())]
+    TooManyPoints {
+        /// The file.
+        path: PathBuf,
+        /// Points in the file.
+        points: usize,
+        /// The maximum.
+        max: usize,
+    },
+    /// A label file that does not match its scan.
+    #[error("{}: {labels} labels, but the scan has {points} points", path.display())]
+    LabelCount {
+        /// The label file.
+        path: PathBuf,
+        /// Labels in it.
+        labels: usize,
+        /// Points in the scan.
+        points: usize,
+    },
+    /// A text file with a malformed line.
+    #[error("{}:{line}: {message}", path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong.
+        message: String,
+    },
+    /// A configuration file that does not parse or does not validate.
+    #[error("{}: {message}", path.display())]
+    Config {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// A file kind this crate does not read.
+    #[error("{}: unsupported file type (expected {expected})", path.display())]
+    Unsupported {
+        /// The file.
+        path: PathBuf,
+        /// What would have been accepted.
+        expected: &'static str,
+    },
+}
+
+impl FormatError {
+    pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+
+    pub(crate) fn parse(path: &Path, line: usize, message: impl Into<String>) -> Self {
+        Self::Parse {
+            path: path.to_path_buf(),
+            line,
+            message: message.into(),
+        }
+    }
+}

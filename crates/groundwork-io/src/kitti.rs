@@ -1,0 +1,144 @@
+//! SemanticKITTI labels and KITTI odometry poses and calibration.
+
+use std::fs;
+use std::path::Path;
+
+use groundwork_core::{Pose, pose_from_matrix};
+
+use crate::error::FormatError;
+
+/// Reads a SemanticKITTI `.label` file (u32 per point: semantic id in the low 16 bits,
+/// instance id in the high 16 bits) and returns the semantic ids. The label count must
+/// match the scan's point count.
+pub fn read_labels(path: &Path, points: usize) -> Result<Vec<u16>, FormatError> {
+    let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
+    if bytes.len() % 4 != 0 {
+        return Err(FormatError::Size {
+            path: path.to_path_buf(),
+            size: bytes.len() as u64,
+            record: 4,
+        });
+    }
+    let labels: Vec<u16> = bytes
+        .chunks_exact(4)
+        .map(|b| (u32::from_le_bytes([b[0], b[1], b[2], b[3]]) & 0xFFFF) as u16)
+        .collect();
+    if labels.len() != points {
+        return Err(FormatError::LabelCount {
+            path: path.to_path_buf(),
+            labels: labels.len(),
+            points,
+        });
+    }
+    Ok(labels)
+}
+
+fn parse_row_major_3x4(path: &Path, line: usize, vals: &[f64]) -> Result<Pose, FormatError> {
+    if vals.len() != 12 {
+        return Err(FormatError::parse(
+            path,
+            line,
+            format!("expected 12 numbers (3×4 row-major), found {}", vals.len()),
+        ));
+    }
+    let mut m = [[0.0; 4]; 4];
+    for r in 0..3 {
+        m[r].copy_from_slice(&vals[4 * r..4 * r + 4]);
+    }
+    m[3] = [0.0, 0.0, 0.0, 1.0];
+    pose_from_matrix(&m).map_err(|e| FormatError::parse(path, line, e.to_string()))
+}
+
+fn parse_numbers(path: &Path, line: usize, text: &str) -> Result<Vec<f64>, FormatError> {
+    text.split_whitespace()
+        .map(|t| {
+            t.parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| FormatError::parse(path, line, format!("not a finite number: {t:?}")))
+        })
+        .collect()
+}
+
+/// Reads KITTI odometry `poses.txt`: one 3×4 row-major camera pose per line (world from
+/// camera of frame i).
+pub fn read_poses(path: &Path) -> Result<Vec<Pose>, FormatError> {
+    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+    let mut poses = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let vals = parse_numbers(path, i + 1, line)?;
+        poses.push(parse_row_major_3x4(path, i + 1, &vals)?);
+    }
+    if poses.is_empty() {
+        return Err(FormatError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(poses)
+}
+
+/// Reads `Tr` (velodyne → camera) from a KITTI odometry `calib.txt`.
+pub fn read_calib_tr(path: &Path) -> Result<Pose, FormatError> {
+    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+    for (i, line) in text.lines().enumerate() {
+        if let Some(rest) = line.strip_prefix("Tr:") {
+            let vals = parse_numbers(path, i + 1, rest)?;
+            return parse_row_major_3x4(path, i + 1, &vals);
+        }
+    }
+    Err(FormatError::parse(path, 0, "no line starting with \"Tr:\""))
+}
+
+/// LiDAR world poses from camera poses: inv(Tr) · P_i · Tr.
+pub fn lidar_poses(camera: &[Pose], tr: &Pose) -> Vec<Pose> {
+    let tr_inv = tr.inverse();
+    camera.iter().map(|p| tr_inv * p * tr).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_keep_the_semantic_half_and_must_match_the_scan() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("0.label");
+        let raw: Vec<u8> = [40u32 | (7 << 16), 72, 10]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        fs::write(&p, &raw).unwrap();
+        assert_eq!(read_labels(&p, 3).unwrap(), vec![40, 72, 10]);
+        let e = read_labels(&p, 4).unwrap_err().to_string();
+        assert!(e.contains("0.label") && e.contains("3 labels"), "{e}");
+        fs::write(&p, &raw[..5]).unwrap();
+        assert!(read_labels(&p, 1).is_err());
+    }
+
+    #[test]
+    fn poses_and_calib_parse_and_reject_garbage() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("poses.txt");
+        fs::write(&p, "1 0 0 1  0 1 0 2  0 0 1 3\n1 0 0 4 0 1 0 5 0 0 1 6\n").unwrap();
+        let poses = read_poses(&p).unwrap();
+        assert_eq!(poses.len(), 2);
+        assert!((poses[1].translation.vector.z - 6.0).abs() < 1e-12);
+        fs::write(&p, "1 0 0 1 0 1 0 2 0 0 1\n").unwrap();
+        let e = read_poses(&p).unwrap_err().to_string();
+        assert!(e.contains("poses.txt:1") && e.contains("12 numbers"), "{e}");
+        fs::write(&p, "1 0 0 nan 0 1 0 2 0 0 1 3\n").unwrap();
+        assert!(read_poses(&p).is_err());
+
+        let c = dir.path().join("calib.txt");
+        fs::write(&c, "P0: 1 2 3\nTr: 0 -1 0 0  0 0 -1 0  1 0 0 -0.3\n").unwrap();
+        let tr = read_calib_tr(&c).unwrap();
+        // Camera-from-velodyne: velodyne x (forward) becomes camera z.
+        let v = tr * nalgebra::Point3::new(1.0, 0.0, 0.0);
+        assert!((v.z - 0.7).abs() < 1e-12);
+        fs::write(&c, "P0: 1 2 3\n").unwrap();
+        assert!(read_calib_tr(&c).is_err());
+    }
+}
