@@ -14,6 +14,7 @@
 //!   not lose precision to catastrophic cancellation far from the sensor.
 
 use crate::config::GmmConfig;
+use crate::fastmath::{exp_nonpositive, ln_positive};
 
 const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
@@ -124,19 +125,53 @@ impl Evaluator {
     }
 }
 
-/// Running sums of one component's sufficient statistics for the M-step.
-#[derive(Debug, Clone, Copy, Default)]
-struct Moments {
-    n: f64,
-    s: [f64; 3],
-    ss: Sym3,
-    /// Points for which this component is the most likely one.
-    owned: u32,
+/// Lanes of the hand-shaped reductions: 8 × f32 fills an AVX register and two SSE ones.
+const LANES: usize = 8;
+
+/// Per-thread buffers for EM, reused across segments so fitting does not allocate per
+/// segment once warm.
+#[derive(Debug, Default)]
+pub struct EmScratch {
+    x: Vec<f32>,
+    y: Vec<f32>,
+    z: Vec<f32>,
+    /// 1 for real points, 0 for the padding up to a multiple of `LANES`.
+    w: Vec<f32>,
+    /// Component-major log-densities, then responsibilities: `k × padded`.
+    resp: Vec<f32>,
+    max: Vec<f32>,
+    /// w / Σ_c e^{l_c − max}
+    inv: Vec<f32>,
+    best: Vec<u32>,
+}
+
+/// f32 parameters of one component for the vectorised E-step.
+#[derive(Debug, Clone, Copy)]
+struct Lanes {
+    m: [f32; 3],
+    p: [f32; 6],
+    c: f32,
 }
 
 /// Fits a GMM to one segment's points (structure of arrays, equal lengths) by EM.
 /// Returns no components for an empty segment.
 pub fn fit_segment(xs: &[f64], ys: &[f64], zs: &[f64], cfg: &GmmConfig) -> SegmentFit {
+    fit_segment_with(xs, ys, zs, cfg, &mut EmScratch::default())
+}
+
+/// [`fit_segment`] with caller-provided scratch buffers.
+///
+/// The E-step runs in f32 over component-major arrays so that every inner loop is a
+/// straight loop over points that the compiler vectorises; sufficient statistics are taken
+/// relative to each component's current mean (small numbers, no cancellation) and the
+/// M-step itself runs in f64.
+pub fn fit_segment_with(
+    xs: &[f64],
+    ys: &[f64],
+    zs: &[f64],
+    cfg: &GmmConfig,
+    s: &mut EmScratch,
+) -> SegmentFit {
     let n = xs.len();
     debug_assert!(ys.len() == n && zs.len() == n);
     if n == 0 {
@@ -154,6 +189,22 @@ pub fn fit_segment(xs: &[f64], ys: &[f64], zs: &[f64], cfg: &GmmConfig) -> Segme
             (lo.min(z), hi.max(z))
         });
     let reg = cfg.covariance_regularization;
+
+    let np = n.div_ceil(LANES) * LANES;
+    let fill = |dst: &mut Vec<f32>, src: &[f64], c: f64| {
+        dst.clear();
+        dst.extend(src.iter().map(|v| (v - c) as f32));
+        dst.resize(np, 0.0);
+    };
+    fill(&mut s.x, xs, centroid[0]);
+    fill(&mut s.y, ys, centroid[1]);
+    fill(&mut s.z, zs, centroid[2]);
+    s.w.clear();
+    s.w.resize(n, 1.0);
+    s.w.resize(np, 0.0);
+    s.max.resize(np, 0.0);
+    s.inv.resize(np, 0.0);
+    s.best.resize(np, 0);
 
     // Initialisation (paper §III-B1): K = min(ceil(N / N_min), K_max) components at the
     // horizontal mean, spread linearly in z from the lowest to the highest point, equal
@@ -173,95 +224,162 @@ pub fn fit_segment(xs: &[f64], ys: &[f64], zs: &[f64], cfg: &GmmConfig) -> Segme
             }
         })
         .collect();
+    s.resp.resize(k0 * np, 0.0);
 
-    let mut evals: Vec<Evaluator> = Vec::with_capacity(k0);
-    let mut moments: Vec<Moments> = vec![Moments::default(); k0];
-    let mut logp: Vec<f64> = vec![0.0; k0];
     let mut prev_ll = f64::NEG_INFINITY;
     let mut mean_ll = f64::NEG_INFINITY;
     let mut iterations = 0;
+    let mut owned = vec![0u32; k0];
+    let mut lanes: Vec<Lanes> = Vec::with_capacity(k0);
 
     for _ in 0..cfg.max_iterations {
         iterations += 1;
-        evals.clear();
+        let k = comps.len();
         // With reg > 0 every covariance is positive definite; should rounding ever break
         // that, the component falls back to unit covariance instead of poisoning EM.
-        evals.extend(
-            comps
-                .iter()
-                .map(|g| Evaluator::new(g).unwrap_or_else(|| Evaluator::unit(g))),
-        );
-        let k = evals.len();
-        moments[..k].fill(Moments::default());
-        let mut ll = 0.0;
+        lanes.clear();
+        lanes.extend(comps.iter().map(|g| {
+            let e = Evaluator::new(g).unwrap_or_else(|| Evaluator::unit(g));
+            Lanes {
+                m: e.mean.map(|v| v as f32),
+                p: e.precision.map(|v| v as f32),
+                c: e.log_coef as f32,
+            }
+        }));
 
-        // E-step fused with the accumulation of the M-step's sums: one pass over the points.
-        for i in 0..n {
-            let (x, y, z) = (xs[i] - centroid[0], ys[i] - centroid[1], zs[i] - centroid[2]);
-            let mut best = 0;
-            let mut max = f64::NEG_INFINITY;
-            for (c, e) in evals.iter().enumerate() {
-                let l = e.log_density(x, y, z);
-                logp[c] = l;
-                if l > max {
-                    max = l;
-                    best = c;
-                }
+        // E-step, pass 1: log π_c N(x | μ_c, Σ_c) for every component and point.
+        for (c, lc) in lanes.iter().enumerate() {
+            let row = &mut s.resp[c * np..(c + 1) * np];
+            let p = lc.p;
+            for (((r, &x), &y), &z) in row.iter_mut().zip(&s.x).zip(&s.y).zip(&s.z) {
+                let (dx, dy, dz) = (x - lc.m[0], y - lc.m[1], z - lc.m[2]);
+                let q = p[0] * dx * dx
+                    + p[3] * dy * dy
+                    + p[5] * dz * dz
+                    + 2.0 * (p[1] * dx * dy + p[2] * dx * dz + p[4] * dy * dz);
+                *r = lc.c - 0.5 * q;
             }
-            let mut sum = 0.0;
-            for l in &mut logp[..k] {
-                *l = (*l - max).exp();
-                sum += *l;
+        }
+        // Best component per point (for the log-sum-exp and for pruning).
+        s.max.copy_from_slice(&s.resp[..np]);
+        s.best.fill(0);
+        for c in 1..k {
+            let row = &s.resp[c * np..(c + 1) * np];
+            for ((m, b), &l) in s.max.iter_mut().zip(s.best.iter_mut()).zip(row) {
+                let gt = l > *m;
+                *m = if gt { l } else { *m };
+                *b = if gt { c as u32 } else { *b };
             }
-            ll += max + sum.ln();
-            let inv = 1.0 / sum;
-            for (c, m) in moments[..k].iter_mut().enumerate() {
-                let r = logp[c] * inv;
-                m.n += r;
-                let (rx, ry, rz) = (r * x, r * y, r * z);
-                m.s[0] += rx;
-                m.s[1] += ry;
-                m.s[2] += rz;
-                m.ss[0] += rx * x;
-                m.ss[1] += rx * y;
-                m.ss[2] += rx * z;
-                m.ss[3] += ry * y;
-                m.ss[4] += ry * z;
-                m.ss[5] += rz * z;
+        }
+        // Pass 2: exponentiate relative to the best, sum per point.
+        s.inv.fill(0.0);
+        for c in 0..k {
+            let row = &mut s.resp[c * np..(c + 1) * np];
+            for ((r, &m), acc) in row.iter_mut().zip(&s.max).zip(s.inv.iter_mut()) {
+                // Weights below e^-30 relative to the best are flushed to zero: they change
+                // nothing, and their products in the M-step would be denormal floats,
+                // which cost ~100 cycles each on x86.
+                let d = *r - m;
+                let e = if d < -30.0 { 0.0 } else { exp_nonpositive(d) };
+                *r = e;
+                *acc += e;
             }
-            moments[best].owned += 1;
+        }
+        // Log-likelihood (for the stopping rule) and the normalisers w / Σ.
+        let mut ll_lanes = [0.0f32; LANES];
+        for ((inv, m), w) in s
+            .inv
+            .chunks_exact_mut(LANES)
+            .zip(s.max.chunks_exact(LANES))
+            .zip(s.w.chunks_exact(LANES))
+        {
+            for l in 0..LANES {
+                ll_lanes[l] += w[l] * (m[l] + ln_positive(inv[l]));
+                inv[l] = w[l] / inv[l];
+            }
+        }
+        let ll: f64 = ll_lanes.iter().map(|&v| f64::from(v)).sum();
+        // One vectorised count per component: a scattered `owned[best] += 1` serialises
+        // on store-to-load forwarding.
+        for (c, o) in owned[..k].iter_mut().enumerate() {
+            *o = s.best[..n].iter().map(|&b| u32::from(b == c as u32)).sum();
         }
 
-        // M-step (closed form, paper eq. 2), then pruning of weakly supported components.
+        // M-step (closed form, paper eq. 2) from moments about each component's current
+        // mean, then pruning of weakly supported components.
         let mut next = Vec::with_capacity(k);
-        for m in &moments[..k] {
-            if m.owned < cfg.tau_n || m.n < 1e-9 {
+        for (c, lc) in lanes.iter().enumerate() {
+            if owned[c] < cfg.tau_n {
                 continue;
             }
-            let inv = 1.0 / m.n;
-            let mu = [m.s[0] * inv, m.s[1] * inv, m.s[2] * inv];
-            let cov = [
-                m.ss[0] * inv - mu[0] * mu[0] + reg,
-                m.ss[1] * inv - mu[0] * mu[1],
-                m.ss[2] * inv - mu[0] * mu[2],
-                m.ss[3] * inv - mu[1] * mu[1] + reg,
-                m.ss[4] * inv - mu[1] * mu[2],
-                m.ss[5] * inv - mu[2] * mu[2] + reg,
+            let row = &s.resp[c * np..(c + 1) * np];
+            // Ten lane-wise accumulators as separate locals: LLVM keeps them in vector
+            // registers (a 2-D array would be spilled to the stack every point).
+            let z8 = [0.0f32; LANES];
+            let (mut s0, mut s1, mut s2, mut s3, mut s4) = (z8, z8, z8, z8, z8);
+            let (mut s5, mut s6, mut s7, mut s8, mut s9) = (z8, z8, z8, z8, z8);
+            for ((((r, inv), x), y), z) in row
+                .chunks_exact(LANES)
+                .zip(s.inv.chunks_exact(LANES))
+                .zip(s.x.chunks_exact(LANES))
+                .zip(s.y.chunks_exact(LANES))
+                .zip(s.z.chunks_exact(LANES))
+            {
+                for l in 0..LANES {
+                    let g = r[l] * inv[l];
+                    let (dx, dy, dz) = (x[l] - lc.m[0], y[l] - lc.m[1], z[l] - lc.m[2]);
+                    let (gx, gy, gz) = (g * dx, g * dy, g * dz);
+                    s0[l] += g;
+                    s1[l] += gx;
+                    s2[l] += gy;
+                    s3[l] += gz;
+                    s4[l] += gx * dx;
+                    s5[l] += gx * dy;
+                    s6[l] += gx * dz;
+                    s7[l] += gy * dy;
+                    s8[l] += gy * dz;
+                    s9[l] += gz * dz;
+                }
+            }
+            let sum = |a: [f32; LANES]| a.iter().map(|&v| f64::from(v)).sum::<f64>();
+            let t = [
+                sum(s0),
+                sum(s1),
+                sum(s2),
+                sum(s3),
+                sum(s4),
+                sum(s5),
+                sum(s6),
+                sum(s7),
+                sum(s8),
+                sum(s9),
             ];
+            let nk = t[0];
+            if nk < 1e-9 {
+                continue;
+            }
+            let d = [t[1] / nk, t[2] / nk, t[3] / nk];
+            let m = lc.m.map(f64::from);
             next.push(Gaussian {
-                weight: m.n / nf,
-                mean: mu,
-                covariance: cov,
+                weight: nk / nf,
+                mean: [m[0] + d[0], m[1] + d[1], m[2] + d[2]],
+                covariance: [
+                    t[4] / nk - d[0] * d[0] + reg,
+                    t[5] / nk - d[0] * d[1],
+                    t[6] / nk - d[0] * d[2],
+                    t[7] / nk - d[1] * d[1] + reg,
+                    t[8] / nk - d[1] * d[2],
+                    t[9] / nk - d[2] * d[2] + reg,
+                ],
             });
         }
         let pruned = next.len() != comps.len();
-        if pruned {
-            // Removed components' mass is shared out so the weights still sum to one.
-            let total: f64 = next.iter().map(|g| g.weight).sum();
-            if total > 0.0 {
-                for g in &mut next {
-                    g.weight /= total;
-                }
+        // Removed components' mass is shared out (and f32 rounding undone) so the weights
+        // sum to one.
+        let total: f64 = next.iter().map(|g| g.weight).sum();
+        if total > 0.0 {
+            for g in &mut next {
+                g.weight /= total;
             }
         }
         comps = next;
@@ -276,6 +394,9 @@ pub fn fit_segment(xs: &[f64], ys: &[f64], zs: &[f64], cfg: &GmmConfig) -> Segme
         prev_ll = mean_ll;
     }
 
+    if std::env::var("GW_DEBUG_EM").is_ok() {
+        eprintln!("EMSTAT {n} {k0} {iterations} {}", comps.len());
+    }
     for g in &mut comps {
         for (m, c) in g.mean.iter_mut().zip(centroid) {
             *m += c;

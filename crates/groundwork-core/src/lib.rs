@@ -12,6 +12,7 @@
 
 pub mod config;
 pub mod error;
+mod fastmath;
 pub mod gmm;
 pub mod height_filter;
 pub mod likelihood;

@@ -9,6 +9,7 @@ use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
+use crate::fastmath::exp_nonpositive;
 use crate::model::{FrameModel, GroundComponent};
 use crate::zones::{Bin, ZoneModel};
 
@@ -26,8 +27,8 @@ pub(crate) fn pack(bin: Bin) -> u32 {
 }
 
 /// Components further below the best one than this (in log-density) carry a weight under
-/// e^-40 ≈ 4e-18 relative: they are skipped instead of exponentiated.
-const LOG_CUTOFF: f64 = 40.0;
+/// e^-30 ≈ 1e-13 relative: they are skipped instead of exponentiated.
+const LOG_CUTOFF: f64 = 30.0;
 
 /// One model to query, with the transform from the query scan's ground-aligned frame into
 /// that model's ground-aligned frame (`None` for the query scan's own model).
@@ -104,7 +105,7 @@ pub(crate) fn query(
                     if d < -LOG_CUTOFF {
                         continue;
                     }
-                    let w = d.exp();
+                    let w = f64::from(exp_nonpositive(d as f32));
                     sum += w;
                     lf += w * c.flatness;
                     lo += w * c.orientation;

@@ -99,7 +99,7 @@ impl ZoneModel {
             (((r - self.boundaries[zone]) / self.ring_width[zone]) as u32).min(rings - 1)
         };
         let sectors = self.sectors[zone];
-        let mut theta = y.atan2(x);
+        let mut theta = crate::fastmath::atan2(y, x);
         if theta < 0.0 {
             theta += TAU;
         }
