@@ -160,6 +160,9 @@ pub struct GmmConfig {
     /// Added to the covariance diagonal after every M-step (m²) so that no component can
     /// become singular (e.g. on a perfectly planar patch or a segment of repeated points).
     pub covariance_regularization: f64,
+    /// EM of a denser segment runs on an even subsample of this many points (0 = all).
+    /// Every point is still queried and still counts for the outlier rule.
+    pub max_fit_points: u32,
 }
 
 impl Default for GmmConfig {
@@ -168,9 +171,10 @@ impl Default for GmmConfig {
             n_min: 20,
             k_max: 8,
             tau_n: 10,
-            max_iterations: 20,
+            max_iterations: 30,
             tolerance: 1e-3,
             covariance_regularization: 1e-4,
+            max_fit_points: 256,
         }
     }
 }
@@ -307,7 +311,11 @@ impl SegmenterConfig {
                 "must be non-empty and of equal length (one entry per zone)",
             ));
         }
-        if z.rings.iter().chain(&z.sectors).any(|&n| n == 0 || n > 4096) {
+        if z.rings
+            .iter()
+            .chain(&z.sectors)
+            .any(|&n| n == 0 || n > 4096)
+        {
             return Err(ConfigError::invalid(
                 "zones.rings / zones.sectors",
                 "every entry must be in 1..=4096",
@@ -320,7 +328,7 @@ impl SegmenterConfig {
                 "must have one more entry than there are zones",
             ));
         }
-        if b.windows(2).any(|w| !(w[1] > w[0])) || b.iter().any(|v| !v.is_finite()) {
+        if b.iter().any(|v| !v.is_finite()) || b.windows(2).any(|w| w[1] <= w[0]) {
             return Err(ConfigError::invalid(
                 "zones.boundaries",
                 "must be finite and strictly increasing",
@@ -337,7 +345,10 @@ impl SegmenterConfig {
             return Err(ConfigError::invalid("gmm.max_iterations", "must be ≥ 1"));
         }
         if !(g.tolerance.is_finite() && g.tolerance >= 0.0) {
-            return Err(ConfigError::invalid("gmm.tolerance", "must be finite and ≥ 0"));
+            return Err(ConfigError::invalid(
+                "gmm.tolerance",
+                "must be finite and ≥ 0",
+            ));
         }
         if !(g.covariance_regularization.is_finite() && g.covariance_regularization > 0.0) {
             return Err(ConfigError::invalid(
@@ -374,18 +385,14 @@ impl SegmenterConfig {
                 "must be in (0, 1]",
             ));
         }
-        if !(h.sigmas.is_finite() && h.sigmas > 0.0 && h.min_std.is_finite() && h.min_std >= 0.0)
-        {
+        if !(h.sigmas.is_finite() && h.sigmas > 0.0 && h.min_std.is_finite() && h.min_std >= 0.0) {
             return Err(ConfigError::invalid(
                 "height_filter.sigmas / min_std",
                 "sigmas must be > 0 and min_std ≥ 0",
             ));
         }
         if !(1..=MAX_HISTORY_FRAMES).contains(&self.history.frames) {
-            return Err(ConfigError::invalid(
-                "history.frames",
-                "must be in 1..=16",
-            ));
+            return Err(ConfigError::invalid("history.frames", "must be in 1..=16"));
         }
         if !(self.history.max_translation_jump > 0.0 && self.history.max_rotation_jump > 0.0) {
             return Err(ConfigError::invalid(
@@ -395,7 +402,10 @@ impl SegmenterConfig {
         }
         let s = &self.sensor;
         if !(s.ego_radius.is_finite() && s.ego_radius >= 0.0) {
-            return Err(ConfigError::invalid("sensor.ego_radius", "must be finite and ≥ 0"));
+            return Err(ConfigError::invalid(
+                "sensor.ego_radius",
+                "must be finite and ≥ 0",
+            ));
         }
         if s.max_points == 0 || s.max_points > u32::MAX as usize {
             return Err(ConfigError::invalid(
@@ -458,7 +468,12 @@ mod tests {
 
         let mut c = SegmenterConfig::default();
         c.history.frames = 17;
-        assert!(c.validate().unwrap_err().to_string().contains("history.frames"));
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("history.frames")
+        );
 
         let mut c = SegmenterConfig::default();
         c.gmm.covariance_regularization = 0.0;

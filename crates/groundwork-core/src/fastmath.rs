@@ -36,8 +36,40 @@ pub fn ln_positive(x: f32) -> f32 {
     let m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
     let s = (m - 1.0) / (m + 1.0); // in [0, 1/3)
     let s2 = s * s;
-    let atanh = s * (1.0 + s2 * (1.0 / 3.0 + s2 * (1.0 / 5.0 + s2 * (1.0 / 7.0 + s2 * (1.0 / 9.0)))));
+    let atanh =
+        s * (1.0 + s2 * (1.0 / 3.0 + s2 * (1.0 / 5.0 + s2 * (1.0 / 7.0 + s2 * (1.0 / 9.0)))));
     2.0 * atanh + e as f32 * std::f32::consts::LN_2
+}
+
+/// atan2(y, x) in (−π, π] with absolute error below 1e-8 rad: enough to pick a sector
+/// (a point that close to a sector boundary may land on either side, deterministically).
+#[inline(always)]
+pub fn atan2(y: f64, x: f64) -> f64 {
+    use std::f64::consts::{FRAC_PI_2, PI};
+    let (ax, ay) = (x.abs(), y.abs());
+    let (num, den) = if ax >= ay { (ay, ax) } else { (ax, ay) };
+    if den == 0.0 {
+        return 0.0;
+    }
+    let t = num / den; // in [0, 1]
+    // Reduce to |u| ≤ tan(π/8) ≈ 0.414 with atan t = π/4 + atan((t − 1)/(t + 1)); there the
+    // Taylor series to degree 17 errs by less than 0.414^19 / 19 ≈ 3e-9.
+    let big = t > std::f64::consts::SQRT_2 - 1.0;
+    let u = if big { (t - 1.0) / (t + 1.0) } else { t };
+    let u2 = u * u;
+    let mut series = 1.0 / 17.0;
+    for k in (0..8).rev() {
+        series = 1.0 / (2 * k + 1) as f64 - u2 * series;
+    }
+    let a = u * series
+        + if big {
+            std::f64::consts::FRAC_PI_4
+        } else {
+            0.0
+        };
+    let a = if ay > ax { FRAC_PI_2 - a } else { a };
+    let a = if x < 0.0 { PI - a } else { a };
+    if y < 0.0 { -a } else { a }
 }
 
 #[cfg(test)]
@@ -90,30 +122,4 @@ mod tests {
         }
         assert!(worst < 2e-6, "worst absolute error {worst}");
     }
-}
-
-/// atan2(y, x) in (−π, π] with absolute error below 1e-8 rad: enough to pick a sector
-/// (a point that close to a sector boundary may land on either side, deterministically).
-#[inline(always)]
-pub fn atan2(y: f64, x: f64) -> f64 {
-    use std::f64::consts::{FRAC_PI_2, PI};
-    let (ax, ay) = (x.abs(), y.abs());
-    let (num, den) = if ax >= ay { (ay, ax) } else { (ax, ay) };
-    if den == 0.0 {
-        return 0.0;
-    }
-    let t = num / den; // in [0, 1]
-    // Reduce to |u| ≤ tan(π/8) ≈ 0.414 with atan t = π/4 + atan((t − 1)/(t + 1)); there the
-    // Taylor series to degree 17 errs by less than 0.414^19 / 19 ≈ 3e-9.
-    let big = t > std::f64::consts::SQRT_2 - 1.0;
-    let u = if big { (t - 1.0) / (t + 1.0) } else { t };
-    let u2 = u * u;
-    let mut series = 1.0 / 17.0;
-    for k in (0..8).rev() {
-        series = 1.0 / (2 * k + 1) as f64 - u2 * series;
-    }
-    let a = u * series + if big { std::f64::consts::FRAC_PI_4 } else { 0.0 };
-    let a = if ay > ax { FRAC_PI_2 - a } else { a };
-    let a = if x < 0.0 { PI - a } else { a };
-    if y < 0.0 { -a } else { a }
 }

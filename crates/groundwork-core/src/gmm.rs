@@ -94,7 +94,7 @@ impl Evaluator {
     /// `None` when the covariance is not positive definite or the weight is not positive.
     pub fn new(g: &Gaussian) -> Option<Self> {
         let (precision, log_det) = sym3_inverse(&g.covariance)?;
-        if !(g.weight > 0.0) {
+        if g.weight.is_nan() || g.weight <= 0.0 {
             return None;
         }
         Some(Self {
@@ -145,6 +145,17 @@ pub struct EmScratch {
     best: Vec<u32>,
 }
 
+/// A well-mixed 64-bit hash of a point's coordinates (splitmix64 finaliser).
+#[inline]
+fn point_hash(x: f64, y: f64, z: f64) -> u64 {
+    let mut h = x.to_bits() ^ y.to_bits().rotate_left(21) ^ z.to_bits().rotate_left(42);
+    h ^= h >> 30;
+    h = h.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    h ^= h >> 27;
+    h = h.wrapping_mul(0x94d0_49bb_1331_11eb);
+    h ^ (h >> 31)
+}
+
 /// f32 parameters of one component for the vectorised E-step.
 #[derive(Debug, Clone, Copy)]
 struct Lanes {
@@ -190,17 +201,38 @@ pub fn fit_segment_with(
         });
     let reg = cfg.covariance_regularization;
 
-    let np = n.div_ceil(LANES) * LANES;
-    let fill = |dst: &mut Vec<f32>, src: &[f64], c: f64| {
-        dst.clear();
-        dst.extend(src.iter().map(|v| (v - c) as f32));
-        dst.resize(np, 0.0);
+    // Dense segments are fitted on a subsample of about `max_fit_points` points. Which
+    // points are kept depends on a hash of their coordinates, not on their position in the
+    // scan, so the fit (and every output) does not depend on the order a driver delivers
+    // points in. Support counts are scaled back to the whole segment for τ_N pruning.
+    let stride = match cfg.max_fit_points {
+        0 => 1,
+        cap => n.div_ceil(cap as usize).max(1),
     };
-    fill(&mut s.x, xs, centroid[0]);
-    fill(&mut s.y, ys, centroid[1]);
-    fill(&mut s.z, zs, centroid[2]);
+    let threshold = u64::MAX / stride as u64;
+    let keep = |i: usize| stride == 1 || point_hash(xs[i], ys[i], zs[i]) <= threshold;
+    for v in [&mut s.x, &mut s.y, &mut s.z] {
+        v.clear();
+    }
+    for i in (0..n).filter(|&i| keep(i)) {
+        s.x.push((xs[i] - centroid[0]) as f32);
+        s.y.push((ys[i] - centroid[1]) as f32);
+        s.z.push((zs[i] - centroid[2]) as f32);
+    }
+    if s.x.is_empty() {
+        // Astronomically unlikely; fall back to one point rather than fit nothing.
+        s.x.push((xs[0] - centroid[0]) as f32);
+        s.y.push((ys[0] - centroid[1]) as f32);
+        s.z.push((zs[0] - centroid[2]) as f32);
+    }
+    let m = s.x.len();
+    let scale = n as f64 / m as f64;
+    let np = m.div_ceil(LANES) * LANES;
+    for v in [&mut s.x, &mut s.y, &mut s.z] {
+        v.resize(np, 0.0);
+    }
     s.w.clear();
-    s.w.resize(n, 1.0);
+    s.w.resize(m, 1.0);
     s.w.resize(np, 0.0);
     s.max.resize(np, 0.0);
     s.inv.resize(np, 0.0);
@@ -209,7 +241,10 @@ pub fn fit_segment_with(
     // Initialisation (paper §III-B1): K = min(ceil(N / N_min), K_max) components at the
     // horizontal mean, spread linearly in z from the lowest to the highest point, equal
     // weights, unit covariance.
-    let k0 = n.div_ceil(cfg.n_min as usize).min(cfg.k_max as usize).max(1);
+    let k0 = n
+        .div_ceil(cfg.n_min as usize)
+        .min(cfg.k_max as usize)
+        .max(1);
     let mut comps: Vec<Gaussian> = (0..k0)
         .map(|k| {
             let t = if k0 == 1 {
@@ -302,7 +337,8 @@ pub fn fit_segment_with(
         // One vectorised count per component: a scattered `owned[best] += 1` serialises
         // on store-to-load forwarding.
         for (c, o) in owned[..k].iter_mut().enumerate() {
-            *o = s.best[..n].iter().map(|&b| u32::from(b == c as u32)).sum();
+            let count: u32 = s.best[..m].iter().map(|&b| u32::from(b == c as u32)).sum();
+            *o = (f64::from(count) * scale).round() as u32;
         }
 
         // M-step (closed form, paper eq. 2) from moments about each component's current
@@ -361,7 +397,7 @@ pub fn fit_segment_with(
             let d = [t[1] / nk, t[2] / nk, t[3] / nk];
             let m = lc.m.map(f64::from);
             next.push(Gaussian {
-                weight: nk / nf,
+                weight: nk,
                 mean: [m[0] + d[0], m[1] + d[1], m[2] + d[2]],
                 covariance: [
                     t[4] / nk - d[0] * d[0] + reg,
@@ -383,7 +419,7 @@ pub fn fit_segment_with(
             }
         }
         comps = next;
-        mean_ll = ll / nf;
+        mean_ll = ll / m as f64;
         if comps.is_empty() {
             break;
         }
@@ -394,9 +430,6 @@ pub fn fit_segment_with(
         prev_ll = mean_ll;
     }
 
-    if std::env::var("GW_DEBUG_EM").is_ok() {
-        eprintln!("EMSTAT {n} {k0} {iterations} {}", comps.len());
-    }
     for g in &mut comps {
         for (m, c) in g.mean.iter_mut().zip(centroid) {
             *m += c;
@@ -435,12 +468,19 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         let mut pts = [Vec::new(), Vec::new(), Vec::new()];
         // A flat "road" patch and a compact "object" 1.5 m above it, 3:1 in points.
-        sample(&mut rng, 3000, [10.0, 2.0, -1.7], [1.0, 1.0, 0.03], &mut pts);
+        sample(
+            &mut rng,
+            3000,
+            [10.0, 2.0, -1.7],
+            [1.0, 1.0, 0.03],
+            &mut pts,
+        );
         sample(&mut rng, 1000, [10.5, 2.5, -0.2], [0.3, 0.3, 0.4], &mut pts);
         let cfg = GmmConfig {
             k_max: 2,
             max_iterations: 100,
             tolerance: 1e-9,
+            max_fit_points: 0,
             ..GmmConfig::default()
         };
         let fit = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
@@ -456,6 +496,18 @@ mod tests {
         assert!((obj.mean[2] + 0.2).abs() < 0.05, "{obj:?}");
         assert!((obj.covariance[5] - 0.16).abs() < 0.03, "{obj:?}");
         assert!((obj.covariance[0] - 0.09).abs() < 0.02, "{obj:?}");
+
+        // Fitted on a subsample of ~256 points, the same mixture comes out, less precisely.
+        let sub = GmmConfig {
+            max_fit_points: 256,
+            ..cfg
+        };
+        let mut c = fit_segment(&pts[0], &pts[1], &pts[2], &sub).components;
+        assert_eq!(c.len(), 2);
+        c.sort_by(|a, b| a.mean[2].total_cmp(&b.mean[2]));
+        assert!((c[0].weight - 0.75).abs() < 0.06, "{:?}", c[0]);
+        assert!((c[0].mean[2] + 1.7).abs() < 0.02, "{:?}", c[0]);
+        assert!((c[1].mean[2] + 0.2).abs() < 0.15, "{:?}", c[1]);
     }
 
     #[test]
@@ -463,7 +515,7 @@ mod tests {
         let cfg = GmmConfig::default();
         // 9 points < τ_N = 10: the single component is pruned.
         let xs: Vec<f64> = (0..9).map(|i| i as f64 * 0.1).collect();
-        let fit = fit_segment(&xs, &xs, &vec![0.0; 9], &cfg);
+        let fit = fit_segment(&xs, &xs, &[0.0; 9], &cfg);
         assert!(fit.components.is_empty());
         // Empty segment: nothing to fit.
         assert!(fit_segment(&[], &[], &[], &cfg).components.is_empty());
@@ -506,10 +558,14 @@ mod tests {
         let (p, logdet) = sym3_inverse(&m).unwrap();
         let full = |s: &Sym3| [[s[0], s[1], s[2]], [s[1], s[3], s[4]], [s[2], s[4], s[5]]];
         let (a, b) = (full(&m), full(&p));
-        for i in 0..3 {
-            for j in 0..3 {
-                let v: f64 = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-                assert!((v - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
+        // a · b must be the identity.
+        for (i, row) in a.iter().enumerate() {
+            for (j, want) in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]][i]
+                .iter()
+                .enumerate()
+            {
+                let v: f64 = row.iter().zip(&b).map(|(r, bk)| r * bk[j]).sum();
+                assert!((v - want).abs() < 1e-12);
             }
         }
         let det = 4.0 * (3.0 * 2.0 - 0.04) - 1.0 * (2.0 - 0.1) + 0.5 * (0.2 - 1.5);

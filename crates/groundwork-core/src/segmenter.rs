@@ -13,7 +13,7 @@ use crate::config::SegmenterConfig;
 use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
-use crate::point::{Pose, PointXyz, mount_transform};
+use crate::point::{PointXyz, Pose, mount_transform};
 use crate::query::{BEYOND, NEAR, QueryFrame, pack, query};
 use crate::zones::ZoneModel;
 
@@ -133,7 +133,10 @@ impl Segmenter {
 
     /// Component count over all stored frames: memory use of the history is proportional.
     pub fn history_components(&self) -> usize {
-        self.history.iter().map(|f| f.model.components().len()).sum()
+        self.history
+            .iter()
+            .map(|f| f.model.components().len())
+            .sum()
     }
 
     /// Forgets the history and the height filter (e.g. on a new sequence).
@@ -145,6 +148,54 @@ impl Segmenter {
     /// Forgets only the zone-1 height filter.
     pub fn reset_height_filter(&mut self) {
         self.height.reset();
+    }
+
+    /// Fits a model to a scan without touching any between-frame state (height filter,
+    /// history): the first half of [`Segmenter::segment`], exposed for benchmarks and
+    /// callers that fit once and query many times.
+    pub fn fit<P: PointXyz + Sync>(&mut self, points: &[P]) -> Result<FrameModel, SegmentError> {
+        let out = vec![0.0; points.len()];
+        self.check(points, None, &out)?;
+        self.bin_points(points);
+        self.group_by_segment();
+        Ok(self.fit_grouped().0)
+    }
+
+    /// Ground probabilities of `points` (this scan's own sensor frame) under one fitted
+    /// model, single-frame: the second half of [`Segmenter::segment`].
+    pub fn query_model<P: PointXyz + Sync>(
+        &mut self,
+        model: &FrameModel,
+        points: &[P],
+        out: &mut [f32],
+    ) -> Result<(), SegmentError> {
+        self.check(points, None, out)?;
+        self.bin_points(points);
+        let frames = [QueryFrame {
+            model,
+            transform: None,
+        }];
+        query(
+            &self.zones,
+            &frames,
+            &self.ground,
+            &self.bins,
+            self.cfg.zones.beyond_max_range,
+            out,
+        );
+        Ok(())
+    }
+
+    fn fit_grouped(&self) -> (FrameModel, Vec<crate::model::SegmentStats>) {
+        let height = &self.height;
+        let first_zone = self.zones.first_zone_segments();
+        fit_frame(&self.sorted, &self.cfg, |s| {
+            if s < first_zone {
+                height.lower_bound(s)
+            } else {
+                None
+            }
+        })
     }
 
     /// Segments one scan, writing one ground probability in [0, 1] per input point, in
@@ -171,15 +222,7 @@ impl Segmenter {
         };
         self.bin_points(points);
         self.group_by_segment();
-        let height = &self.height;
-        let first_zone = self.zones.first_zone_segments();
-        let (model, stats) = fit_frame(&self.sorted, &self.cfg, |s| {
-            if s < first_zone {
-                height.lower_bound(s)
-            } else {
-                None
-            }
-        });
+        let (model, stats) = self.fit_grouped();
         self.update_height_filter(&model);
         report.fit_time = t0.elapsed();
 
@@ -211,10 +254,15 @@ impl Segmenter {
                     model: &model,
                     transform: None,
                 });
-                frames.extend(self.history.iter().zip(&transforms).map(|(f, t)| QueryFrame {
-                    model: &f.model,
-                    transform: Some(t),
-                }));
+                frames.extend(
+                    self.history
+                        .iter()
+                        .zip(&transforms)
+                        .map(|(f, t)| QueryFrame {
+                            model: &f.model,
+                            transform: Some(t),
+                        }),
+                );
                 query(
                     &self.zones,
                     &frames,

@@ -81,7 +81,12 @@ impl Confusion {
     /// Counts predictions (probability ≥ `threshold` = ground) against semantic labels.
     /// Panics never: extra predictions or labels beyond the shorter slice are ignored, and
     /// callers check lengths when reading the files.
-    pub fn from_predictions(probs: &[f32], labels: &[u16], protocol: Protocol, threshold: f32) -> Self {
+    pub fn from_predictions(
+        probs: &[f32],
+        labels: &[u16],
+        protocol: Protocol,
+        threshold: f32,
+    ) -> Self {
         let mut c = Self::default();
         for (&p, &l) in probs.iter().zip(labels) {
             c.add(p >= threshold, protocol.truth(l));

@@ -7,7 +7,10 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use groundwork_core::{FrameReport, Pose, Segmenter};
-use groundwork_io::{FormatError, lidar_poses, list_scans, read_calib_tr, read_labels, read_poses, read_scan, scan_stem};
+use groundwork_io::{
+    FormatError, lidar_poses, list_scans, read_calib_tr, read_labels, read_poses, read_scan,
+    scan_stem,
+};
 use serde::Serialize;
 use thiserror::Error;
 use tracing::warn;
@@ -52,9 +55,17 @@ pub struct Sequence {
 impl Sequence {
     /// Opens `<dir>` (with `velodyne/`) or a plain folder of scans. `poses`/`calib` override
     /// the default `<dir>/poses.txt` and `<dir>/calib.txt`; without both, scans have no pose.
-    pub fn open(dir: &Path, poses: Option<&Path>, calib: Option<&Path>) -> Result<Self, SequenceError> {
+    pub fn open(
+        dir: &Path,
+        poses: Option<&Path>,
+        calib: Option<&Path>,
+    ) -> Result<Self, SequenceError> {
         let velodyne = dir.join("velodyne");
-        let scan_dir = if velodyne.is_dir() { velodyne } else { dir.to_path_buf() };
+        let scan_dir = if velodyne.is_dir() {
+            velodyne
+        } else {
+            dir.to_path_buf()
+        };
         let scans = list_scans(&scan_dir)?;
         if scans.is_empty() {
             return Err(SequenceError::Layout {
@@ -70,8 +81,12 @@ impl Sequence {
                 l.is_file().then_some(l)
             })
             .collect();
-        let poses_path = poses.map(Path::to_path_buf).unwrap_or_else(|| dir.join("poses.txt"));
-        let calib_path = calib.map(Path::to_path_buf).unwrap_or_else(|| dir.join("calib.txt"));
+        let poses_path = poses
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| dir.join("poses.txt"));
+        let calib_path = calib
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| dir.join("calib.txt"));
         let explicit = poses.is_some() || calib.is_some();
         let poses = if poses_path.is_file() && calib_path.is_file() {
             let cam = read_poses(&poses_path)?;
@@ -95,7 +110,11 @@ impl Sequence {
         } else {
             None
         };
-        Ok(Self { scans, labels, poses })
+        Ok(Self {
+            scans,
+            labels,
+            poses,
+        })
     }
 }
 
@@ -163,9 +182,13 @@ pub fn evaluate(
         let pose = seq.poses.as_ref().and_then(|p| p.get(i));
         probs.resize(points.len(), 0.0);
         let t = Instant::now();
-        let report: FrameReport = segmenter
-            .segment(&points, pose, &mut probs)
-            .map_err(|source| SequenceError::Segment { path: path.clone(), source })?;
+        let report: FrameReport =
+            segmenter
+                .segment(&points, pose, &mut probs)
+                .map_err(|source| SequenceError::Segment {
+                    path: path.clone(),
+                    source,
+                })?;
         let total = t.elapsed();
         let confusion = match &seq.labels[i] {
             Some(l) => {
@@ -202,7 +225,11 @@ pub fn evaluate(
         pooled,
         labeled_scans,
         median_ms,
-        scans_per_second: if median_ms > 0.0 { 1e3 / median_ms } else { 0.0 },
+        scans_per_second: if median_ms > 0.0 {
+            1e3 / median_ms
+        } else {
+            0.0
+        },
         scans,
     })
 }
@@ -214,7 +241,11 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     }
     v.sort_by(f64::total_cmp);
     let n = v.len();
-    if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
 }
 
 impl EvalReport {
@@ -233,9 +264,24 @@ impl EvalReport {
         let _ = writeln!(
             s,
             "{:<10} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8}",
-            "scan", "prec", "recall", "F1", "acc", "IoU_g", "IoU_ng", "mIoU", "frames", "fit ms", "query ms"
+            "scan",
+            "prec",
+            "recall",
+            "F1",
+            "acc",
+            "IoU_g",
+            "IoU_ng",
+            "mIoU",
+            "frames",
+            "fit ms",
+            "query ms"
         );
-        let row = |s: &mut String, name: &str, m: Option<&Metrics>, frames: String, fit: String, q: String| {
+        let row = |s: &mut String,
+                   name: &str,
+                   m: Option<&Metrics>,
+                   frames: String,
+                   fit: String,
+                   q: String| {
             let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2}"));
             let _ = writeln!(
                 s,

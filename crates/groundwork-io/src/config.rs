@@ -34,11 +34,17 @@ mod tests {
     #[test]
     fn unknown_keys_and_bad_values_are_errors_naming_the_file() {
         let p = Path::new("sensor.toml");
-        let e = parse_config(p, "[gmm]\nk_maxx = 3\n").unwrap_err().to_string();
+        let e = parse_config(p, "[gmm]\nk_maxx = 3\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("sensor.toml") && e.contains("k_maxx"), "{e}");
-        let e = parse_config(p, "[zones]\nmax_range = 1.0\n").unwrap_err().to_string();
+        let e = parse_config(p, "[zones]\nmax_range = 1.0\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("zones.max_range"), "{e}");
-        let e = parse_config(p, "[history]\nframes = \"many\"\n").unwrap_err().to_string();
+        let e = parse_config(p, "[history]\nframes = \"many\"\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("sensor.toml"), "{e}");
         let c = parse_config(p, "[gmm]\nk_max = 4\n").unwrap();
         assert_eq!(c.gmm.k_max, 4);

@@ -55,7 +55,9 @@ fn parse_numbers(path: &Path, line: usize, text: &str) -> Result<Vec<f64>, Forma
             t.parse::<f64>()
                 .ok()
                 .filter(|v| v.is_finite())
-                .ok_or_else(|| FormatError::parse(path, line, format!("not a finite number: {t:?}")))
+                .ok_or_else(|| {
+                    FormatError::parse(path, line, format!("not a finite number: {t:?}"))
+                })
         })
         .collect()
 }

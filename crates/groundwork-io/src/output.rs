@@ -50,6 +50,9 @@ mod tests {
         let p = [0.0, 0.49, 0.5, 1.0];
         write_outputs(dir.path(), "000007", &p, 0.5).unwrap();
         assert_eq!(read_prob(&dir.path().join("000007.prob")).unwrap(), p);
-        assert_eq!(fs::read(dir.path().join("000007.ground")).unwrap(), [0, 0, 1, 1]);
+        assert_eq!(
+            fs::read(dir.path().join("000007.ground")).unwrap(),
+            [0, 0, 1, 1]
+        );
     }
 }

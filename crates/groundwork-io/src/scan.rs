@@ -80,7 +80,9 @@ pub fn read_scan(path: &Path, max_points: usize) -> Result<Vec<Point>, FormatErr
             record,
         });
     }
-    let f = |b: &[u8], i: usize| f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
+    let f = |b: &[u8], i: usize| {
+        f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+    };
     let points: Vec<Point> = bytes
         .chunks_exact(record)
         .map(|r| Point {
@@ -166,7 +168,10 @@ mod tests {
 
         // Too many points, checked before reading.
         let e = read_scan(&p, 1).unwrap_err().to_string();
-        assert!(e.contains("000001.bin") && e.contains("maximum of 1"), "{e}");
+        assert!(
+            e.contains("000001.bin") && e.contains("maximum of 1"),
+            "{e}"
+        );
 
         // Truncated: 2 points and 3 bytes.
         let mut bytes = fs::read(&p).unwrap();
@@ -186,7 +191,9 @@ mod tests {
         assert!(e.contains("point 0") && e.contains("non-finite"), "{e}");
 
         // Missing file.
-        let e = read_scan(&dir.path().join("nope.bin"), 10).unwrap_err().to_string();
+        let e = read_scan(&dir.path().join("nope.bin"), 10)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("nope.bin"), "{e}");
 
         // Unsupported extension.
@@ -202,7 +209,15 @@ mod tests {
         fs::write(&p, bytes).unwrap();
         let pts = read_scan(&p, 10).unwrap();
         assert_eq!(pts.len(), 2);
-        assert_eq!(pts[1], Point { x: 6.0, y: 7.0, z: 8.0, intensity: 9.0 });
+        assert_eq!(
+            pts[1],
+            Point {
+                x: 6.0,
+                y: 7.0,
+                z: 8.0,
+                intensity: 9.0
+            }
+        );
         assert_eq!(scan_stem(&p), "x");
     }
 }

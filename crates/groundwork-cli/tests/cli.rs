@@ -1,0 +1,128 @@
+//! The `groundwork` binary end to end: outputs, bad inputs, config errors, eval output.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_groundwork"))
+}
+
+fn data() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/semantickitti-00")
+}
+
+fn copy_scan(n: u32, dir: &Path) -> PathBuf {
+    let src = data().join(format!("velodyne/{n:06}.bin"));
+    let dst = dir.join(format!("{n:06}.bin"));
+    fs::copy(src, &dst).unwrap();
+    dst
+}
+
+#[test]
+fn segment_writes_one_prob_and_one_ground_per_scan_and_survives_bad_files() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    let good = copy_scan(0, &input);
+    // Truncated, empty and NaN scans beside the good one.
+    let bytes = fs::read(&good).unwrap();
+    fs::write(input.join("truncated.bin"), &bytes[..bytes.len() - 5]).unwrap();
+    fs::write(input.join("empty.bin"), []).unwrap();
+    let mut nan = bytes[..160].to_vec();
+    nan[4..8].copy_from_slice(&f32::NAN.to_le_bytes());
+    fs::write(input.join("nan.bin"), nan).unwrap();
+    let out = tmp.path().join("out");
+
+    let o = bin()
+        .args(["segment", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(
+        o.status.code(),
+        Some(1),
+        "bad scans make the exit code 1: {stderr}"
+    );
+    assert!(
+        stderr.contains("truncated.bin") && stderr.contains("not a whole number"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("empty.bin") && stderr.contains("empty scan"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("nan.bin") && stderr.contains("non-finite"),
+        "{stderr}"
+    );
+
+    // The good scan was still segmented: one value per point, in [0, 1], mask consistent.
+    let n = bytes.len() / 16;
+    let prob = groundwork_io::read_prob(&out.join("000000.prob")).unwrap();
+    let mask = fs::read(out.join("000000.ground")).unwrap();
+    assert_eq!(prob.len(), n);
+    assert_eq!(mask.len(), n);
+    assert!(prob.iter().all(|p| (0.0..=1.0).contains(p)));
+    for (p, m) in prob.iter().zip(&mask) {
+        assert_eq!(*m, u8::from(*p >= 0.5));
+    }
+    let ground = mask.iter().filter(|&&m| m == 1).count();
+    assert!(ground > n / 4 && ground < n * 3 / 4, "{ground} of {n}");
+    assert!(!out.join("truncated.prob").exists());
+}
+
+#[test]
+fn config_errors_name_the_file_and_the_key() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tmp.path().join("bad.toml");
+    fs::write(&cfg, "[gmm]\nk_max = 8\nsmoothing = 1\n").unwrap();
+    let scan = copy_scan(1, tmp.path());
+    let o = bin()
+        .args(["segment", "--out"])
+        .arg(tmp.path())
+        .arg("--config")
+        .arg(&cfg)
+        .arg(&scan)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr.contains("bad.toml") && stderr.contains("smoothing"),
+        "{stderr}"
+    );
+
+    let o = bin()
+        .args(["eval", "--frames", "40"])
+        .arg(data())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr.contains("history.frames"), "{stderr}");
+}
+
+#[test]
+fn eval_json_reports_per_scan_and_pooled_metrics() {
+    let o = bin().args(["eval", "--json"]).arg(data()).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["scans"].as_array().unwrap().len(), 6);
+    assert_eq!(v["labeled_scans"], 3);
+    let iou = v["pooled_metrics"]["iou_ground"].as_f64().unwrap();
+    assert!(iou > 97.0, "{iou}");
+    assert!(v["scans"][3]["metrics"].is_null(), "frame 3 has no labels");
+    assert!(v["scans_per_second"].as_f64().unwrap() > 0.0);
+
+    let o = bin().arg("eval").arg(data()).output().unwrap();
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        table.contains("pooled") && table.contains("IoU_g") && table.contains("scans/s"),
+        "{table}"
+    );
+}

@@ -1,0 +1,59 @@
+//! Accuracy on the real labeled KITTI frames 0–2 (SemanticKITTI sequence 00).
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
+use groundwork_core::Segmenter;
+use groundwork_eval::{Protocol, Sequence, evaluate};
+use groundwork_io::load_config;
+use groundwork_tests::{hdl64e_preset, kitti_sequence};
+
+/// Measured 97.66 pooled ground IoU (gmm protocol) with the HDL-64E preset; the paper
+/// reports 95.37 on the whole of sequence 00, Patchwork++ 1.4.1 scores 98.04 on these three
+/// frames. The threshold leaves room for float differences across machines only.
+const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 97.3;
+
+#[test]
+fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
+    let cfg = load_config(&hdl64e_preset()).unwrap();
+    assert_eq!(cfg.history.frames, 1);
+    let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
+    // Single frame: no poses needed, and only the labeled frames.
+    seq.poses = None;
+    seq.scans.truncate(3);
+    seq.labels.truncate(3);
+    let mut seg = Segmenter::new(cfg).unwrap();
+    let r = evaluate(&seq, &mut seg, Protocol::Gmm, |_| {}).unwrap();
+    assert_eq!(r.labeled_scans, 3);
+    let m = r.pooled_metrics;
+    eprintln!("pooled: {m:?}");
+    assert!(
+        m.iou_ground >= MIN_POOLED_IOU_SINGLE_FRAME,
+        "pooled ground IoU {:.2}",
+        m.iou_ground
+    );
+    // Precision is what the GMM paper stresses (modelling objects keeps them out of the
+    // ground): it must stay high, not be traded for recall.
+    assert!(m.precision >= 99.0, "precision {:.2}", m.precision);
+    for s in &r.scans {
+        let iou = s.metrics.unwrap().iou_ground;
+        assert!(iou >= 96.5, "scan {}: IoU {iou:.2}", s.name);
+    }
+}
+
+#[test]
+fn terraseg_protocol_counts_vegetation_as_non_ground() {
+    let cfg = load_config(&hdl64e_preset()).unwrap();
+    let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
+    seq.poses = None;
+    seq.scans.truncate(1);
+    seq.labels.truncate(1);
+    let mut seg = Segmenter::new(cfg.clone()).unwrap();
+    let gmm = evaluate(&seq, &mut seg, Protocol::Gmm, |_| {}).unwrap();
+    let mut seg = Segmenter::new(cfg).unwrap();
+    let ts = evaluate(&seq, &mut seg, Protocol::Terraseg, |_| {}).unwrap();
+    // Same predictions, vegetation moves from ignored to non-ground.
+    assert!(ts.pooled.ignored < gmm.pooled.ignored);
+    assert_eq!(ts.pooled.tp, gmm.pooled.tp);
+    assert!(ts.pooled.fp >= gmm.pooled.fp);
+    assert!(ts.pooled_metrics.miou > 85.0, "{:?}", ts.pooled_metrics);
+}
