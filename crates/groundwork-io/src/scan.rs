@@ -173,9 +173,9 @@ mod tests {
             "{e}"
         );
 
-        // Truncated: 2 points and 3 bytes.
+        // Truncated: 2 points and 3 bytes of a third.
         let mut bytes = fs::read(&p).unwrap();
-        bytes.truncate(35);
+        bytes.extend_from_slice(&[0, 0, 128]);
         fs::write(&p, &bytes).unwrap();
         let e = read_scan(&p, 10).unwrap_err().to_string();
         assert!(e.contains("000001.bin") && e.contains("35 bytes"), "{e}");
