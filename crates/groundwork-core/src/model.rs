@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use crate::config::SegmenterConfig;
 use crate::gmm::{Evaluator, Gaussian, fit_segment};
 use crate::likelihood::{flatness, inverted_sigmoid};
+use crate::query::QueryTable;
 
 /// A component with its three ground likelihoods (paper §III-C).
 #[derive(Debug, Clone, Copy)]
@@ -44,6 +45,8 @@ pub struct FrameModel {
     /// `components[start[s]..start[s+1]]` belong to segment s.
     start: Vec<u32>,
     components: Vec<GroundComponent>,
+    /// The same components in f32, laid out for the vectorised query.
+    table: QueryTable,
 }
 
 impl FrameModel {
@@ -65,6 +68,10 @@ impl FrameModel {
     /// All components of all segments.
     pub fn components(&self) -> &[GroundComponent] {
         &self.components
+    }
+
+    pub(crate) fn query_table(&self) -> &QueryTable {
+        &self.table
     }
 
     /// Segments that hold at least one component.
@@ -187,6 +194,7 @@ pub fn fit_frame(
     let mut model = FrameModel {
         start: Vec::with_capacity(segments + 1),
         components: Vec::with_capacity(fitted.iter().map(|f| f.1.len()).sum()),
+        table: QueryTable::default(),
     };
     let mut stats = Vec::with_capacity(segments);
     model.start.push(0);
@@ -195,6 +203,7 @@ pub fn fit_frame(
         model.start.push(model.components.len() as u32);
         stats.push(st);
     }
+    model.table = QueryTable::new(&model);
     (model, stats)
 }
 

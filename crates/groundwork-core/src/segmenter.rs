@@ -14,7 +14,7 @@ use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, mount_transform};
-use crate::query::{BEYOND, NEAR, QueryFrame, pack, query};
+use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, pack, query};
 use crate::zones::ZoneModel;
 
 /// What happened to one scan.
@@ -84,6 +84,7 @@ pub struct Segmenter {
     ground: Vec<[f64; 3]>,
     bins: Vec<u32>,
     sorted: SegmentedPoints,
+    query_scratch: QueryScratch,
 }
 
 impl Segmenter {
@@ -103,6 +104,7 @@ impl Segmenter {
             ground: Vec::new(),
             bins: Vec::new(),
             sorted: SegmentedPoints::default(),
+            query_scratch: QueryScratch::default(),
         })
     }
 
@@ -181,6 +183,7 @@ impl Segmenter {
             &self.ground,
             &self.bins,
             self.cfg.zones.beyond_max_range,
+            &mut self.query_scratch,
             out,
         );
         Ok(())
@@ -269,6 +272,7 @@ impl Segmenter {
                     &self.ground,
                     &self.bins,
                     self.cfg.zones.beyond_max_range,
+                    &mut self.query_scratch,
                     out,
                 );
                 report.frames_queried = frames.len();
@@ -292,6 +296,7 @@ impl Segmenter {
                     &self.ground,
                     &self.bins,
                     self.cfg.zones.beyond_max_range,
+                    &mut self.query_scratch,
                     out,
                 );
                 report.frames_queried = 1;

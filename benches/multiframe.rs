@@ -1,0 +1,58 @@
+//! Query time against N_f = 1, 2, 4, 8, 16 fitted frames for KITTI frame 5 (124k points).
+//!
+//! History: the six vendored scans, then copies of them placed 0.8 m apart behind the
+//! vehicle (KITTI's speed at 10 Hz) to reach 15 past frames. Criterion reports the query
+//! alone (from the segmenter's own split timing); fit time does not depend on N_f.
+//!
+//! `cargo bench -p groundwork-benches --bench multiframe`
+
+use std::time::Duration;
+
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use groundwork_benches::{kitti_frame, kitti_sequence, preset};
+use groundwork_core::{Pose, Segmenter};
+use nalgebra::{Translation3, Vector3};
+
+fn multi_frame(c: &mut Criterion) {
+    let seq = kitti_sequence();
+    let cam = groundwork_io::read_poses(&seq.join("poses.txt")).expect("poses");
+    let tr = groundwork_io::read_calib_tr(&seq.join("calib.txt")).expect("calib");
+    let poses = groundwork_io::lidar_poses(&cam, &tr);
+    let scans: Vec<_> = (0..6).map(|i| kitti_frame(i).expect("frame")).collect();
+    let query_pose = poses[5];
+    let mut g = c.benchmark_group("multi_frame_query_kitti_frame5");
+    g.sample_size(20);
+    for nf in [1u32, 2, 4, 8, 16] {
+        let mut cfg = preset().expect("preset");
+        cfg.history.frames = nf;
+        let mut seg = Segmenter::new(cfg).expect("config");
+        // Oldest first: frame k steps behind the query pose.
+        for k in (1..nf as usize).rev() {
+            let back =
+                Translation3::from(query_pose.rotation * Vector3::new(-0.8 * k as f64, 0.0, 0.0));
+            let pose: Pose = back * query_pose;
+            let pts = &scans[(6 - (k % 6)) % 6];
+            let mut out = vec![0.0; pts.len()];
+            seg.segment(pts, Some(&pose), &mut out)
+                .expect("history frame");
+        }
+        let pts = &scans[5];
+        let mut out = vec![0.0; pts.len()];
+        g.bench_with_input(BenchmarkId::from_parameter(nf), &nf, |b, _| {
+            b.iter_custom(|iters| {
+                let mut total = Duration::ZERO;
+                for _ in 0..iters {
+                    let r = seg
+                        .segment(pts, Some(&query_pose), &mut out)
+                        .expect("segment");
+                    total += r.query_time;
+                }
+                total
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, multi_frame);
+criterion_main!(benches);
