@@ -2,18 +2,28 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use groundwork_core::{Segmenter, SegmenterConfig};
 use groundwork_eval::{Protocol, Sequence, evaluate, median};
 use groundwork_io::{load_config, parse_config, read_scan, scan_stem, write_outputs};
+use groundwork_service::{
+    ServiceConfig, check_shared_memory, consumer, launcher, producer, segmenter,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::{error, info};
 
 /// The HDL-64E preset, embedded so the binary works from any directory.
 const DEFAULT_PRESET: &str = include_str!("../../../config/sensors/hdl64e.toml");
+/// The service defaults, likewise.
+const DEFAULT_SERVICE: &str = include_str!("../../../config/service.toml");
+/// The bundled sample scans (this checkout's copy).
+const BUNDLED_DATA: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../tests/data/semantickitti-00"
+);
 
 #[derive(Parser, Debug)]
 #[command(name = "groundwork", version, about = "GMM LiDAR ground segmentation")]
@@ -39,8 +49,96 @@ struct Common {
     calib: Option<PathBuf>,
 }
 
+#[derive(clap::Args, Debug, Clone)]
+struct ServiceArgs {
+    /// Service configuration (TOML). Default: the built-in config/service.toml.
+    #[arg(long)]
+    service: Option<PathBuf>,
+    /// Service name prefix; overrides the configuration (run pipelines side by side).
+    #[arg(long)]
+    prefix: Option<String>,
+}
+
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Run producer, segmenter and consumer as three processes on the bundled scans.
+    /// Stops cleanly on Ctrl-C, or after --count scans.
+    Pipeline {
+        #[command(flatten)]
+        common: Common,
+        #[command(flatten)]
+        service: ServiceArgs,
+        /// Scans to replay (looping); default: the bundled KITTI sequence.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Stop after this many scans (default: run until Ctrl-C).
+        #[arg(long)]
+        count: Option<u64>,
+        /// Producer rate, scans per second (0 = as fast as possible).
+        #[arg(long)]
+        rate: Option<f64>,
+        /// Consumer writes .prob/.ground files here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Stage: publish scans from a folder (looping) or synthetic scans.
+    Producer {
+        #[command(flatten)]
+        service: ServiceArgs,
+        /// Stop after this many scans.
+        #[arg(long)]
+        count: Option<u64>,
+        /// Scans per second (0 = as fast as possible); overrides the configuration.
+        #[arg(long)]
+        rate: Option<f64>,
+        /// Publish generated scans of this many points instead of files.
+        #[arg(long, conflicts_with = "data")]
+        synthetic: Option<usize>,
+        /// Fault testing: every N-th scan is malformed (NaN, empty, bad schema, bad count).
+        #[arg(long)]
+        malformed_every: Option<u64>,
+        /// Sequence folder to replay; default: the bundled KITTI sequence.
+        data: Option<PathBuf>,
+    },
+    /// Stage: segment scans into masks, keeping the multi-frame history.
+    Segmenter {
+        #[command(flatten)]
+        common: Common,
+        #[command(flatten)]
+        service: ServiceArgs,
+        /// Stop after this many scans.
+        #[arg(long)]
+        count: Option<u64>,
+        /// Transport benchmark: answer with masks of the right size without segmenting.
+        #[arg(long)]
+        echo: bool,
+    },
+    /// Stage: read scans and masks, report latency, accuracy and counters.
+    Consumer {
+        #[command(flatten)]
+        service: ServiceArgs,
+        /// Stop after this many masks.
+        #[arg(long)]
+        count: Option<u64>,
+        /// Stop when no mask arrived for this many seconds (after the first).
+        #[arg(long)]
+        idle_timeout: Option<f64>,
+        /// Sequence folder with labels/ for live accuracy.
+        #[arg(long)]
+        labels: Option<PathBuf>,
+        /// Write .prob/.ground files here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the final report as JSON here.
+        #[arg(long)]
+        report_json: Option<PathBuf>,
+        /// Fault testing: after this many masks stop reading for --stall-secs.
+        #[arg(long)]
+        stall_after: Option<u64>,
+        /// Seconds to stall.
+        #[arg(long, default_value_t = 0.0)]
+        stall_secs: f64,
+    },
     /// Segment scans: writes <out>/<scan>.prob (f32 per point) and <out>/<scan>.ground (u8).
     Segment {
         #[command(flatten)]
@@ -104,7 +202,174 @@ fn run(cli: Cli) -> Result<ExitCode> {
             protocol,
             json,
         } => eval(&common, &sequence, protocol, json),
+        Command::Pipeline {
+            common,
+            service,
+            data,
+            count,
+            rate,
+            out,
+        } => pipeline(&common, &service, data, count, rate, out),
+        Command::Producer {
+            service,
+            count,
+            rate,
+            synthetic,
+            malformed_every,
+            data,
+        } => {
+            let cfg = load_service(&service)?;
+            let source = match synthetic {
+                Some(n) => producer::Source::Synthetic(n),
+                None => producer::Source::Sequence(data.unwrap_or_else(|| BUNDLED_DATA.into())),
+            };
+            producer::run(
+                &cfg,
+                &producer::ProducerOptions {
+                    source,
+                    count,
+                    rate_hz: rate,
+                    malformed_every,
+                },
+            )?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Segmenter {
+            common,
+            service,
+            count,
+            echo,
+        } => {
+            let cfg = load_service(&service)?;
+            segmenter::run(
+                &cfg,
+                &segmenter::SegmenterOptions {
+                    segmenter: load(&common)?,
+                    count,
+                    echo,
+                },
+            )?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Consumer {
+            service,
+            count,
+            idle_timeout,
+            labels,
+            out,
+            report_json,
+            stall_after,
+            stall_secs,
+        } => {
+            let cfg = load_service(&service)?;
+            let secs =
+                |s: f64| Duration::try_from_secs_f64(s).context("seconds must be finite and >= 0");
+            consumer::run(
+                &cfg,
+                &consumer::ConsumerOptions {
+                    count,
+                    idle_timeout: idle_timeout.map(secs).transpose()?,
+                    labels,
+                    out,
+                    report_json,
+                    stall_after,
+                    stall: secs(stall_secs)?,
+                },
+            )?;
+            Ok(ExitCode::SUCCESS)
+        }
     }
+}
+
+fn load_service(args: &ServiceArgs) -> Result<ServiceConfig> {
+    let mut cfg = match &args.service {
+        Some(p) => ServiceConfig::load(p)?,
+        None => toml::from_str(DEFAULT_SERVICE).context("built-in config/service.toml")?,
+    };
+    if let Some(p) = &args.prefix {
+        cfg.prefix = p.clone();
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+fn pipeline(
+    common: &Common,
+    service: &ServiceArgs,
+    data: Option<PathBuf>,
+    count: Option<u64>,
+    rate: Option<f64>,
+    out: Option<PathBuf>,
+) -> Result<ExitCode> {
+    // Validate everything here, before any process starts.
+    let cfg = load_service(service)?;
+    load(common)?;
+    check_shared_memory(&cfg)?;
+    let data = data.unwrap_or_else(|| BUNDLED_DATA.into());
+    anyhow::ensure!(data.is_dir(), "{}: no such folder", data.display());
+    let exe = std::env::current_exe().context("cannot find this executable")?;
+    let stage = |name: &'static str| {
+        let mut c = std::process::Command::new(&exe);
+        c.arg(name).arg("--prefix").arg(&cfg.prefix);
+        if let Some(s) = &service.service {
+            c.arg("--service").arg(s);
+        }
+        c
+    };
+    let mut seg = stage("segmenter");
+    if let Some(c) = &common.config {
+        seg.arg("--config").arg(c);
+    }
+    if let Some(f) = common.frames {
+        seg.arg("--frames").arg(f.to_string());
+    }
+    let mut con = stage("consumer");
+    con.arg("--labels").arg(&data);
+    if let Some(n) = count {
+        con.arg("--count")
+            .arg(n.to_string())
+            .arg("--idle-timeout")
+            .arg("5");
+    }
+    if let Some(o) = &out {
+        con.arg("--out").arg(o);
+    }
+    let mut prod = stage("producer");
+    if let Some(n) = count {
+        prod.arg("--count").arg(n.to_string());
+    }
+    if let Some(r) = rate {
+        prod.arg("--rate").arg(r.to_string());
+    }
+    prod.arg(&data);
+    let outcome = launcher::run(
+        vec![
+            launcher::Stage {
+                name: "segmenter",
+                command: seg,
+            },
+            launcher::Stage {
+                name: "consumer",
+                command: con,
+            },
+            launcher::Stage {
+                name: "producer",
+                command: prod,
+            },
+        ],
+        "consumer",
+    )?;
+    let ok = outcome
+        .iter()
+        .all(|(_, s)| s.is_some_and(|s| s.success() || s.code().is_none()));
+    for (name, s) in &outcome {
+        info!(stage = *name, status = ?s, "stage stopped");
+    }
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }
 
 fn load(common: &Common) -> Result<SegmenterConfig> {
@@ -217,6 +482,13 @@ fn eval(common: &Common, dir: &Path, protocol: ProtocolArg, json: bool) -> Resul
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn embedded_service_config_is_valid() {
+        let c: ServiceConfig = toml::from_str(DEFAULT_SERVICE).unwrap();
+        c.validate().unwrap();
+        assert_eq!(c, ServiceConfig::default());
+    }
 
     #[test]
     fn embedded_preset_is_valid() {

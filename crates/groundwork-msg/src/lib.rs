@@ -1,0 +1,226 @@
+//! groundwork-msg: the messages every groundwork process exchanges, and nothing else.
+//!
+//! iceoryx2 identifies a payload type by its full path, so these types must be defined in
+//! exactly one crate that every process links: this one. All are `#[repr(C)]` and
+//! `ZeroCopySend`; they live in shared memory and are read in place.
+//!
+//! Topics (service names are `<prefix>/scans`, `<prefix>/masks`):
+//! - `scans`: payload `[ScanPoint]`, user header [`ScanHeader`];
+//! - `masks`: payload `[f32]` (ground probability per point, scan order), header
+//!   [`MaskHeader`].
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Bumped on every incompatible change of a header or payload layout.
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// One LiDAR return, 16 bytes, the KITTI `.bin` layout.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+pub struct ScanPoint {
+    /// Forward, metres (sensor frame).
+    pub x: f32,
+    /// Left, metres.
+    pub y: f32,
+    /// Up, metres.
+    pub z: f32,
+    /// Intensity.
+    pub intensity: f32,
+}
+
+/// Lets the segmenter read scans in place, straight from shared memory.
+impl groundwork_core::PointXyz for ScanPoint {
+    #[inline]
+    fn xyz(&self) -> [f32; 3] {
+        [self.x, self.y, self.z]
+    }
+}
+
+/// Monotonic timestamps (ns, `CLOCK_MONOTONIC`, comparable across processes on one
+/// machine) written by each stage; 0 = not reached.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+pub struct StageStamps {
+    /// Producer, just before the loan is filled (the scan "exists").
+    pub produced_ns: u64,
+    /// Producer, just before `send`.
+    pub published_ns: u64,
+    /// Segmenter, on receipt.
+    pub segmenter_received_ns: u64,
+    /// Segmenter, just before sending the mask.
+    pub segmenter_published_ns: u64,
+}
+
+/// Header of a scan message.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+pub struct ScanHeader {
+    /// Must equal [`SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Points in the payload (must equal the slice length).
+    pub point_count: u32,
+    /// Producer's sequence number, strictly increasing per producer run.
+    pub sequence: u64,
+    /// Identifies the producer run (changes when a producer restarts).
+    pub producer_epoch: u64,
+    /// Sensor timestamp (ns, sensor clock).
+    pub sensor_timestamp_ns: u64,
+    /// Index of the scan in its source (file index for replays), for label lookup.
+    pub source_index: u64,
+    /// Stage timestamps.
+    pub stamps: StageStamps,
+    /// 1 if `pose` holds the sensor's world pose, 0 for "no pose".
+    pub has_pose: u32,
+    /// Reserved, keeps `pose` 8-byte aligned.
+    pub reserved: u32,
+    /// World from sensor, 4×4 row-major.
+    pub pose: [f64; 16],
+}
+
+impl Default for ScanHeader {
+    fn default() -> Self {
+        Self {
+            schema_version: SCHEMA_VERSION,
+            point_count: 0,
+            sequence: 0,
+            producer_epoch: 0,
+            sensor_timestamp_ns: 0,
+            source_index: 0,
+            stamps: StageStamps::default(),
+            has_pose: 0,
+            reserved: 0,
+            pose: IDENTITY,
+        }
+    }
+}
+
+const IDENTITY: [f64; 16] = [
+    1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+];
+
+/// Outcome of segmenting a scan: 0 = segmented, anything else names why the scan was
+/// rejected (the mask then has no payload).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, ZeroCopySend)]
+pub struct MaskStatus(pub u32);
+
+impl MaskStatus {
+    /// Segmented; the payload holds one probability per point.
+    pub const OK: Self = Self(0);
+    /// `schema_version` differs from [`SCHEMA_VERSION`].
+    pub const BAD_SCHEMA: Self = Self(1);
+    /// `point_count` differs from the payload length.
+    pub const COUNT_MISMATCH: Self = Self(2);
+    /// No points.
+    pub const EMPTY: Self = Self(3);
+    /// More points than the segmenter accepts.
+    pub const TOO_MANY_POINTS: Self = Self(4);
+    /// A NaN or infinite coordinate.
+    pub const NON_FINITE: Self = Self(5);
+    /// Any other rejection (e.g. an invalid pose).
+    pub const OTHER: Self = Self(6);
+
+    /// Short name for logs and reports.
+    pub fn name(self) -> &'static str {
+        match self.0 {
+            0 => "ok",
+            1 => "bad_schema",
+            2 => "count_mismatch",
+            3 => "empty",
+            4 => "too_many_points",
+            5 => "non_finite",
+            _ => "other",
+        }
+    }
+}
+
+/// Header of a mask message.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+pub struct MaskHeader {
+    /// Must equal [`SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Values in the payload.
+    pub point_count: u32,
+    /// Sequence number of the scan this mask answers.
+    pub scan_sequence: u64,
+    /// Producer epoch of that scan.
+    pub producer_epoch: u64,
+    /// The scan's sensor timestamp.
+    pub sensor_timestamp_ns: u64,
+    /// The scan's source index.
+    pub source_index: u64,
+    /// The scan's stamps, completed by the segmenter.
+    pub stamps: StageStamps,
+    /// Segmented or why not.
+    pub status: MaskStatus,
+    /// Points at or above the ground threshold.
+    pub ground_points: u32,
+    /// Models queried (1 = single frame).
+    pub frames_queried: u32,
+    /// Fit time, µs.
+    pub fit_us: u32,
+    /// Query time, µs.
+    pub query_us: u32,
+    /// Reserved (alignment).
+    pub reserved: u32,
+    /// Identifies the segmenter run (changes when a segmenter restarts).
+    pub segmenter_epoch: u64,
+}
+
+impl Default for MaskHeader {
+    fn default() -> Self {
+        Self {
+            schema_version: SCHEMA_VERSION,
+            point_count: 0,
+            scan_sequence: 0,
+            producer_epoch: 0,
+            sensor_timestamp_ns: 0,
+            source_index: 0,
+            stamps: StageStamps::default(),
+            status: MaskStatus::OK,
+            ground_points: 0,
+            frames_queried: 0,
+            fit_us: 0,
+            query_us: 0,
+            reserved: 0,
+            segmenter_epoch: 0,
+        }
+    }
+}
+
+/// `CLOCK_MONOTONIC` in ns: the one clock all stages stamp with.
+pub fn monotonic_ns() -> u64 {
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::Monotonic);
+    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+}
+
+/// A run identifier: wall-clock ns at start, distinct across restarts.
+pub fn new_epoch() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or_else(|_| monotonic_ns())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn layouts_are_stable() {
+        assert_eq!(std::mem::size_of::<ScanPoint>(), 16);
+        assert_eq!(std::mem::size_of::<StageStamps>(), 32);
+        assert_eq!(std::mem::align_of::<ScanHeader>(), 8);
+        // 4 + 4 + 8 × 4 + 32 + 4 + 4 + 128
+        assert_eq!(std::mem::size_of::<ScanHeader>(), 208);
+        assert_eq!(ScanHeader::default().schema_version, SCHEMA_VERSION);
+    }
+
+    #[test]
+    fn monotonic_clock_advances() {
+        let a = monotonic_ns();
+        let b = monotonic_ns();
+        assert!(b >= a && a > 0);
+    }
+}

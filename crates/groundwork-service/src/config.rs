@@ -1,0 +1,171 @@
+//! Service configuration (TOML, `config/service.toml`).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// What a full queue does to the oldest / newest message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OverflowPolicy {
+    /// A subscriber whose queue is full loses its oldest message (iceoryx2 safe overflow):
+    /// publishers never block, a slow reader always sees the newest data.
+    DropOldest,
+    /// A full subscriber queue refuses the new message (`send` reaches fewer subscribers):
+    /// publishers never block, a slow reader keeps its backlog.
+    DropNewest,
+}
+
+/// Names, queue depths and sizes shared by all processes of one pipeline.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServiceConfig {
+    /// Service names are `<prefix>/scans` and `<prefix>/masks`: pipelines with different
+    /// prefixes run side by side.
+    pub prefix: String,
+    /// Largest scan (points) the shared memory is sized for; larger scans are rejected.
+    pub max_points: usize,
+    /// Queue depth of every scan subscriber.
+    pub scan_queue: usize,
+    /// Queue depth of every mask subscriber.
+    pub mask_queue: usize,
+    /// Samples a subscriber may hold at once.
+    pub max_borrowed: usize,
+    /// Behaviour of a full queue.
+    pub overflow: OverflowPolicy,
+    /// Subscribers per topic the memory is sized for.
+    pub max_subscribers: usize,
+    /// Producer rate in scans per second (0 = as fast as possible).
+    pub rate_hz: f64,
+    /// Seconds between periodic state logs.
+    pub report_interval_s: f64,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self {
+            prefix: "groundwork".into(),
+            max_points: 200_000,
+            scan_queue: 4,
+            mask_queue: 4,
+            max_borrowed: 2,
+            overflow: OverflowPolicy::DropOldest,
+            max_subscribers: 4,
+            rate_hz: 10.0,
+            report_interval_s: 2.0,
+        }
+    }
+}
+
+impl ServiceConfig {
+    /// Reads and validates a service configuration; errors name the file and the key.
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let cfg: Self = toml::from_str(&text)
+            .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.to_string().trim_end()))?;
+        cfg.validate()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        Ok(cfg)
+    }
+
+    /// Consistency checks.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            !self.prefix.is_empty() && self.prefix.len() < 200,
+            "prefix must be 1..200 characters"
+        );
+        anyhow::ensure!(
+            (1..=4_000_000).contains(&self.max_points),
+            "max_points must be in 1..=4000000"
+        );
+        anyhow::ensure!(
+            (1..=64).contains(&self.scan_queue) && (1..=64).contains(&self.mask_queue),
+            "scan_queue and mask_queue must be in 1..=64"
+        );
+        anyhow::ensure!(
+            (1..=16).contains(&self.max_borrowed),
+            "max_borrowed must be in 1..=16"
+        );
+        anyhow::ensure!(
+            (1..=32).contains(&self.max_subscribers),
+            "max_subscribers must be in 1..=32"
+        );
+        anyhow::ensure!(
+            self.rate_hz.is_finite() && self.rate_hz >= 0.0,
+            "rate_hz must be finite and >= 0"
+        );
+        anyhow::ensure!(
+            self.report_interval_s.is_finite() && self.report_interval_s > 0.0,
+            "report_interval_s must be > 0"
+        );
+        Ok(())
+    }
+
+    /// Shared memory the scan publisher may need at worst (bytes): chunk size × (subscribers
+    /// × (queue + borrowed) + loans), plus the same for masks.
+    pub fn shared_memory_estimate(&self) -> u64 {
+        let scan_chunk = (self.max_points * 16 + 4096) as u64;
+        let mask_chunk = (self.max_points * 4 + 4096) as u64;
+        let subs = self.max_subscribers as u64;
+        let loans = 2;
+        scan_chunk * (subs * (self.scan_queue + self.max_borrowed) as u64 + loans)
+            + mask_chunk * (subs * (self.mask_queue + self.max_borrowed) as u64 + loans)
+    }
+}
+
+/// Fails with a clear message if `/dev/shm` cannot hold what the configuration may need: a
+/// too-small tmpfs would otherwise kill the process with SIGBUS on first write.
+pub fn check_shared_memory(cfg: &ServiceConfig) -> anyhow::Result<()> {
+    let need = cfg.shared_memory_estimate();
+    let st = rustix::fs::statvfs("/dev/shm")
+        .map_err(|e| anyhow::anyhow!("/dev/shm: cannot query free space: {e}"))?;
+    let free = st.f_bavail * st.f_frsize;
+    anyhow::ensure!(
+        free >= need,
+        "/dev/shm has {} MiB free but this configuration may need {} MiB \
+         (max_points {}, queues {}/{}, {} subscribers): lower max_points or the queue depths, \
+         or enlarge /dev/shm",
+        free >> 20,
+        need >> 20,
+        cfg.max_points,
+        cfg.scan_queue,
+        cfg.mask_queue,
+        cfg.max_subscribers
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_validate_and_bad_values_do_not() {
+        ServiceConfig::default().validate().unwrap();
+        let bad = ServiceConfig {
+            scan_queue: 0,
+            ..Default::default()
+        };
+        assert!(bad.validate().is_err());
+        let e = toml::from_str::<ServiceConfig>("prefx = \"a\"")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("prefx"), "{e}");
+    }
+
+    #[test]
+    fn shared_memory_check_refuses_absurd_sizes() {
+        let huge = ServiceConfig {
+            max_points: 4_000_000,
+            scan_queue: 64,
+            mask_queue: 64,
+            max_subscribers: 32,
+            ..Default::default()
+        };
+        // 4M points × 16 B × 32 × 66 ≈ 135 GB: no /dev/shm here is that big.
+        let e = check_shared_memory(&huge).unwrap_err().to_string();
+        assert!(e.contains("/dev/shm") && e.contains("max_points"), "{e}");
+        check_shared_memory(&ServiceConfig::default()).unwrap();
+    }
+}

@@ -1,0 +1,14 @@
+//! groundwork-service: the zero-copy shared-memory service. Three stages — producer,
+//! segmenter, consumer — each its own process, exchanging scans and masks over iceoryx2
+//! publish-subscribe topics (see `groundwork-msg`), woken by iceoryx2 events.
+
+pub mod config;
+pub mod consumer;
+pub mod launcher;
+pub mod producer;
+pub mod segmenter;
+pub mod stats;
+pub mod synthetic;
+pub mod transport;
+
+pub use config::{OverflowPolicy, ServiceConfig, check_shared_memory};

@@ -1,0 +1,144 @@
+//! Latency histograms per stage and end to end, and their report.
+
+use std::fmt::Write;
+
+use hdrhistogram::Histogram;
+use serde::Serialize;
+
+/// Stages a message passes, in order.
+pub const STAGES: [&str; 5] = [
+    "producer fill",
+    "scan transport",
+    "segment",
+    "mask transport",
+    "end to end",
+];
+
+/// Percentiles of one stage, µs.
+#[derive(Debug, Clone, Serialize)]
+pub struct Percentiles {
+    /// Stage name.
+    pub stage: String,
+    /// Samples.
+    pub count: u64,
+    /// Median.
+    pub p50: f64,
+    /// 90th percentile.
+    pub p90: f64,
+    /// 99th percentile.
+    pub p99: f64,
+    /// 99.9th percentile.
+    pub p999: f64,
+    /// Maximum.
+    pub max: f64,
+}
+
+/// One histogram per stage (ns, 3 significant digits, up to 100 s).
+#[derive(Debug)]
+pub struct LatencyStats {
+    hist: Vec<Histogram<u64>>,
+}
+
+impl Default for LatencyStats {
+    fn default() -> Self {
+        Self {
+            hist: STAGES
+                .iter()
+                .map(|_| {
+                    Histogram::new_with_bounds(1, 100_000_000_000, 3)
+                        .expect("static bounds are valid")
+                })
+                .collect(),
+        }
+    }
+}
+
+impl LatencyStats {
+    /// Records one message from its stamps (ns) and the consumer's receive time.
+    pub fn record(
+        &mut self,
+        produced: u64,
+        published: u64,
+        seg_in: u64,
+        seg_out: u64,
+        consumed: u64,
+    ) {
+        let d = [
+            published.saturating_sub(produced),
+            seg_in.saturating_sub(published),
+            seg_out.saturating_sub(seg_in),
+            consumed.saturating_sub(seg_out),
+            consumed.saturating_sub(produced),
+        ];
+        for (h, v) in self.hist.iter_mut().zip(d) {
+            h.saturating_record(v.max(1));
+        }
+    }
+
+    /// Percentiles per stage.
+    pub fn percentiles(&self) -> Vec<Percentiles> {
+        STAGES
+            .iter()
+            .zip(&self.hist)
+            .map(|(name, h)| {
+                let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
+                Percentiles {
+                    stage: (*name).to_string(),
+                    count: h.len(),
+                    p50: us(0.5),
+                    p90: us(0.9),
+                    p99: us(0.99),
+                    p999: us(0.999),
+                    max: h.max() as f64 / 1e3,
+                }
+            })
+            .collect()
+    }
+
+    /// Samples recorded.
+    pub fn len(&self) -> u64 {
+        self.hist[0].len()
+    }
+
+    /// Whether nothing was recorded.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// A table a person reads at a glance.
+    pub fn table(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "{:<16} {:>7} {:>10} {:>10} {:>10} {:>10} {:>10}",
+            "stage (µs)", "n", "p50", "p90", "p99", "p99.9", "max"
+        );
+        for p in self.percentiles() {
+            let _ = writeln!(
+                s,
+                "{:<16} {:>7} {:>10.1} {:>10.1} {:>10.1} {:>10.1} {:>10.1}",
+                p.stage, p.count, p.p50, p.p90, p.p99, p.p999, p.max
+            );
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stages_are_differences_of_stamps() {
+        let mut s = LatencyStats::default();
+        for i in 0..100u64 {
+            s.record(1000, 2000, 3000 + i, 10_000 + i, 11_000 + i);
+        }
+        let p = s.percentiles();
+        assert_eq!(p[0].count, 100);
+        assert!((p[0].p50 - 1.0).abs() < 0.01, "{:?}", p[0]);
+        assert!((p[2].p50 - 7.0).abs() < 0.01, "{:?}", p[2]);
+        assert!((p[4].max - 10.099).abs() < 0.02, "{:?}", p[4]);
+        assert!(s.table().contains("end to end"));
+    }
+}

@@ -1,0 +1,150 @@
+//! iceoryx2 wiring shared by the stages: every topic is a publish-subscribe service plus an
+//! event service of the same name that wakes the readers.
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
+
+use groundwork_msg::{MaskHeader, ScanHeader, ScanPoint};
+
+use crate::config::{OverflowPolicy, ServiceConfig};
+
+/// The scan topic's service.
+pub type ScanService = PortFactory<ipc::Service, [ScanPoint], ScanHeader>;
+/// The mask topic's service.
+pub type MaskService = PortFactory<ipc::Service, [f32], MaskHeader>;
+
+/// Creates this process's node after removing what dead processes left behind (a process
+/// killed with -9 leaves its ports and shared memory).
+pub fn node(name: &str) -> anyhow::Result<Node<ipc::Service>> {
+    let node = NodeBuilder::new()
+        .name(&NodeName::new(name).map_err(|e| anyhow::anyhow!("node name {name}: {e:?}"))?)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"))?;
+    let c = node.try_cleanup_dead_nodes();
+    if c.cleanups > 0 || c.failed_cleanups > 0 {
+        tracing::info!(
+            cleaned = c.cleanups,
+            failed = c.failed_cleanups,
+            "removed stale resources of dead processes"
+        );
+    }
+    Ok(node)
+}
+
+fn service_name(cfg: &ServiceConfig, topic: &str) -> anyhow::Result<ServiceName> {
+    let s = format!("{}/{}", cfg.prefix, topic);
+    ServiceName::new(&s).map_err(|e| anyhow::anyhow!("service name {s}: {e:?}"))
+}
+
+/// Opens (or creates) the scan topic.
+pub fn scan_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::Result<ScanService> {
+    node.service_builder(&service_name(cfg, "scans")?)
+        .publish_subscribe::<[ScanPoint]>()
+        .user_header::<ScanHeader>()
+        .subscriber_max_buffer_size(cfg.scan_queue)
+        .subscriber_max_borrowed_samples(cfg.max_borrowed)
+        .max_subscribers(cfg.max_subscribers)
+        .max_publishers(2)
+        .history_size(0)
+        .enable_safe_overflow(cfg.overflow == OverflowPolicy::DropOldest)
+        .open_or_create()
+        .map_err(|e| anyhow::anyhow!("{}/scans: {e:?}", cfg.prefix))
+}
+
+/// Opens (or creates) the mask topic.
+pub fn mask_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::Result<MaskService> {
+    node.service_builder(&service_name(cfg, "masks")?)
+        .publish_subscribe::<[f32]>()
+        .user_header::<MaskHeader>()
+        .subscriber_max_buffer_size(cfg.mask_queue)
+        .subscriber_max_borrowed_samples(cfg.max_borrowed)
+        .max_subscribers(cfg.max_subscribers)
+        .max_publishers(2)
+        .history_size(0)
+        .enable_safe_overflow(cfg.overflow == OverflowPolicy::DropOldest)
+        .open_or_create()
+        .map_err(|e| anyhow::anyhow!("{}/masks: {e:?}", cfg.prefix))
+}
+
+/// The wake-up side of a topic: notifier for its publisher, listener for its readers.
+pub fn event_ports(
+    node: &Node<ipc::Service>,
+    cfg: &ServiceConfig,
+    topic: &str,
+) -> anyhow::Result<(Notifier<ipc::Service>, Listener<ipc::Service>)> {
+    let ev = node
+        .service_builder(&service_name(cfg, topic)?)
+        .event()
+        .max_notifiers(4)
+        .max_listeners(cfg.max_subscribers + 2)
+        .open_or_create()
+        .map_err(|e| anyhow::anyhow!("{}/{topic} (event): {e:?}", cfg.prefix))?;
+    let n = ev
+        .notifier_builder()
+        .create()
+        .map_err(|e| anyhow::anyhow!("{topic} notifier: {e:?}"))?;
+    let l = ev
+        .listener_builder()
+        .create()
+        .map_err(|e| anyhow::anyhow!("{topic} listener: {e:?}"))?;
+    Ok((n, l))
+}
+
+/// A scan publisher whose memory is sized once for `max_points` (no growth at run time).
+pub fn scan_publisher(
+    svc: &ScanService,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<Publisher<ipc::Service, [ScanPoint], ScanHeader>> {
+    svc.publisher_builder()
+        .initial_max_slice_len(cfg.max_points)
+        .allocation_strategy(AllocationStrategy::Static)
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| anyhow::anyhow!("scan publisher: {e:?}"))
+}
+
+/// A mask publisher sized for `max_points`.
+pub fn mask_publisher(
+    svc: &MaskService,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<Publisher<ipc::Service, [f32], MaskHeader>> {
+    svc.publisher_builder()
+        .initial_max_slice_len(cfg.max_points)
+        .allocation_strategy(AllocationStrategy::Static)
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| anyhow::anyhow!("mask publisher: {e:?}"))
+}
+
+/// A scan subscriber.
+pub fn scan_subscriber(
+    svc: &ScanService,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<Subscriber<ipc::Service, [ScanPoint], ScanHeader>> {
+    svc.subscriber_builder()
+        .buffer_size(cfg.scan_queue)
+        .create()
+        .map_err(|e| anyhow::anyhow!("scan subscriber: {e:?}"))
+}
+
+/// A mask subscriber.
+pub fn mask_subscriber(
+    svc: &MaskService,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<Subscriber<ipc::Service, [f32], MaskHeader>> {
+    svc.subscriber_builder()
+        .buffer_size(cfg.mask_queue)
+        .create()
+        .map_err(|e| anyhow::anyhow!("mask subscriber: {e:?}"))
+}
+
+/// Drains pending wake-ups so the WaitSet does not fire again at once.
+pub fn drain(listener: &Listener<ipc::Service>) {
+    let _ = listener.try_wait(|_| {});
+}
