@@ -206,7 +206,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
                         iou = st.confusion.map(|c| c.metrics().iou_ground),
                         "consumer state"
                     );
-                    node.try_cleanup_dead_nodes();
+                    transport::cleanup_dead(&node);
                 }
                 if let Err(e) = drain_all(&mut report, &mut stats, &mut st) {
                     failure = Some(e);

@@ -228,7 +228,7 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
                         "segmenter state"
                     );
                     seg.log_state();
-                    node.try_cleanup_dead_nodes();
+                    transport::cleanup_dead(&node);
                 }
                 CallbackProgression::Continue
             },

@@ -17,13 +17,40 @@ pub type ScanService = PortFactory<ipc::Service, [ScanPoint], ScanHeader>;
 /// The mask topic's service.
 pub type MaskService = PortFactory<ipc::Service, [f32], MaskHeader>;
 
-/// Creates this process's node after removing what dead processes left behind (a process
-/// killed with -9 leaves its ports and shared memory).
+/// Dead nodes (processes that died without cleaning up) currently registered.
+fn dead_nodes(config: &iceoryx2::config::Config) -> u64 {
+    let mut dead = 0;
+    let _ = Node::<ipc::Service>::list(config, |s| {
+        dead += u64::from(matches!(s, NodeState::Dead(_)));
+        CallbackProgression::Continue
+    });
+    dead
+}
+
+/// Creates this process's node. Creating a node removes the ports and shared memory of
+/// processes that died without cleaning up (killed with -9, crashed); we count them first
+/// so that the log says what was removed.
 pub fn node(name: &str) -> anyhow::Result<Node<ipc::Service>> {
+    let stale = dead_nodes(iceoryx2::config::Config::global_config());
     let node = NodeBuilder::new()
         .name(&NodeName::new(name).map_err(|e| anyhow::anyhow!("node name {name}: {e:?}"))?)
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"))?;
+    // Whatever creation did not remove (e.g. a configuration that disables it) goes now.
+    let c = node.try_cleanup_dead_nodes();
+    let left = dead_nodes(node.config());
+    if stale > 0 || c.cleanups > 0 {
+        tracing::info!(
+            dead_processes = stale.max(c.cleanups),
+            still_stale = left,
+            "removed stale resources of dead processes"
+        );
+    }
+    Ok(node)
+}
+
+/// Periodic sweep for processes that died while we run.
+pub fn cleanup_dead(node: &Node<ipc::Service>) {
     let c = node.try_cleanup_dead_nodes();
     if c.cleanups > 0 || c.failed_cleanups > 0 {
         tracing::info!(
@@ -32,7 +59,6 @@ pub fn node(name: &str) -> anyhow::Result<Node<ipc::Service>> {
             "removed stale resources of dead processes"
         );
     }
-    Ok(node)
 }
 
 fn service_name(cfg: &ServiceConfig, topic: &str) -> anyhow::Result<ServiceName> {
