@@ -77,14 +77,13 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     let masks = transport::mask_service(&node, cfg)?;
     let scan_sub = transport::scan_subscriber(&scans, cfg)?;
     let mask_sub = transport::mask_subscriber(&masks, cfg)?;
-    let (_n1, scan_listener) = transport::event_ports(&node, cfg, "scans")?;
     let (_n2, mask_listener) = transport::event_ports(&node, cfg, "masks")?;
     let waitset = WaitSetBuilder::new()
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
-    let scan_guard = waitset
-        .attach_notification(&scan_listener)
-        .map_err(|e| anyhow::anyhow!("attach: {e:?}"))?;
+    // Only masks wake the consumer: it reads the scans it pairs them with from its queue at
+    // that moment. Waking on scans as well would put a third process on the CPU exactly
+    // when the segmenter needs it, and cost the pipeline latency.
     let mask_guard = waitset
         .attach_notification(&mask_listener)
         .map_err(|e| anyhow::anyhow!("attach: {e:?}"))?;
@@ -190,8 +189,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
         let before = report.masks;
         let result = waitset.wait_and_process_once_with_timeout(
             |id| {
-                if id.has_event_from(&scan_guard) || id.has_event_from(&mask_guard) {
-                    transport::drain(&scan_listener);
+                if id.has_event_from(&mask_guard) {
                     transport::drain(&mask_listener);
                 } else if id.has_event_from(&tick_guard) {
                     let p = stats.percentiles();

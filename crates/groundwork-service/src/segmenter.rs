@@ -1,5 +1,5 @@
 //! The segmenter process: scans in, masks out, multi-frame history kept between frames.
-//! Blocks on an iceoryx2 WaitSet while idle; a malformed scan is rejected with a counted,
+//! Blocks on the scan topic's iceoryx2 event while idle; a malformed scan is rejected with a counted,
 //! logged reason (and an empty mask naming it), and the next scan is served as usual.
 
 use std::collections::BTreeMap;
@@ -10,8 +10,6 @@ use groundwork_core::{SegmentError, Segmenter, SegmenterConfig, pose_from_matrix
 use groundwork_msg::{
     MaskHeader, MaskStatus, SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch,
 };
-use iceoryx2::prelude::*;
-use iceoryx2::waitset::WaitSetRunResult;
 use tracing::{info, warn};
 
 use crate::config::{ServiceConfig, check_shared_memory};
@@ -102,21 +100,11 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
     let publisher = transport::mask_publisher(&masks, cfg)?;
     let (_scan_notifier, scan_listener) = transport::event_ports(&node, cfg, "scans")?;
     let (mask_notifier, _mask_listener) = transport::event_ports(&node, cfg, "masks")?;
-    let waitset = WaitSetBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
-    let scan_guard = waitset
-        .attach_notification(&scan_listener)
-        .map_err(|e| anyhow::anyhow!("attach: {e:?}"))?;
-    let tick_guard = waitset
-        .attach_interval(Duration::from_secs_f64(cfg.report_interval_s))
-        .map_err(|e| anyhow::anyhow!("attach interval: {e:?}"))?;
     let epoch = new_epoch();
     info!(prefix = %cfg.prefix, frames = opts.segmenter.history.frames, echo = opts.echo, "segmenter started");
 
     let mut report = SegmenterReport::default();
     let mut last: Option<(u64, u64)> = None; // (producer epoch, sequence)
-    let mut failure: Option<anyhow::Error> = None;
 
     let mut handle_scans = |report: &mut SegmenterReport,
                             seg: &mut Segmenter|
@@ -205,48 +193,38 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
 
     // Scans published before our listener existed wake nobody: look once at start.
     handle_scans(&mut report, &mut seg)?;
+    let interval = Duration::from_secs_f64(cfg.report_interval_s);
+    let mut last_report = std::time::Instant::now();
     loop {
         if opts.count.is_some_and(|c| report.received >= c) {
             break;
         }
-        let result = waitset.wait_and_process_once_with_timeout(
-            |id| {
-                if id.has_event_from(&scan_guard) {
-                    transport::drain(&scan_listener);
-                    if let Err(e) = handle_scans(&mut report, &mut seg) {
-                        failure = Some(e);
-                        return CallbackProgression::Stop;
-                    }
-                } else if id.has_event_from(&tick_guard) {
-                    let rejected: u64 = report.rejected.values().sum();
-                    info!(
-                        received = report.received,
-                        segmented = report.segmented,
-                        rejected,
-                        dropped = report.dropped,
-                        history = seg.history_len(),
-                        "segmenter state"
-                    );
-                    seg.log_state();
-                    transport::cleanup_dead(&node);
-                }
-                CallbackProgression::Continue
-            },
-            Duration::from_secs(1),
-        );
-        if let Some(e) = failure.take() {
-            return Err(e);
+        // Block on the scan topic's event (no busy spinning). The bounded wait also lets
+        // us notice a termination request and do the periodic work when idle.
+        let woke = scan_listener
+            .timed_wait(|_| {}, Duration::from_millis(250))
+            .map_err(|e| anyhow::anyhow!("wait for scans: {e:?}"));
+        if node.wait(Duration::ZERO).is_err() {
+            info!("termination requested");
+            break;
         }
-        match result.map_err(|e| anyhow::anyhow!("waitset: {e:?}"))? {
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt => {
-                info!("termination requested");
-                break;
-            }
-            _ => {
-                // A missed wake-up (e.g. a producer restarted between our listener's
-                // cleanups) must not strand scans in the queue.
-                handle_scans(&mut report, &mut seg)?;
-            }
+        woke?;
+        // Also serves scans whose wake-up was missed (e.g. a producer restarted between
+        // our listener's cleanups): nothing strands in the queue.
+        handle_scans(&mut report, &mut seg)?;
+        if last_report.elapsed() >= interval {
+            last_report = std::time::Instant::now();
+            let rejected: u64 = report.rejected.values().sum();
+            info!(
+                received = report.received,
+                segmented = report.segmented,
+                rejected,
+                dropped = report.dropped,
+                history = seg.history_len(),
+                "segmenter state"
+            );
+            seg.log_state();
+            transport::cleanup_dead(&node);
         }
     }
     info!(

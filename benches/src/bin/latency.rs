@@ -1,0 +1,435 @@
+//! Latency benchmark of the service with real processes, in one run, per payload size:
+//! - `iox-pingpong`: bare iceoryx2 round trip between two processes (scan out, mask back,
+//!   event wake-ups), the floor any iceoryx2 pipeline stands on;
+//! - `uds-copy`: the same round trip over a Unix domain socket (the payload is copied);
+//! - `pipeline-echo`: producer → segmenter (`--echo`: answers with a mask of the right size
+//!   without computing) → consumer, three processes; transport = scan hop + mask hop;
+//! - `pipeline-full`: the same with real segmentation.
+//!
+//! Prints p50/p90/p99/p99.9/max per method and size, the pipeline's transport overhead as a
+//! ratio to bare iceoryx2, and optionally CSV.
+//!
+//! `cargo build --release -p groundwork-cli -p groundwork-benches && target/release/latency`
+
+use std::io::{Read, Write};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use groundwork_msg::{MaskHeader, ScanHeader, ScanPoint};
+use groundwork_service::{ServiceConfig, transport};
+use hdrhistogram::Histogram;
+
+#[derive(Parser, Debug)]
+struct Args {
+    /// Round trips per size for the ping-pongs (paced at --echo-rate).
+    #[arg(long, default_value_t = 500)]
+    iterations: u64,
+    /// Scans per size through the echo pipeline (at --echo-rate Hz).
+    #[arg(long, default_value_t = 300)]
+    pipeline_scans: u64,
+    /// Scans per size through the full pipeline (at 15 Hz).
+    #[arg(long, default_value_t = 120)]
+    full_scans: u64,
+    /// Producer rate of the echo pipeline, and pace of the ping-pongs.
+    #[arg(long, default_value_t = 100.0)]
+    echo_rate: f64,
+    /// Payload sizes in points (16 bytes each): ≈16 KB, 1 MB, 2 MB, 3.2 MB.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1000,65536,131072,200000"
+    )]
+    points: Vec<usize>,
+    /// Also write the table as CSV here.
+    #[arg(long)]
+    csv: Option<PathBuf>,
+    /// Skip the full pipeline (transport only).
+    #[arg(long)]
+    no_full: bool,
+    /// Internal: run as the answering side of a ping-pong.
+    #[arg(long, hide = true)]
+    role: Option<String>,
+    #[arg(long, hide = true)]
+    prefix: Option<String>,
+    #[arg(long, hide = true)]
+    socket: Option<PathBuf>,
+    #[arg(long, hide = true)]
+    n: Option<usize>,
+}
+
+#[derive(Debug, Clone)]
+struct Row {
+    method: String,
+    bytes: usize,
+    p: [f64; 5],
+}
+
+fn hist() -> Histogram<u64> {
+    Histogram::new_with_bounds(1, 60_000_000_000, 3).expect("static bounds are valid")
+}
+
+fn row(method: &str, bytes: usize, h: &Histogram<u64>) -> Row {
+    let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
+    Row {
+        method: method.into(),
+        bytes,
+        p: [us(0.5), us(0.9), us(0.99), us(0.999), h.max() as f64 / 1e3],
+    }
+}
+
+fn service_cfg(prefix: &str, n: usize) -> ServiceConfig {
+    ServiceConfig {
+        prefix: prefix.into(),
+        max_points: n.max(1),
+        ..ServiceConfig::default()
+    }
+}
+
+/// The answering side of the iceoryx2 ping-pong: every scan gets a mask of n f32 back.
+fn pong_iox(prefix: &str, n: usize) -> Result<()> {
+    let cfg = service_cfg(prefix, n);
+    let node = transport::node("latency-pong")?;
+    let sub = transport::scan_subscriber(&transport::scan_service(&node, &cfg)?, &cfg)?;
+    let publ = transport::mask_publisher(&transport::mask_service(&node, &cfg)?, &cfg)?;
+    let (_sn, scan_listener) = transport::event_ports(&node, &cfg, "scans")?;
+    let (mask_notifier, _ml) = transport::event_ports(&node, &cfg, "masks")?;
+    loop {
+        if scan_listener
+            .timed_wait(|_| {}, Duration::from_secs(10))
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?
+            == 0
+        {
+            return Ok(()); // the ping side is gone
+        }
+        while let Some(scan) = sub.receive().map_err(|e| anyhow::anyhow!("{e:?}"))? {
+            let h = *scan.user_header();
+            let mut mask = publ
+                .loan_slice(scan.payload().len())
+                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            mask.user_header_mut().scan_sequence = h.sequence;
+            drop(scan);
+            mask.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            mask_notifier
+                .notify()
+                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        }
+    }
+}
+
+/// Sleeps until the next tick of a `rate` Hz clock that started at `t0`: the ping-pongs run
+/// at the pipeline's pace, so both pay the same wake-up-from-idle costs.
+fn pace(t0: Instant, i: u64, rate: f64) {
+    if rate > 0.0 {
+        let next = t0 + Duration::from_secs_f64((i + 1) as f64 / rate);
+        std::thread::sleep(next.saturating_duration_since(Instant::now()));
+    }
+}
+
+fn ping_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogram<u64>> {
+    let prefix = format!("latency-iox-{}-{n}", std::process::id());
+    let cfg = service_cfg(&prefix, n);
+    let node = transport::node("latency-ping")?;
+    let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
+    let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
+    let (scan_notifier, _sl) = transport::event_ports(&node, &cfg, "scans")?;
+    let (_mn, mask_listener) = transport::event_ports(&node, &cfg, "masks")?;
+    let mut child = Command::new(exe)
+        .args([
+            "--role",
+            "pong-iox",
+            "--prefix",
+            &prefix,
+            "--n",
+            &n.to_string(),
+        ])
+        .stderr(Stdio::null())
+        .spawn()?;
+    std::thread::sleep(Duration::from_millis(500));
+    let mut h = hist();
+    let t0 = Instant::now();
+    for i in 0..iterations + 50 {
+        pace(t0, i, rate);
+        let sample = publ
+            .loan_slice_uninit(n)
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let mut sample = sample.write_from_fn(|k| ScanPoint {
+            x: k as f32,
+            ..ScanPoint::default()
+        });
+        *sample.user_header_mut() = ScanHeader {
+            sequence: i,
+            point_count: n as u32,
+            ..ScanHeader::default()
+        };
+        // Timed from send to the answer in hand: the fill is the producer's own work.
+        let t = Instant::now();
+        sample.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        scan_notifier
+            .notify()
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        loop {
+            mask_listener
+                .timed_wait(|_| {}, Duration::from_secs(5))
+                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            if let Some(m) = sub.receive().map_err(|e| anyhow::anyhow!("{e:?}"))? {
+                let m: &MaskHeader = m.user_header();
+                anyhow::ensure!(m.scan_sequence == i, "out of order answer");
+                break;
+            }
+        }
+        if i >= 50 {
+            h.saturating_record(t.elapsed().as_nanos() as u64);
+        }
+    }
+    drop((publ, sub));
+    let _ = child.wait();
+    Ok(h)
+}
+
+/// The answering side over a Unix socket: read a whole scan, write a whole mask.
+fn pong_uds(path: &Path, n: usize) -> Result<()> {
+    let listener = UnixListener::bind(path)?;
+    let (mut s, _) = listener.accept()?;
+    let mut scan = vec![0u8; n * 16];
+    let mask = vec![0u8; n * 4];
+    while s.read_exact(&mut scan).is_ok() {
+        s.write_all(&mask)?;
+    }
+    Ok(())
+}
+
+fn ping_uds(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogram<u64>> {
+    let path = std::env::temp_dir().join(format!(
+        "groundwork-latency-{}-{n}.sock",
+        std::process::id()
+    ));
+    let _ = std::fs::remove_file(&path);
+    let mut child = Command::new(exe)
+        .args(["--role", "pong-uds", "--n", &n.to_string(), "--socket"])
+        .arg(&path)
+        .spawn()?;
+    let t0 = Instant::now();
+    let mut s = loop {
+        match UnixStream::connect(&path) {
+            Ok(s) => break s,
+            Err(e) if t0.elapsed() < Duration::from_secs(5) => {
+                let _ = e;
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            Err(e) => return Err(e).context("connect to the UDS pong"),
+        }
+    };
+    let scan: Vec<u8> = (0..n * 16).map(|i| i as u8).collect();
+    let mut mask = vec![0u8; n * 4];
+    let mut h = hist();
+    let t0 = Instant::now();
+    for i in 0..iterations + 50 {
+        pace(t0, i, rate);
+        let t = Instant::now();
+        s.write_all(&scan)?;
+        s.read_exact(&mut mask)?;
+        if i >= 50 {
+            h.saturating_record(t.elapsed().as_nanos() as u64);
+        }
+    }
+    drop(s);
+    let _ = child.wait();
+    let _ = std::fs::remove_file(&path);
+    Ok(h)
+}
+
+/// Runs the real three-process pipeline on synthetic scans and returns the consumer's
+/// report (per-stage percentiles, µs).
+fn pipeline(
+    groundwork: &Path,
+    n: usize,
+    scans: u64,
+    rate: f64,
+    echo: bool,
+) -> Result<serde_json::Value> {
+    let dir = tempfile::tempdir()?;
+    let prefix = format!("latency-pipe-{}-{n}-{echo}", std::process::id());
+    let svc = dir.path().join("service.toml");
+    std::fs::write(
+        &svc,
+        format!(
+            "prefix = \"{prefix}\"\nmax_points = {}\nreport_interval_s = 60.0\n",
+            n.max(1)
+        ),
+    )?;
+    let json = dir.path().join("consumer.json");
+    let stage = |name: &str| {
+        let mut c = Command::new(groundwork);
+        c.arg(name)
+            .arg("--service")
+            .arg(&svc)
+            .stderr(Stdio::null())
+            .stdout(Stdio::null());
+        c
+    };
+    let mut seg = stage("segmenter");
+    seg.args(["--frames", "1"]);
+    if echo {
+        seg.arg("--echo");
+    }
+    let mut seg = seg.spawn()?;
+    let mut con = stage("consumer")
+        .args([
+            "--count",
+            &scans.to_string(),
+            "--idle-timeout",
+            "5",
+            "--report-json",
+        ])
+        .arg(&json)
+        .spawn()?;
+    std::thread::sleep(Duration::from_millis(500));
+    let mut prod = stage("producer")
+        .args([
+            "--synthetic",
+            &n.to_string(),
+            "--count",
+            &scans.to_string(),
+            "--rate",
+            &rate.to_string(),
+        ])
+        .spawn()?;
+    prod.wait()?;
+    con.wait()?;
+    let _ = rustix::process::kill_process(
+        rustix::process::Pid::from_child(&seg),
+        rustix::process::Signal::TERM,
+    );
+    seg.wait()?;
+    let text = std::fs::read_to_string(&json).context("consumer report")?;
+    Ok(serde_json::from_str(&text)?)
+}
+
+fn stage_row(method: &str, bytes: usize, report: &serde_json::Value, stage: &str) -> Row {
+    let s = report["latency_us"]
+        .as_array()
+        .and_then(|a| a.iter().find(|s| s["stage"] == stage))
+        .cloned()
+        .unwrap_or_default();
+    let g = |k: &str| s[k].as_f64().unwrap_or(f64::NAN);
+    Row {
+        method: method.into(),
+        bytes,
+        p: [g("p50"), g("p90"), g("p99"), g("p999"), g("max")],
+    }
+}
+
+/// Transport of a pipeline run: scan hop + mask hop, per percentile (an upper bound: the
+/// percentiles of a sum are at most the sums of the percentiles).
+fn transport_row(method: &str, bytes: usize, report: &serde_json::Value) -> Row {
+    let a = stage_row(method, bytes, report, "scan transport");
+    let b = stage_row(method, bytes, report, "mask transport");
+    Row {
+        method: method.into(),
+        bytes,
+        p: std::array::from_fn(|i| a.p[i] + b.p[i]),
+    }
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    match args.role.as_deref() {
+        Some("pong-iox") => {
+            return pong_iox(args.prefix.as_deref().unwrap_or("x"), args.n.unwrap_or(1));
+        }
+        Some("pong-uds") => {
+            return pong_uds(
+                args.socket.as_deref().context("--socket")?,
+                args.n.unwrap_or(1),
+            );
+        }
+        Some(r) => anyhow::bail!("unknown role {r}"),
+        None => {}
+    }
+    let exe = std::env::current_exe()?;
+    let groundwork = exe.with_file_name("groundwork");
+    anyhow::ensure!(
+        groundwork.is_file(),
+        "{}: build it first (cargo build --release -p groundwork-cli)",
+        groundwork.display()
+    );
+    let mut rows = Vec::new();
+    let mut ratios = Vec::new();
+    for &n in &args.points {
+        let bytes = n * 16;
+        eprintln!("payload {n} points ({:.1} KB) …", bytes as f64 / 1024.0);
+        let iox = row(
+            "iox-pingpong",
+            bytes,
+            &ping_iox(&exe, n, args.iterations, args.echo_rate)?,
+        );
+        let uds = row(
+            "uds-copy",
+            bytes,
+            &ping_uds(&exe, n, args.iterations, args.echo_rate)?,
+        );
+        let echo = pipeline(&groundwork, n, args.pipeline_scans, args.echo_rate, true)?;
+        let echo_t = transport_row("pipeline-echo transport", bytes, &echo);
+        let echo_e2e = stage_row("pipeline-echo end-to-end", bytes, &echo, "end to end");
+        ratios.push((
+            bytes,
+            echo_t.p[0] / iox.p[0],
+            echo_t.p[2] / iox.p[2],
+            uds.p[0] / iox.p[0],
+        ));
+        rows.extend([iox, uds, echo_t, echo_e2e]);
+        if !args.no_full {
+            let full = pipeline(&groundwork, n, args.full_scans, 15.0, false)?;
+            rows.push(transport_row("pipeline-full transport", bytes, &full));
+            rows.push(stage_row("pipeline-full segment", bytes, &full, "segment"));
+            rows.push(stage_row(
+                "pipeline-full end-to-end",
+                bytes,
+                &full,
+                "end to end",
+            ));
+        }
+    }
+    println!(
+        "{:<28} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
+        "method (µs)", "payload", "p50", "p90", "p99", "p99.9", "max"
+    );
+    for r in &rows {
+        println!(
+            "{:<28} {:>9.0}K {:>10.1} {:>10.1} {:>10.1} {:>10.1} {:>10.1}",
+            r.method,
+            r.bytes as f64 / 1024.0,
+            r.p[0],
+            r.p[1],
+            r.p[2],
+            r.p[3],
+            r.p[4]
+        );
+    }
+    println!("\npipeline transport (scan hop + mask hop) / bare iceoryx2 round trip, same run:");
+    for (bytes, p50, p99, uds) in &ratios {
+        println!(
+            "  {:>7.0} KB: p50 {p50:.2}x, p99 {p99:.2}x (budget <= 1.5x); UDS copy / iceoryx2 p50 {uds:.1}x",
+            *bytes as f64 / 1024.0
+        );
+    }
+    if let Some(path) = &args.csv {
+        let mut f = std::fs::File::create(path).with_context(|| path.display().to_string())?;
+        writeln!(
+            f,
+            "method,payload_bytes,p50_us,p90_us,p99_us,p999_us,max_us"
+        )?;
+        for r in &rows {
+            writeln!(
+                f,
+                "{},{},{},{},{},{},{}",
+                r.method, r.bytes, r.p[0], r.p[1], r.p[2], r.p[3], r.p[4]
+            )?;
+        }
+    }
+    Ok(())
+}
