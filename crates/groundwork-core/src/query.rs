@@ -235,6 +235,27 @@ fn split_runs<'a>(
     runs
 }
 
+/// First pass of a counting sort: `start[s]..start[s+1]` will hold the points whose
+/// `key(bin)` is segment s (points with key `None` are left out). Returns their number.
+pub(crate) fn segment_offsets(
+    bins: &[u32],
+    segments: usize,
+    key: impl Fn(u32) -> Option<u32>,
+    start: &mut Vec<u32>,
+) -> usize {
+    start.clear();
+    start.resize(segments + 1, 0);
+    for &b in bins {
+        if let Some(seg) = key(b) {
+            start[seg as usize + 1] += 1;
+        }
+    }
+    for i in 0..segments {
+        start[i + 1] += start[i];
+    }
+    start[segments] as usize
+}
+
 /// Counting sort of the queried points by the segment that answers for them in the query
 /// scan, into f32 structure-of-arrays.
 fn group(
@@ -244,17 +265,7 @@ fn group(
     segments: usize,
     policy: BeyondRangePolicy,
 ) {
-    s.start.clear();
-    s.start.resize(segments + 1, 0);
-    for &b in bins {
-        if let Some(seg) = segment_of(b, policy) {
-            s.start[seg as usize + 1] += 1;
-        }
-    }
-    for i in 0..segments {
-        s.start[i + 1] += s.start[i];
-    }
-    let total = s.start[segments] as usize;
+    let total = segment_offsets(bins, segments, |b| segment_of(b, policy), &mut s.start);
     s.order.resize(total, 0);
     s.x.resize(total, 0.0);
     s.y.resize(total, 0.0);

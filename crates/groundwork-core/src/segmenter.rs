@@ -14,8 +14,14 @@ use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, mount_transform};
-use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, pack, query};
+use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, pack, query, segment_offsets};
 use crate::zones::ZoneModel;
+
+/// The segment a point is fitted in: in-range points only (beyond-range points are
+/// queried, never fitted).
+fn in_range(b: u32) -> Option<u32> {
+    (b & BEYOND == 0).then_some(b)
+}
 
 /// What happened to one scan.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -173,6 +179,12 @@ impl Segmenter {
     ) -> Result<(), SegmentError> {
         self.check(points, None, out)?;
         self.bin_points(points);
+        self.query_single(model, out);
+        Ok(())
+    }
+
+    /// Single-frame query of the binned points against `model`.
+    fn query_single(&mut self, model: &FrameModel, out: &mut [f32]) {
         let frames = [QueryFrame {
             model,
             transform: None,
@@ -186,7 +198,6 @@ impl Segmenter {
             &mut self.query_scratch,
             out,
         );
-        Ok(())
     }
 
     fn fit_grouped(&self) -> (FrameModel, Vec<crate::model::SegmentStats>) {
@@ -286,19 +297,7 @@ impl Segmenter {
             }
             None => {
                 self.counters.without_pose += 1;
-                let frames = [QueryFrame {
-                    model: &model,
-                    transform: None,
-                }];
-                query(
-                    &self.zones,
-                    &frames,
-                    &self.ground,
-                    &self.bins,
-                    self.cfg.zones.beyond_max_range,
-                    &mut self.query_scratch,
-                    out,
-                );
+                self.query_single(&model, out);
                 report.frames_queried = 1;
             }
         }
@@ -384,17 +383,7 @@ impl Segmenter {
     fn group_by_segment(&mut self) {
         let segs = self.zones.segment_count();
         let s = &mut self.sorted;
-        s.start.clear();
-        s.start.resize(segs + 1, 0);
-        for &b in &self.bins {
-            if b & BEYOND == 0 {
-                s.start[b as usize + 1] += 1;
-            }
-        }
-        for i in 0..segs {
-            s.start[i + 1] += s.start[i];
-        }
-        let total = s.start[segs] as usize;
+        let total = segment_offsets(&self.bins, segs, in_range, &mut s.start);
         s.xs.resize(total, 0.0);
         s.ys.resize(total, 0.0);
         s.zs.resize(total, 0.0);

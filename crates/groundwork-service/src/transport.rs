@@ -1,6 +1,8 @@
 //! iceoryx2 wiring shared by the stages: every topic is a publish-subscribe service plus an
 //! event service of the same name that wakes the readers.
 
+use std::fmt::Debug;
+
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -66,34 +68,39 @@ fn service_name(cfg: &ServiceConfig, topic: &str) -> anyhow::Result<ServiceName>
     ServiceName::new(&s).map_err(|e| anyhow::anyhow!("service name {s}: {e:?}"))
 }
 
-/// Opens (or creates) the scan topic.
-pub fn scan_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::Result<ScanService> {
-    node.service_builder(&service_name(cfg, "scans")?)
-        .publish_subscribe::<[ScanPoint]>()
-        .user_header::<ScanHeader>()
-        .subscriber_max_buffer_size(cfg.scan_queue)
+/// Opens (or creates) a topic whose payload is a slice of `P` with header `H`, sized by the
+/// configuration: `queue` samples per subscriber, safe overflow per the overflow policy.
+fn topic<P, H>(
+    node: &Node<ipc::Service>,
+    cfg: &ServiceConfig,
+    name: &str,
+    queue: usize,
+) -> anyhow::Result<PortFactory<ipc::Service, [P], H>>
+where
+    P: Debug + ZeroCopySend + 'static,
+    H: Debug + ZeroCopySend + 'static,
+{
+    node.service_builder(&service_name(cfg, name)?)
+        .publish_subscribe::<[P]>()
+        .user_header::<H>()
+        .subscriber_max_buffer_size(queue)
         .subscriber_max_borrowed_samples(cfg.max_borrowed)
         .max_subscribers(cfg.max_subscribers)
         .max_publishers(2)
         .history_size(0)
         .enable_safe_overflow(cfg.overflow == OverflowPolicy::DropOldest)
         .open_or_create()
-        .map_err(|e| anyhow::anyhow!("{}/scans: {e:?}", cfg.prefix))
+        .map_err(|e| anyhow::anyhow!("{}/{name}: {e:?}", cfg.prefix))
+}
+
+/// Opens (or creates) the scan topic.
+pub fn scan_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::Result<ScanService> {
+    topic(node, cfg, "scans", cfg.scan_queue)
 }
 
 /// Opens (or creates) the mask topic.
 pub fn mask_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::Result<MaskService> {
-    node.service_builder(&service_name(cfg, "masks")?)
-        .publish_subscribe::<[f32]>()
-        .user_header::<MaskHeader>()
-        .subscriber_max_buffer_size(cfg.mask_queue)
-        .subscriber_max_borrowed_samples(cfg.max_borrowed)
-        .max_subscribers(cfg.max_subscribers)
-        .max_publishers(2)
-        .history_size(0)
-        .enable_safe_overflow(cfg.overflow == OverflowPolicy::DropOldest)
-        .open_or_create()
-        .map_err(|e| anyhow::anyhow!("{}/masks: {e:?}", cfg.prefix))
+    topic(node, cfg, "masks", cfg.mask_queue)
 }
 
 /// The wake-up side of a topic: notifier for its publisher, listener for its readers.
@@ -120,32 +127,55 @@ pub fn event_ports(
     Ok((n, l))
 }
 
-/// A scan publisher whose memory is sized once for `max_points` (no growth at run time).
+/// A publisher whose memory is sized once for `max_points` values (no growth at run time)
+/// and that never blocks on a full subscriber queue.
+fn publisher<P, H>(
+    svc: &PortFactory<ipc::Service, [P], H>,
+    cfg: &ServiceConfig,
+    what: &str,
+) -> anyhow::Result<Publisher<ipc::Service, [P], H>>
+where
+    P: Debug + ZeroCopySend + 'static,
+    H: Debug + ZeroCopySend + 'static,
+{
+    svc.publisher_builder()
+        .initial_max_slice_len(cfg.max_points)
+        .allocation_strategy(AllocationStrategy::Static)
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| anyhow::anyhow!("{what} publisher: {e:?}"))
+}
+
+fn subscriber<P, H>(
+    svc: &PortFactory<ipc::Service, [P], H>,
+    queue: usize,
+    what: &str,
+) -> anyhow::Result<Subscriber<ipc::Service, [P], H>>
+where
+    P: Debug + ZeroCopySend + 'static,
+    H: Debug + ZeroCopySend + 'static,
+{
+    svc.subscriber_builder()
+        .buffer_size(queue)
+        .create()
+        .map_err(|e| anyhow::anyhow!("{what} subscriber: {e:?}"))
+}
+
+/// The scan publisher.
 pub fn scan_publisher(
     svc: &ScanService,
     cfg: &ServiceConfig,
 ) -> anyhow::Result<Publisher<ipc::Service, [ScanPoint], ScanHeader>> {
-    svc.publisher_builder()
-        .initial_max_slice_len(cfg.max_points)
-        .allocation_strategy(AllocationStrategy::Static)
-        .backpressure_strategy(BackpressureStrategy::DiscardData)
-        .max_loaned_samples(2)
-        .create()
-        .map_err(|e| anyhow::anyhow!("scan publisher: {e:?}"))
+    publisher(svc, cfg, "scan")
 }
 
-/// A mask publisher sized for `max_points`.
+/// The mask publisher.
 pub fn mask_publisher(
     svc: &MaskService,
     cfg: &ServiceConfig,
 ) -> anyhow::Result<Publisher<ipc::Service, [f32], MaskHeader>> {
-    svc.publisher_builder()
-        .initial_max_slice_len(cfg.max_points)
-        .allocation_strategy(AllocationStrategy::Static)
-        .backpressure_strategy(BackpressureStrategy::DiscardData)
-        .max_loaned_samples(2)
-        .create()
-        .map_err(|e| anyhow::anyhow!("mask publisher: {e:?}"))
+    publisher(svc, cfg, "mask")
 }
 
 /// A scan subscriber.
@@ -153,10 +183,7 @@ pub fn scan_subscriber(
     svc: &ScanService,
     cfg: &ServiceConfig,
 ) -> anyhow::Result<Subscriber<ipc::Service, [ScanPoint], ScanHeader>> {
-    svc.subscriber_builder()
-        .buffer_size(cfg.scan_queue)
-        .create()
-        .map_err(|e| anyhow::anyhow!("scan subscriber: {e:?}"))
+    subscriber(svc, cfg.scan_queue, "scan")
 }
 
 /// A mask subscriber.
@@ -164,10 +191,7 @@ pub fn mask_subscriber(
     svc: &MaskService,
     cfg: &ServiceConfig,
 ) -> anyhow::Result<Subscriber<ipc::Service, [f32], MaskHeader>> {
-    svc.subscriber_builder()
-        .buffer_size(cfg.mask_queue)
-        .create()
-        .map_err(|e| anyhow::anyhow!("mask subscriber: {e:?}"))
+    subscriber(svc, cfg.mask_queue, "mask")
 }
 
 /// Drains pending wake-ups so the WaitSet does not fire again at once.
