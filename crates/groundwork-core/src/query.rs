@@ -113,76 +113,46 @@ pub struct QueryFrame<'a> {
     pub transform: Option<&'a Isometry3<f64>>,
 }
 
-/// Running log-sum-exp state of points over the components seen so far, structure of
-/// arrays: for each point the best log-density `max` and Σw, Σw·p_λ, Σw·p_θ, Σw·p_e with
-/// w = e^{l − max}.
-#[derive(Debug, Default)]
-struct Sums {
-    max: Vec<f32>,
-    sum: Vec<f32>,
-    flat: Vec<f32>,
-    orient: Vec<f32>,
-    elev: Vec<f32>,
+/// Partial sums of one point over the components seen so far.
+#[derive(Debug, Clone, Copy)]
+struct Partial {
+    max: f32,
+    sum: f32,
+    flat: f32,
+    orient: f32,
+    elev: f32,
 }
 
-/// A mutable window of [`Sums`] (one run of points).
-#[derive(Debug)]
-struct SumsMut<'a> {
-    max: &'a mut [f32],
-    sum: &'a mut [f32],
-    flat: &'a mut [f32],
-    orient: &'a mut [f32],
-    elev: &'a mut [f32],
-}
+const NONE: Partial = Partial {
+    max: EMPTY,
+    sum: 0.0,
+    flat: 0.0,
+    orient: 0.0,
+    elev: 0.0,
+};
 
-impl Sums {
-    fn reset(&mut self, n: usize) {
-        self.max.clear();
-        self.max.resize(n, EMPTY);
-        for v in [
-            &mut self.sum,
-            &mut self.flat,
-            &mut self.orient,
-            &mut self.elev,
-        ] {
-            v.clear();
-            v.resize(n, 0.0);
+impl Partial {
+    /// Streaming log-sum-exp merge.
+    #[inline]
+    fn merge(&mut self, o: &Partial) {
+        if o.sum == 0.0 {
+            return;
         }
+        let m = self.max.max(o.max);
+        let a = exp_nonpositive(self.max - m);
+        let b = exp_nonpositive(o.max - m);
+        self.max = m;
+        self.sum = a * self.sum + b * o.sum;
+        self.flat = a * self.flat + b * o.flat;
+        self.orient = a * self.orient + b * o.orient;
+        self.elev = a * self.elev + b * o.elev;
     }
 
-    /// Consecutive windows of the given lengths.
-    fn split(&mut self, lens: impl Iterator<Item = usize>) -> Vec<SumsMut<'_>> {
-        let (mut m, mut s, mut f, mut o, mut e) = (
-            &mut self.max[..],
-            &mut self.sum[..],
-            &mut self.flat[..],
-            &mut self.orient[..],
-            &mut self.elev[..],
-        );
-        let mut out = Vec::new();
-        for len in lens {
-            let (m0, m1) = m.split_at_mut(len);
-            let (s0, s1) = s.split_at_mut(len);
-            let (f0, f1) = f.split_at_mut(len);
-            let (o0, o1) = o.split_at_mut(len);
-            let (e0, e1) = e.split_at_mut(len);
-            (m, s, f, o, e) = (m1, s1, f1, o1, e1);
-            out.push(SumsMut {
-                max: m0,
-                sum: s0,
-                flat: f0,
-                orient: o0,
-                elev: e0,
-            });
-        }
-        out
-    }
-
-    fn probability(&self, j: usize) -> f32 {
-        let s = self.sum[j];
-        if s > 0.0 {
-            let inv = 1.0 / s;
-            ((self.flat[j] * inv) * (self.orient[j] * inv) * (self.elev[j] * inv)).clamp(0.0, 1.0)
+    #[inline]
+    fn probability(&self) -> f32 {
+        if self.sum > 0.0 {
+            let inv = 1.0 / self.sum;
+            ((self.flat * inv) * (self.orient * inv) * (self.elev * inv)).clamp(0.0, 1.0)
         } else {
             0.0
         }
@@ -201,7 +171,7 @@ pub(crate) struct QueryScratch {
     /// Grouped points of segment s are at `start[s]..start[s+1]`.
     start: Vec<u32>,
     /// Running sums per grouped point.
-    acc: Sums,
+    acc: Vec<Partial>,
 }
 
 /// Ground probability of every point. `points` are in the query scan's ground-aligned frame
@@ -221,43 +191,48 @@ pub(crate) fn query(
     out: &mut [f32],
 ) {
     group(s, points, bins, zones.segment_count(), policy);
-    s.acc.reset(s.order.len());
-    // Per-segment windows, big ones first so that rayon balances the cores well.
-    let lens = s.start.windows(2).map(|w| (w[1] - w[0]) as usize);
-    let starts = &s.start;
-    let mut runs: Vec<(u32, usize, SumsMut<'_>)> = s
-        .acc
-        .split(lens)
-        .into_iter()
-        .enumerate()
-        .map(|(seg, acc)| (seg as u32, starts[seg] as usize, acc))
-        .filter(|r| !r.2.max.is_empty())
-        .collect();
-    runs.sort_unstable_by_key(|r| std::cmp::Reverse(r.2.max.len()));
+    s.acc.clear();
+    s.acc.resize(s.order.len(), NONE);
+    let runs = split_runs(&s.start, &mut s.acc);
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
-    runs.into_par_iter().with_max_len(1).for_each_init(
-        RunScratch::default,
-        |rs, (seg, a, mut acc)| {
-            let n = acc.max.len();
-            let (x, y, z) = (&xs[a..a + n], &ys[a..a + n], &zs[a..a + n]);
+    runs.into_par_iter()
+        .with_max_len(1)
+        .for_each_init(RunScratch::default, |rs, (seg, a, acc)| {
+            let (x, y, z) = (
+                &xs[a..a + acc.len()],
+                &ys[a..a + acc.len()],
+                &zs[a..a + acc.len()],
+            );
             for f in frames {
-                let table = f.model.query_table();
                 match f.transform {
-                    None => {
-                        rs.rows.clear();
-                        rs.rows
-                            .extend(table.segment(seg).iter().map(|c| (*c, NEAR)));
-                        rs.eval(x, y, z, None, &mut acc);
-                    }
-                    Some(t) => rs.eval_moved(zones, table, t, policy, x, y, z, &mut acc),
+                    None => rs.eval(f.model.query_table().segment(seg), x, y, z, acc),
+                    Some(t) => rs.eval_moved(zones, f.model.query_table(), t, policy, x, y, z, acc),
                 }
             }
-        },
-    );
+        });
     out.fill(0.0);
-    for (j, &i) in s.order.iter().enumerate() {
-        out[i as usize] = s.acc.probability(j);
+    for (&i, a) in s.order.iter().zip(&s.acc) {
+        out[i as usize] = a.probability();
     }
+}
+
+/// Mutable per-segment slices of the running sums, with each segment's index and offset.
+fn split_runs<'a>(
+    start: &[u32],
+    mut acc: &'a mut [Partial],
+) -> Vec<(u32, usize, &'a mut [Partial])> {
+    let mut runs = Vec::new();
+    for (seg, w) in start.windows(2).enumerate() {
+        let len = (w[1] - w[0]) as usize;
+        let (head, tail) = acc.split_at_mut(len);
+        acc = tail;
+        if len > 0 {
+            runs.push((seg as u32, w[0] as usize, head));
+        }
+    }
+    // Big runs first: rayon then balances the cores well.
+    runs.sort_unstable_by_key(|r| std::cmp::Reverse(r.2.len()));
+    runs
 }
 
 /// First pass of a counting sort: `start[s]..start[s+1]` will hold the points whose
@@ -309,27 +284,34 @@ fn group(
     }
 }
 
-/// Per-thread buffers for evaluating one run of points.
+/// Per-thread buffers for evaluating one run of points against one segment.
 #[derive(Debug, Default)]
 struct RunScratch {
-    /// Components to evaluate, each with the segment whose points it answers for
-    /// (`NEAR` = every point of the run).
-    rows: Vec<(QComp, u32)>,
     l: Vec<f32>,
-    part: Sums,
-    // For past frames: the run moved into that frame and its bins there.
+    max: Vec<f32>,
+    sum: Vec<f32>,
+    flat: Vec<f32>,
+    orient: Vec<f32>,
+    elev: Vec<f32>,
+    // For past frames: the run moved into that frame, its bins there, and the run
+    // regrouped by those bins.
     mx: Vec<f32>,
     my: Vec<f32>,
     mz: Vec<f32>,
     bins: Vec<u32>,
+    groups: Vec<(u32, u32)>,
+    perm: Vec<u32>,
+    gx: Vec<f32>,
+    gy: Vec<f32>,
+    gz: Vec<f32>,
+    parts: Vec<Partial>,
 }
 
 impl RunScratch {
-    /// Partial sums of a run against a past frame. The points are moved into that frame
-    /// and binned there (vectorised); a run of one compact segment spreads over only a few
-    /// past segments, so every point is evaluated against the components of all of them,
-    /// masked to its own: more arithmetic than a regrouping, but in straight vectorised
-    /// loops, in place, without gathers and scatters.
+    /// Partial sums of a run against a past frame: the points are moved into that frame
+    /// and binned there (vectorised), regrouped by the segment they fall into (a run of
+    /// one compact segment spreads over only a few past segments), and each group is
+    /// evaluated like a current-frame run.
     #[allow(clippy::too_many_arguments)]
     fn eval_moved(
         &mut self,
@@ -340,9 +322,9 @@ impl RunScratch {
         xs: &[f32],
         ys: &[f32],
         zs: &[f32],
-        acc: &mut SumsMut<'_>,
+        acc: &mut [Partial],
     ) {
-        let n = xs.len();
+        let n = acc.len();
         let m = t.to_homogeneous().cast::<f32>();
         for v in [&mut self.mx, &mut self.my, &mut self.mz] {
             v.resize(n, 0.0);
@@ -360,80 +342,125 @@ impl RunScratch {
         }
         self.bins.resize(n, 0);
         zones.bin_many(&self.mx, &self.my, &mut self.bins);
-        self.rows.clear();
-        let mut last = NEAR;
+        // Distinct answering segments of this run with their counts (few: linear search).
+        self.groups.clear();
         for b in self.bins.iter_mut() {
             *b = segment_of(*b, policy).unwrap_or(NEAR);
-            // Distinct segments of the run (few; neighbours mostly share one).
-            if *b != NEAR && *b != last && !self.rows.iter().any(|r| r.1 == *b) {
-                self.rows.extend(table.segment(*b).iter().map(|c| (*c, *b)));
+            if *b == NEAR || table.segment(*b).is_empty() {
+                *b = NEAR;
+                continue;
             }
-            last = *b;
+            match self.groups.iter_mut().find(|g| g.0 == *b) {
+                Some(g) => g.1 += 1,
+                None => self.groups.push((*b, 1)),
+            }
         }
-        if self.rows.is_empty() {
-            return;
+        let mut offset = 0;
+        for g in self.groups.iter_mut() {
+            let c = g.1;
+            g.1 = offset;
+            offset += c;
         }
-        let (mx, my, mz, bins) = (
-            std::mem::take(&mut self.mx),
-            std::mem::take(&mut self.my),
-            std::mem::take(&mut self.mz),
-            std::mem::take(&mut self.bins),
+        let total = offset as usize;
+        self.perm.resize(total, 0);
+        for v in [&mut self.gx, &mut self.gy, &mut self.gz] {
+            v.resize(total, 0.0);
+        }
+        let mut cursor: Vec<(u32, u32)> = self.groups.clone();
+        for (j, &b) in self.bins.iter().enumerate() {
+            if b == NEAR {
+                continue;
+            }
+            let Some(g) = cursor.iter_mut().find(|g| g.0 == b) else {
+                continue;
+            };
+            let k = g.1 as usize;
+            self.perm[k] = j as u32;
+            self.gx[k] = self.mx[j];
+            self.gy[k] = self.my[j];
+            self.gz[k] = self.mz[j];
+            g.1 += 1;
+        }
+        self.parts.clear();
+        self.parts.resize(total, NONE);
+        let groups = std::mem::take(&mut self.groups);
+        let (gx, gy, gz, mut parts) = (
+            std::mem::take(&mut self.gx),
+            std::mem::take(&mut self.gy),
+            std::mem::take(&mut self.gz),
+            std::mem::take(&mut self.parts),
         );
-        self.eval(&mx, &my, &mz, Some(&bins), acc);
-        (self.mx, self.my, self.mz, self.bins) = (mx, my, mz, bins);
+        for (i, &(seg, start)) in groups.iter().enumerate() {
+            let end = groups.get(i + 1).map_or(total, |g| g.1 as usize);
+            let r = start as usize..end;
+            self.eval(
+                table.segment(seg),
+                &gx[r.clone()],
+                &gy[r.clone()],
+                &gz[r.clone()],
+                &mut parts[r],
+            );
+        }
+        for (&j, p) in self.perm.iter().zip(&parts) {
+            acc[j as usize].merge(p);
+        }
+        (self.groups, self.gx, self.gy, self.gz, self.parts) = (groups, gx, gy, gz, parts);
     }
 
-    /// Evaluates `rows` for a run of points (vectorised, component-major) and merges the
-    /// result into `acc`. With `bins`, a row only counts for points of its segment.
-    fn eval(
-        &mut self,
-        xs: &[f32],
-        ys: &[f32],
-        zs: &[f32],
-        bins: Option<&[u32]>,
-        acc: &mut SumsMut<'_>,
-    ) {
-        let n = xs.len();
-        let k = self.rows.len();
-        if k == 0 {
+    /// Partial sums of a run of points against the components of their own segment in
+    /// straight loops over points (vectorised), merged into `acc`.
+    fn eval(&mut self, comps: &[QComp], xs: &[f32], ys: &[f32], zs: &[f32], acc: &mut [Partial]) {
+        let n = acc.len();
+        if comps.is_empty() {
             return;
         }
+        let k = comps.len();
         self.l.resize(k * n, 0.0);
-        for (r, &(q, seg)) in self.rows.iter().enumerate() {
-            let row = &mut self.l[r * n..(r + 1) * n];
+        // Log-densities, component-major.
+        for (c, q) in comps.iter().enumerate() {
+            let row = &mut self.l[c * n..(c + 1) * n];
             let p = q.p;
-            for (((o, &x), &y), &z) in row.iter_mut().zip(xs).zip(ys).zip(zs) {
+            for (((r, &x), &y), &z) in row.iter_mut().zip(xs).zip(ys).zip(zs) {
                 let (dx, dy, dz) = (x - q.m[0], y - q.m[1], z - q.m[2]);
                 let d = p[0] * dx * dx
                     + p[3] * dy * dy
                     + p[5] * dz * dz
                     + 2.0 * (p[1] * dx * dy + p[2] * dx * dz + p[4] * dy * dz);
-                *o = q.c - 0.5 * d;
-            }
-            if let Some(bins) = bins {
-                for (o, &b) in row.iter_mut().zip(bins) {
-                    *o = if b == seg { *o } else { EMPTY };
-                }
+                *r = q.c - 0.5 * d;
             }
         }
-        let part = &mut self.part;
-        part.reset(n);
-        for r in 0..k {
-            for (m, &l) in part.max.iter_mut().zip(&self.l[r * n..(r + 1) * n]) {
+        self.max.clear();
+        self.max.extend_from_slice(&self.l[..n]);
+        for c in 1..k {
+            for (m, &l) in self.max.iter_mut().zip(&self.l[c * n..(c + 1) * n]) {
                 *m = m.max(l);
             }
         }
-        for (r, &(q, _)) in self.rows.iter().enumerate() {
-            for ((((&l, &m), s), (f, o)), e) in self.l[r * n..(r + 1) * n]
+        for v in [
+            &mut self.sum,
+            &mut self.flat,
+            &mut self.orient,
+            &mut self.elev,
+        ] {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        let (sum, flat, orient, elev) = (
+            &mut self.sum,
+            &mut self.flat,
+            &mut self.orient,
+            &mut self.elev,
+        );
+        for (c, q) in comps.iter().enumerate() {
+            for ((((&l, &m), s), (f, o)), e) in self.l[c * n..(c + 1) * n]
                 .iter()
-                .zip(&part.max)
-                .zip(part.sum.iter_mut())
-                .zip(part.flat.iter_mut().zip(part.orient.iter_mut()))
-                .zip(part.elev.iter_mut())
+                .zip(&self.max)
+                .zip(sum.iter_mut())
+                .zip(flat.iter_mut().zip(orient.iter_mut()))
+                .zip(elev.iter_mut())
             {
                 let d = l - m;
-                // Masked rows (l = EMPTY) and negligible components weigh nothing.
-                let w = if d < -LOG_CUTOFF || l <= EMPTY {
+                let w = if d < -LOG_CUTOFF {
                     0.0
                 } else {
                     exp_nonpositive(d)
@@ -444,35 +471,14 @@ impl RunScratch {
                 *e += w * q.elev;
             }
         }
-        // Streaming log-sum-exp merge, a straight loop over the run.
-        for j in 0..n {
-            let (pm, ps) = (part.max[j], part.sum[j]);
-            let am = acc.max[j];
-            let m = am.max(pm);
-            let a = exp_nonpositive(am - m);
-            let b = exp_nonpositive(pm - m);
-            let keep = ps == 0.0;
-            acc.max[j] = if keep { am } else { m };
-            acc.sum[j] = if keep {
-                acc.sum[j]
-            } else {
-                a * acc.sum[j] + b * ps
-            };
-            acc.flat[j] = if keep {
-                acc.flat[j]
-            } else {
-                a * acc.flat[j] + b * part.flat[j]
-            };
-            acc.orient[j] = if keep {
-                acc.orient[j]
-            } else {
-                a * acc.orient[j] + b * part.orient[j]
-            };
-            acc.elev[j] = if keep {
-                acc.elev[j]
-            } else {
-                a * acc.elev[j] + b * part.elev[j]
-            };
+        for (j, a) in acc.iter_mut().enumerate() {
+            a.merge(&Partial {
+                max: self.max[j],
+                sum: sum[j],
+                flat: flat[j],
+                orient: orient[j],
+                elev: elev[j],
+            });
         }
     }
 }

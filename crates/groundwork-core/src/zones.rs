@@ -184,9 +184,7 @@ impl ZoneModel {
                 .floor()
                 .max(0.0)
                 .min(ns - 1.0);
-            // Exact float → integer for 0 ≤ v < 2^23 without `as` (whose saturating
-            // semantics keep the loop scalar): add 2^23 and read the mantissa bits.
-            let idx = (off + ring * ns + sector + 8_388_608.0).to_bits() - 0x4B00_0000;
+            let idx = (off + ring * ns + sector) as i32 as u32;
             let idx = if beyond { idx | BEYOND } else { idx };
             *o = if r < near { NEAR } else { idx };
         }
