@@ -80,6 +80,14 @@ impl Drop for Proc {
     }
 }
 
+/// A consumer that writes its final report to `<dir>/<name>.json`.
+fn consumer(dir: &Path, name: &str, prefix: &str, args: &[&str]) -> (Proc, PathBuf) {
+    let json = dir.join(format!("{name}.json"));
+    let mut all: Vec<&str> = args.to_vec();
+    all.extend(["--report-json", json.to_str().unwrap()]);
+    (Proc::start(dir, name, prefix, &all), json)
+}
+
 fn prefix(test: &str) -> String {
     format!("gwtest-{test}-{}", std::process::id())
 }
@@ -108,18 +116,7 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("kill-seg");
-    let json = tmp.path().join("consumer.json");
-    let mut consumer = Proc::start(
-        tmp.path(),
-        "consumer",
-        &p,
-        &[
-            "--idle-timeout",
-            "3",
-            "--report-json",
-            json.to_str().unwrap(),
-        ],
-    );
+    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "3"]);
     let mut seg_a = Proc::start(tmp.path(), "segmenter-a", &p, &["--frames", "1"]);
     sleep(0.5);
     let started = Instant::now();
@@ -163,18 +160,7 @@ fn killed_producer_leaves_the_others_serving_and_a_new_one_resumes() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("kill-prod");
-    let json = tmp.path().join("consumer.json");
-    let mut consumer = Proc::start(
-        tmp.path(),
-        "consumer",
-        &p,
-        &[
-            "--idle-timeout",
-            "4",
-            "--report-json",
-            json.to_str().unwrap(),
-        ],
-    );
+    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "4"]);
     let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
     sleep(0.5);
     let mut prod_a = Proc::start(tmp.path(), "producer-a", &p, &["--rate", "20"]);
@@ -212,8 +198,7 @@ fn stalled_consumer_costs_only_its_own_messages() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("stall");
-    let (slow_json, fast_json) = (tmp.path().join("slow.json"), tmp.path().join("fast.json"));
-    let mut slow = Proc::start(
+    let (mut slow, slow_json) = consumer(
         tmp.path(),
         "consumer-slow",
         &p,
@@ -224,22 +209,13 @@ fn stalled_consumer_costs_only_its_own_messages() {
             "3",
             "--idle-timeout",
             "2",
-            "--report-json",
-            slow_json.to_str().unwrap(),
         ],
     );
-    let mut fast = Proc::start(
+    let (mut fast, fast_json) = consumer(
         tmp.path(),
         "consumer-fast",
         &p,
-        &[
-            "--count",
-            "100",
-            "--idle-timeout",
-            "3",
-            "--report-json",
-            fast_json.to_str().unwrap(),
-        ],
+        &["--count", "100", "--idle-timeout", "3"],
     );
     let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
     sleep(0.5);
@@ -290,23 +266,15 @@ fn malformed_scans_are_rejected_counted_and_the_next_served() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("malformed");
-    let json = tmp.path().join("consumer.json");
     // Too many points: a segmenter configured for at most 124,200 points rejects KITTI
     // frames 0–2 (124,668 / 124,605 / 124,478 points) and accepts 3–5.
     let cfg = tmp.path().join("small.toml");
     std::fs::write(&cfg, "[sensor]\nmax_points = 124200\n").unwrap();
-    let mut consumer = Proc::start(
+    let (mut consumer, json) = consumer(
         tmp.path(),
         "consumer",
         &p,
-        &[
-            "--count",
-            "24",
-            "--idle-timeout",
-            "3",
-            "--report-json",
-            json.to_str().unwrap(),
-        ],
+        &["--count", "24", "--idle-timeout", "3"],
     );
     let mut seg = Proc::start(
         tmp.path(),
