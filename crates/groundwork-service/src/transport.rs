@@ -193,8 +193,3 @@ pub fn mask_subscriber(
 ) -> anyhow::Result<Subscriber<ipc::Service, [f32], MaskHeader>> {
     subscriber(svc, cfg.mask_queue, "mask")
 }
-
-/// Drains pending wake-ups so the WaitSet does not fire again at once.
-pub fn drain(listener: &Listener<ipc::Service>) {
-    let _ = listener.try_wait(|_| {});
-}
