@@ -1,6 +1,8 @@
 //! Latency benchmark of the service with real processes, in one run, per payload size:
 //! - `iox-pingpong`: bare iceoryx2 round trip between two processes (scan out, mask back,
 //!   event wake-ups), the floor any iceoryx2 pipeline stands on;
+//! - `iox-relay`: bare iceoryx2 through three processes like the pipeline (source → relay
+//!   answering with a mask → sink), publication of the scan to receipt of the mask;
 //! - `uds-copy`: the same round trip over a Unix domain socket (the payload is copied);
 //! - `pipeline-echo`: producer → segmenter (`--echo`: answers with a mask of the right size
 //!   without computing) → consumer, three processes; transport = scan hop + mask hop;
@@ -59,6 +61,8 @@ struct Args {
     socket: Option<PathBuf>,
     #[arg(long, hide = true)]
     n: Option<usize>,
+    #[arg(long, hide = true)]
+    count: Option<u64>,
 }
 
 #[derive(Debug, Clone)]
@@ -111,6 +115,7 @@ fn pong_iox(prefix: &str, n: usize) -> Result<()> {
                 .loan_slice(scan.payload().len())
                 .map_err(|e| anyhow::anyhow!("{e:?}"))?;
             mask.user_header_mut().scan_sequence = h.sequence;
+            mask.user_header_mut().stamps = h.stamps;
             drop(scan);
             mask.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
             mask_notifier
@@ -118,6 +123,104 @@ fn pong_iox(prefix: &str, n: usize) -> Result<()> {
                 .map_err(|e| anyhow::anyhow!("{e:?}"))?;
         }
     }
+}
+
+/// The last process of the bare iceoryx2 relay: receives masks and prints the latency
+/// from the scan's publication (its stamp) to receipt, as JSON [p50, p90, p99, p99.9, max] µs.
+fn sink_iox(prefix: &str, n: usize, count: u64) -> Result<()> {
+    let cfg = service_cfg(prefix, n);
+    let node = transport::node("latency-sink")?;
+    let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
+    let (_mn, mask_listener) = transport::event_ports(&node, &cfg, "masks")?;
+    let mut h = hist();
+    let mut seen = 0;
+    while seen < count {
+        if mask_listener
+            .timed_wait(|_| {}, Duration::from_secs(5))
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?
+            == 0
+        {
+            break;
+        }
+        while let Some(m) = sub.receive().map_err(|e| anyhow::anyhow!("{e:?}"))? {
+            let now = groundwork_msg::monotonic_ns();
+            let sent = m.user_header().stamps.published_ns;
+            seen += 1;
+            if seen > 50 {
+                h.saturating_record(now.saturating_sub(sent).max(1));
+            }
+        }
+    }
+    let r = row("", 0, &h);
+    println!("{}", serde_json::json!(r.p));
+    Ok(())
+}
+
+/// Bare iceoryx2 through three processes, the pipeline's topology: this process publishes
+/// scans, a relay answers each with a mask, a third process receives the masks.
+fn relay_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Row> {
+    let prefix = format!("latency-relay-{}-{n}", std::process::id());
+    let cfg = service_cfg(&prefix, n);
+    let node = transport::node("latency-source")?;
+    let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
+    let (scan_notifier, _sl) = transport::event_ports(&node, &cfg, "scans")?;
+    let total = iterations + 50;
+    let mut relay = Command::new(exe)
+        .args([
+            "--role",
+            "pong-iox",
+            "--prefix",
+            &prefix,
+            "--n",
+            &n.to_string(),
+        ])
+        .stderr(Stdio::null())
+        .spawn()?;
+    let sink = Command::new(exe)
+        .args([
+            "--role",
+            "sink-iox",
+            "--prefix",
+            &prefix,
+            "--n",
+            &n.to_string(),
+        ])
+        .args(["--count", &total.to_string()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()?;
+    std::thread::sleep(Duration::from_millis(500));
+    let t0 = Instant::now();
+    for i in 0..total {
+        pace(t0, i, rate);
+        let sample = publ
+            .loan_slice_uninit(n)
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let mut sample = sample.write_from_fn(|k| ScanPoint {
+            x: k as f32,
+            ..ScanPoint::default()
+        });
+        let mut h = ScanHeader {
+            sequence: i,
+            point_count: n as u32,
+            ..ScanHeader::default()
+        };
+        h.stamps.published_ns = groundwork_msg::monotonic_ns();
+        *sample.user_header_mut() = h;
+        sample.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        scan_notifier
+            .notify()
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    }
+    let out = sink.wait_with_output()?;
+    drop(publ);
+    let _ = relay.wait();
+    let p: [f64; 5] = serde_json::from_slice(&out.stdout).context("relay sink output")?;
+    Ok(Row {
+        method: "iox-relay (3 processes)".into(),
+        bytes: n * 16,
+        p,
+    })
 }
 
 /// Sleeps until the next tick of a `rate` Hz clock that started at `t0`: the ping-pongs run
@@ -341,6 +444,13 @@ fn main() -> Result<()> {
         Some("pong-iox") => {
             return pong_iox(args.prefix.as_deref().unwrap_or("x"), args.n.unwrap_or(1));
         }
+        Some("sink-iox") => {
+            return sink_iox(
+                args.prefix.as_deref().unwrap_or("x"),
+                args.n.unwrap_or(1),
+                args.count.unwrap_or(1),
+            );
+        }
         Some("pong-uds") => {
             return pong_uds(
                 args.socket.as_deref().context("--socket")?,
@@ -372,16 +482,28 @@ fn main() -> Result<()> {
             bytes,
             &ping_uds(&exe, n, args.iterations, args.echo_rate)?,
         );
+        let relay = relay_iox(&exe, n, args.iterations, args.echo_rate)?;
         let echo = pipeline(&groundwork, n, args.pipeline_scans, args.echo_rate, true)?;
         let echo_t = transport_row("pipeline-echo transport", bytes, &echo);
         let echo_e2e = stage_row("pipeline-echo end-to-end", bytes, &echo, "end to end");
+        // Same path as the relay measures: publication of the scan to receipt of the mask.
+        let echo_path = {
+            let s = stage_row("", bytes, &echo, "segment");
+            Row {
+                method: "pipeline-echo scan→mask".into(),
+                bytes,
+                p: std::array::from_fn(|i| echo_t.p[i] + s.p[i]),
+            }
+        };
         ratios.push((
             bytes,
             echo_t.p[0] / iox.p[0],
             echo_t.p[2] / iox.p[2],
             uds.p[0] / iox.p[0],
+            echo_path.p[0] / relay.p[0],
+            echo_path.p[2] / relay.p[2],
         ));
-        rows.extend([iox, uds, echo_t, echo_e2e]);
+        rows.extend([iox, relay, uds, echo_t, echo_path, echo_e2e]);
         if !args.no_full {
             let full = pipeline(&groundwork, n, args.full_scans, 15.0, false)?;
             rows.push(transport_row("pipeline-full transport", bytes, &full));
@@ -411,9 +533,10 @@ fn main() -> Result<()> {
         );
     }
     println!("\npipeline transport (scan hop + mask hop) / bare iceoryx2 round trip, same run:");
-    for (bytes, p50, p99, uds) in &ratios {
+    for (bytes, p50, p99, uds, r50, r99) in &ratios {
         println!(
-            "  {:>7.0} KB: p50 {p50:.2}x, p99 {p99:.2}x (budget <= 1.5x); UDS copy / iceoryx2 p50 {uds:.1}x",
+            "  {:>7.0} KB: p50 {p50:.2}x, p99 {p99:.2}x (budget <= 1.5x); UDS copy / iceoryx2 p50 {uds:.1}x; \
+             pipeline / bare 3-process relay: p50 {r50:.2}x, p99 {r99:.2}x",
             *bytes as f64 / 1024.0
         );
     }
