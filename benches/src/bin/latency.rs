@@ -165,52 +165,16 @@ fn relay_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Row> {
     let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let (scan_notifier, _sl) = transport::event_ports(&node, &cfg, "scans")?;
     let total = iterations + 50;
-    let mut relay = Command::new(exe)
-        .args([
-            "--role",
-            "pong-iox",
-            "--prefix",
-            &prefix,
-            "--n",
-            &n.to_string(),
-        ])
-        .stderr(Stdio::null())
-        .spawn()?;
-    let sink = Command::new(exe)
-        .args([
-            "--role",
-            "sink-iox",
-            "--prefix",
-            &prefix,
-            "--n",
-            &n.to_string(),
-        ])
+    let mut relay = role(exe, "pong-iox", &prefix, n).spawn()?;
+    let sink = role(exe, "sink-iox", &prefix, n)
         .args(["--count", &total.to_string()])
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
         .spawn()?;
     std::thread::sleep(Duration::from_millis(500));
     let t0 = Instant::now();
     for i in 0..total {
         pace(t0, i, rate);
-        let sample = publ
-            .loan_slice_uninit(n)
-            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        let mut sample = sample.write_from_fn(|k| ScanPoint {
-            x: k as f32,
-            ..ScanPoint::default()
-        });
-        let mut h = ScanHeader {
-            sequence: i,
-            point_count: n as u32,
-            ..ScanHeader::default()
-        };
-        h.stamps.published_ns = groundwork_msg::monotonic_ns();
-        *sample.user_header_mut() = h;
-        sample.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        scan_notifier
-            .notify()
-            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        send_scan(&publ, &scan_notifier, n, i)?;
     }
     let out = sink.wait_with_output()?;
     drop(publ);
@@ -221,6 +185,43 @@ fn relay_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Row> {
         bytes: n * 16,
         p,
     })
+}
+
+/// Fills a scan of `n` points in loaned memory, stamps its publication, sends it and wakes
+/// the readers. Returns the instant of the send: the fill is the producer's own work and
+/// is not part of any measured latency.
+fn send_scan(
+    publ: &transport::ScanPublisher,
+    notifier: &transport::EventNotifier,
+    n: usize,
+    sequence: u64,
+) -> Result<Instant> {
+    let sample = publ
+        .loan_slice_uninit(n)
+        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let mut sample = sample.write_from_fn(|k| ScanPoint {
+        x: k as f32,
+        ..ScanPoint::default()
+    });
+    let mut h = ScanHeader {
+        sequence,
+        point_count: n as u32,
+        ..ScanHeader::default()
+    };
+    h.stamps.published_ns = groundwork_msg::monotonic_ns();
+    *sample.user_header_mut() = h;
+    let t = Instant::now();
+    sample.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    notifier.notify().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    Ok(t)
+}
+
+/// This executable in one of its answering roles, for `n`-point payloads.
+fn role(exe: &Path, role: &str, prefix: &str, n: usize) -> Command {
+    let mut c = Command::new(exe);
+    c.args(["--role", role, "--prefix", prefix, "--n", &n.to_string()])
+        .stderr(Stdio::null());
+    c
 }
 
 /// Sleeps until the next tick of a `rate` Hz clock that started at `t0`: the ping-pongs run
@@ -240,40 +241,13 @@ fn ping_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
     let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
     let (scan_notifier, _sl) = transport::event_ports(&node, &cfg, "scans")?;
     let (_mn, mask_listener) = transport::event_ports(&node, &cfg, "masks")?;
-    let mut child = Command::new(exe)
-        .args([
-            "--role",
-            "pong-iox",
-            "--prefix",
-            &prefix,
-            "--n",
-            &n.to_string(),
-        ])
-        .stderr(Stdio::null())
-        .spawn()?;
+    let mut child = role(exe, "pong-iox", &prefix, n).spawn()?;
     std::thread::sleep(Duration::from_millis(500));
     let mut h = hist();
     let t0 = Instant::now();
     for i in 0..iterations + 50 {
         pace(t0, i, rate);
-        let sample = publ
-            .loan_slice_uninit(n)
-            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        let mut sample = sample.write_from_fn(|k| ScanPoint {
-            x: k as f32,
-            ..ScanPoint::default()
-        });
-        *sample.user_header_mut() = ScanHeader {
-            sequence: i,
-            point_count: n as u32,
-            ..ScanHeader::default()
-        };
-        // Timed from send to the answer in hand: the fill is the producer's own work.
-        let t = Instant::now();
-        sample.send().map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        scan_notifier
-            .notify()
-            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let t = send_scan(&publ, &scan_notifier, n, i)?;
         loop {
             mask_listener
                 .timed_wait(|_| {}, Duration::from_secs(5))
@@ -319,8 +293,7 @@ fn ping_uds(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
     let mut s = loop {
         match UnixStream::connect(&path) {
             Ok(s) => break s,
-            Err(e) if t0.elapsed() < Duration::from_secs(5) => {
-                let _ = e;
+            Err(_) if t0.elapsed() < Duration::from_secs(5) => {
                 std::thread::sleep(Duration::from_millis(20));
             }
             Err(e) => return Err(e).context("connect to the UDS pong"),

@@ -179,14 +179,9 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
             }
         }
         let before = report.masks;
-        let woke = mask_listener
-            .timed_wait(|_| {}, Duration::from_millis(200))
-            .map_err(|e| anyhow::anyhow!("wait for masks: {e:?}"));
-        if node.wait(Duration::ZERO).is_err() {
-            info!("termination requested");
+        if !transport::wait_or_stop(&node, &mask_listener, Duration::from_millis(200))? {
             break;
         }
-        woke?;
         drain_all(&mut report, &mut stats, &mut st)?;
         if report.masks > before {
             last_mask = Instant::now();

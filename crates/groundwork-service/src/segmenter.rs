@@ -199,16 +199,10 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
         if opts.count.is_some_and(|c| report.received >= c) {
             break;
         }
-        // Block on the scan topic's event (no busy spinning). The bounded wait also lets
-        // us notice a termination request and do the periodic work when idle.
-        let woke = scan_listener
-            .timed_wait(|_| {}, Duration::from_millis(250))
-            .map_err(|e| anyhow::anyhow!("wait for scans: {e:?}"));
-        if node.wait(Duration::ZERO).is_err() {
-            info!("termination requested");
+        // The bounded wait also lets the periodic work run while idle.
+        if !transport::wait_or_stop(&node, &scan_listener, Duration::from_millis(250))? {
             break;
         }
-        woke?;
         // Also serves scans whose wake-up was missed (e.g. a producer restarted between
         // our listener's cleanups): nothing strands in the queue.
         handle_scans(&mut report, &mut seg)?;

@@ -18,6 +18,12 @@ use crate::config::{OverflowPolicy, ServiceConfig};
 pub type ScanService = PortFactory<ipc::Service, [ScanPoint], ScanHeader>;
 /// The mask topic's service.
 pub type MaskService = PortFactory<ipc::Service, [f32], MaskHeader>;
+/// A publisher of scans.
+pub type ScanPublisher = Publisher<ipc::Service, [ScanPoint], ScanHeader>;
+/// The wake-up side of a topic's publisher.
+pub type EventNotifier = Notifier<ipc::Service>;
+/// The wake-up side of a topic's readers.
+pub type EventListener = Listener<ipc::Service>;
 
 /// Dead nodes (processes that died without cleaning up) currently registered.
 fn dead_nodes(config: &iceoryx2::config::Config) -> u64 {
@@ -108,7 +114,7 @@ pub fn event_ports(
     node: &Node<ipc::Service>,
     cfg: &ServiceConfig,
     topic: &str,
-) -> anyhow::Result<(Notifier<ipc::Service>, Listener<ipc::Service>)> {
+) -> anyhow::Result<(EventNotifier, EventListener)> {
     let ev = node
         .service_builder(&service_name(cfg, topic)?)
         .event()
@@ -163,10 +169,7 @@ where
 }
 
 /// The scan publisher.
-pub fn scan_publisher(
-    svc: &ScanService,
-    cfg: &ServiceConfig,
-) -> anyhow::Result<Publisher<ipc::Service, [ScanPoint], ScanHeader>> {
+pub fn scan_publisher(svc: &ScanService, cfg: &ServiceConfig) -> anyhow::Result<ScanPublisher> {
     publisher(svc, cfg, "scan")
 }
 
@@ -192,4 +195,22 @@ pub fn mask_subscriber(
     cfg: &ServiceConfig,
 ) -> anyhow::Result<Subscriber<ipc::Service, [f32], MaskHeader>> {
     subscriber(svc, cfg.mask_queue, "mask")
+}
+
+/// Blocks on `listener` for at most `timeout` (no busy spinning), then reports whether the
+/// process should go on: `Ok(false)` once SIGINT/SIGTERM arrived (iceoryx2 catches them).
+/// The bounded wait is what lets an idle stage notice a termination request.
+pub fn wait_or_stop(
+    node: &Node<ipc::Service>,
+    listener: &EventListener,
+    timeout: std::time::Duration,
+) -> anyhow::Result<bool> {
+    let woke = listener
+        .timed_wait(|_| {}, timeout)
+        .map_err(|e| anyhow::anyhow!("wait for {}: {e:?}", listener.name()));
+    if node.wait(std::time::Duration::ZERO).is_err() {
+        tracing::info!("termination requested");
+        return Ok(false);
+    }
+    woke.map(|_| true)
 }
