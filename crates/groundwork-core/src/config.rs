@@ -8,6 +8,9 @@ use serde::{Deserialize, Serialize};
 use crate::error::ConfigError;
 
 /// Complete configuration of one segmenter instance.
+/// Upper bound on the zone model's segment count.
+pub const MAX_SEGMENTS: u64 = 1 << 20;
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields, default)]
 pub struct SegmenterConfig {
@@ -321,6 +324,19 @@ impl SegmenterConfig {
             return Err(ConfigError::invalid(
                 "zones.rings / zones.sectors",
                 "every entry must be in 1..=4096",
+            ));
+        }
+        let segments: u64 = z
+            .rings
+            .iter()
+            .zip(&z.sectors)
+            .map(|(&r, &s)| u64::from(r) * u64::from(s))
+            .sum();
+        // The vectorised binning carries segment indices exactly in f32 (below 2^23).
+        if segments > MAX_SEGMENTS {
+            return Err(ConfigError::invalid(
+                "zones.rings / zones.sectors",
+                &format!("{segments} segments in all; at most {MAX_SEGMENTS} are supported"),
             ));
         }
         let b = z.resolved_boundaries()?;

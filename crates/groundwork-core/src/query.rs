@@ -14,9 +14,12 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
-use crate::fastmath::exp_nonpositive;
+use wide::bytemuck::cast;
+use wide::{f32x8, i32x8};
+
+use crate::fastmath::exp_nonpositive_x8;
 use crate::model::FrameModel;
-use crate::zones::{Bin, ZoneModel};
+use crate::zones::{Bin, LaneBinner, ZoneModel};
 
 /// Packed bin of a point in its own scan: segment index, `BEYOND` flag, or `NEAR`.
 pub(crate) const NEAR: u32 = u32::MAX;
@@ -113,49 +116,94 @@ pub struct QueryFrame<'a> {
     pub transform: Option<&'a Isometry3<f64>>,
 }
 
-/// Partial sums of one point over the components seen so far.
-#[derive(Debug, Clone, Copy)]
-struct Partial {
-    max: f32,
-    sum: f32,
-    flat: f32,
-    orient: f32,
-    elev: f32,
+/// Running sums per point over the components seen so far, structure of arrays so that
+/// merges vectorise: the largest log-density `max`, and relative to it Σw, Σw·p_λ, Σw·p_θ
+/// and Σw·p_e.
+#[derive(Debug, Default)]
+struct Sums {
+    max: Vec<f32>,
+    sum: Vec<f32>,
+    flat: Vec<f32>,
+    orient: Vec<f32>,
+    elev: Vec<f32>,
 }
 
-const NONE: Partial = Partial {
-    max: EMPTY,
-    sum: 0.0,
-    flat: 0.0,
-    orient: 0.0,
-    elev: 0.0,
-};
-
-impl Partial {
-    /// Streaming log-sum-exp merge.
-    #[inline]
-    fn merge(&mut self, o: &Partial) {
-        if o.sum == 0.0 {
-            return;
+impl Sums {
+    /// `n` points with no component seen yet.
+    fn reset(&mut self, n: usize) {
+        for v in [
+            &mut self.sum,
+            &mut self.flat,
+            &mut self.orient,
+            &mut self.elev,
+        ] {
+            v.clear();
+            v.resize(n, 0.0);
         }
-        let m = self.max.max(o.max);
-        let a = exp_nonpositive(self.max - m);
-        let b = exp_nonpositive(o.max - m);
-        self.max = m;
-        self.sum = a * self.sum + b * o.sum;
-        self.flat = a * self.flat + b * o.flat;
-        self.orient = a * self.orient + b * o.orient;
-        self.elev = a * self.elev + b * o.elev;
+        self.max.clear();
+        self.max.resize(n, EMPTY);
     }
 
-    #[inline]
-    fn probability(&self) -> f32 {
-        if self.sum > 0.0 {
-            let inv = 1.0 / self.sum;
-            ((self.flat * inv) * (self.orient * inv) * (self.elev * inv)).clamp(0.0, 1.0)
-        } else {
-            0.0
+    fn slices(&mut self) -> SumsMut<'_> {
+        SumsMut {
+            max: &mut self.max,
+            sum: &mut self.sum,
+            flat: &mut self.flat,
+            orient: &mut self.orient,
+            elev: &mut self.elev,
         }
+    }
+}
+
+/// Mutable view of a range of [`Sums`].
+#[derive(Debug)]
+struct SumsMut<'a> {
+    max: &'a mut [f32],
+    sum: &'a mut [f32],
+    flat: &'a mut [f32],
+    orient: &'a mut [f32],
+    elev: &'a mut [f32],
+}
+
+impl<'a> SumsMut<'a> {
+    fn len(&self) -> usize {
+        self.max.len()
+    }
+
+    fn split_at(self, mid: usize) -> (SumsMut<'a>, SumsMut<'a>) {
+        let (max, max2) = self.max.split_at_mut(mid);
+        let (sum, sum2) = self.sum.split_at_mut(mid);
+        let (flat, flat2) = self.flat.split_at_mut(mid);
+        let (orient, orient2) = self.orient.split_at_mut(mid);
+        let (elev, elev2) = self.elev.split_at_mut(mid);
+        (
+            SumsMut {
+                max,
+                sum,
+                flat,
+                orient,
+                elev,
+            },
+            SumsMut {
+                max: max2,
+                sum: sum2,
+                flat: flat2,
+                orient: orient2,
+                elev: elev2,
+            },
+        )
+    }
+}
+
+/// Ground probability from a point's final sums: the product of the three
+/// responsibility-weighted likelihoods.
+#[inline]
+fn probability(sum: f32, flat: f32, orient: f32, elev: f32) -> f32 {
+    if sum > 0.0 {
+        let inv = 1.0 / sum;
+        ((flat * inv) * (orient * inv) * (elev * inv)).clamp(0.0, 1.0)
+    } else {
+        0.0
     }
 }
 
@@ -171,7 +219,7 @@ pub(crate) struct QueryScratch {
     /// Grouped points of segment s are at `start[s]..start[s+1]`.
     start: Vec<u32>,
     /// Running sums per grouped point.
-    acc: Vec<Partial>,
+    acc: Sums,
 }
 
 /// Ground probability of every point. `points` are in the query scan's ground-aligned frame
@@ -191,40 +239,37 @@ pub(crate) fn query(
     out: &mut [f32],
 ) {
     group(s, points, bins, zones.segment_count(), policy);
-    s.acc.clear();
-    s.acc.resize(s.order.len(), NONE);
-    let runs = split_runs(&s.start, &mut s.acc);
+    s.acc.reset(s.order.len());
+    let runs = split_runs(&s.start, s.acc.slices());
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
+    let binner = LaneBinner::new(zones);
+    let moves: Vec<Option<Move>> = frames.iter().map(|f| f.transform.map(Move::new)).collect();
     runs.into_par_iter()
         .with_max_len(1)
-        .for_each_init(RunScratch::default, |rs, (seg, a, acc)| {
-            let (x, y, z) = (
-                &xs[a..a + acc.len()],
-                &ys[a..a + acc.len()],
-                &zs[a..a + acc.len()],
-            );
-            for f in frames {
-                match f.transform {
-                    None => rs.eval(f.model.query_table().segment(seg), x, y, z, acc),
-                    Some(t) => rs.eval_moved(zones, f.model.query_table(), t, policy, x, y, z, acc),
+        .for_each(|(seg, a, mut acc)| {
+            let r = a..a + acc.len();
+            let (x, y, z) = (&xs[r.clone()], &ys[r.clone()], &zs[r]);
+            for (f, mv) in frames.iter().zip(&moves) {
+                let table = f.model.query_table();
+                match mv {
+                    None => eval_own(table.segment(seg), x, y, z, &mut acc),
+                    Some(mv) => eval_moved(&binner, table, mv, policy, x, y, z, &mut acc),
                 }
             }
         });
     out.fill(0.0);
-    for (&i, a) in s.order.iter().zip(&s.acc) {
-        out[i as usize] = a.probability();
+    let a = &s.acc;
+    for (j, &i) in s.order.iter().enumerate() {
+        out[i as usize] = probability(a.sum[j], a.flat[j], a.orient[j], a.elev[j]);
     }
 }
 
-/// Mutable per-segment slices of the running sums, with each segment's index and offset.
-fn split_runs<'a>(
-    start: &[u32],
-    mut acc: &'a mut [Partial],
-) -> Vec<(u32, usize, &'a mut [Partial])> {
+/// Per-segment views of the running sums, with each segment's index and offset.
+fn split_runs<'a>(start: &[u32], mut acc: SumsMut<'a>) -> Vec<(u32, usize, SumsMut<'a>)> {
     let mut runs = Vec::new();
     for (seg, w) in start.windows(2).enumerate() {
         let len = (w[1] - w[0]) as usize;
-        let (head, tail) = acc.split_at_mut(len);
+        let (head, tail) = acc.split_at(len);
         acc = tail;
         if len > 0 {
             runs.push((seg as u32, w[0] as usize, head));
@@ -284,201 +329,231 @@ fn group(
     }
 }
 
-/// Per-thread buffers for evaluating one run of points against one segment.
-#[derive(Debug, Default)]
-struct RunScratch {
-    l: Vec<f32>,
-    max: Vec<f32>,
-    sum: Vec<f32>,
-    flat: Vec<f32>,
-    orient: Vec<f32>,
-    elev: Vec<f32>,
-    // For past frames: the run moved into that frame, its bins there, and the run
-    // regrouped by those bins.
-    mx: Vec<f32>,
-    my: Vec<f32>,
-    mz: Vec<f32>,
-    bins: Vec<u32>,
-    groups: Vec<(u32, u32)>,
-    perm: Vec<u32>,
-    gx: Vec<f32>,
-    gy: Vec<f32>,
-    gz: Vec<f32>,
-    parts: Vec<Partial>,
+/// A rigid transform as f32 lanes: rows of [R | t].
+#[derive(Debug, Clone, Copy)]
+struct Move([[f32x8; 4]; 3]);
+
+impl Move {
+    fn new(t: &Isometry3<f64>) -> Self {
+        let m = t.to_homogeneous();
+        Self(std::array::from_fn(|r| {
+            std::array::from_fn(|c| f32x8::splat(m[(r, c)] as f32))
+        }))
+    }
+
+    #[inline(always)]
+    fn apply(&self, x: f32x8, y: f32x8, z: f32x8) -> [f32x8; 3] {
+        self.0
+            .map(|[a, b, c, t]| a.mul_add(x, b.mul_add(y, c.mul_add(z, t))))
+    }
 }
 
-impl RunScratch {
-    /// Partial sums of a run against a past frame: the points are moved into that frame
-    /// and binned there (vectorised), regrouped by the segment they fall into (a run of
-    /// one compact segment spreads over only a few past segments), and each group is
-    /// evaluated like a current-frame run.
-    #[allow(clippy::too_many_arguments)]
-    fn eval_moved(
-        &mut self,
-        zones: &ZoneModel,
-        table: &QueryTable,
-        t: &Isometry3<f64>,
-        policy: BeyondRangePolicy,
-        xs: &[f32],
-        ys: &[f32],
-        zs: &[f32],
-        acc: &mut [Partial],
-    ) {
-        let n = acc.len();
-        let m = t.to_homogeneous().cast::<f32>();
-        for v in [&mut self.mx, &mut self.my, &mut self.mz] {
-            v.resize(n, 0.0);
-        }
-        for ((((&x, &y), &z), (ox, oy)), oz) in xs
-            .iter()
-            .zip(ys)
-            .zip(zs)
-            .zip(self.mx.iter_mut().zip(self.my.iter_mut()))
-            .zip(self.mz.iter_mut())
-        {
-            *ox = m[(0, 0)] * x + m[(0, 1)] * y + m[(0, 2)] * z + m[(0, 3)];
-            *oy = m[(1, 0)] * x + m[(1, 1)] * y + m[(1, 2)] * z + m[(1, 3)];
-            *oz = m[(2, 0)] * x + m[(2, 1)] * y + m[(2, 2)] * z + m[(2, 3)];
-        }
-        self.bins.resize(n, 0);
-        zones.bin_many(&self.mx, &self.my, &mut self.bins);
-        // Distinct answering segments of this run with their counts (few: linear search).
-        self.groups.clear();
-        for b in self.bins.iter_mut() {
-            *b = segment_of(*b, policy).unwrap_or(NEAR);
-            if *b == NEAR || table.segment(*b).is_empty() {
-                *b = NEAR;
+/// Merges into `acc` a run's sums against its own segment's components.
+fn eval_own(comps: &[QComp], xs: &[f32], ys: &[f32], zs: &[f32], acc: &mut SumsMut<'_>) {
+    if comps.is_empty() {
+        return;
+    }
+    for j in (0..acc.len()).step_by(LANES) {
+        let w = LANES.min(acc.len() - j);
+        let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
+        let merged = acc.load(j, w).merge(eval_lanes(comps, x, y, z));
+        acc.store(merged, j, w);
+    }
+}
+
+/// Merges into `acc` a run's sums against a past frame. Eight points at a time are moved
+/// into that frame, binned there, and evaluated against the components of each distinct
+/// segment they fall into (points of one compact current segment are neighbours, so
+/// nearly every vector falls into a single past segment).
+#[allow(clippy::too_many_arguments)]
+fn eval_moved(
+    binner: &LaneBinner,
+    table: &QueryTable,
+    mv: &Move,
+    policy: BeyondRangePolicy,
+    xs: &[f32],
+    ys: &[f32],
+    zs: &[f32],
+    acc: &mut SumsMut<'_>,
+) {
+    let lane_index = i32x8::new(std::array::from_fn(|i| i as i32));
+    let no_key = i32x8::splat(-1);
+    for j in (0..acc.len()).step_by(LANES) {
+        let w = LANES.min(acc.len() - j);
+        let [x, y, z] = mv.apply(load(xs, j, w), load(ys, j, w), load(zs, j, w));
+        // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
+        let packed = binner.bin(x, y);
+        let beyond = packed.simd_lt(i32x8::ZERO) & packed.simd_ne(no_key);
+        let keys = match policy {
+            BeyondRangePolicy::OuterRing => beyond.select(packed & i32x8::splat(i32::MAX), packed),
+            BeyondRangePolicy::NonGround => beyond.select(no_key, packed),
+        };
+        let keys = lane_index
+            .simd_lt(i32x8::splat(w as i32))
+            .select(keys, no_key);
+        let lanes = keys.to_array();
+        let mut todo = !cast::<i32x8, f32x8>(keys.simd_eq(no_key)).to_bitmask() & 0xff;
+        let mut part = LaneSums::EMPTY;
+        while todo != 0 {
+            let seg = lanes[todo.trailing_zeros() as usize];
+            let hit = keys.simd_eq(i32x8::splat(seg));
+            todo &= !cast::<i32x8, f32x8>(hit).to_bitmask();
+            let comps = table.segment(seg as u32);
+            if comps.is_empty() {
                 continue;
             }
-            match self.groups.iter_mut().find(|g| g.0 == *b) {
-                Some(g) => g.1 += 1,
-                None => self.groups.push((*b, 1)),
-            }
+            part = part.select(cast(hit), eval_lanes(comps, x, y, z));
         }
-        let mut offset = 0;
-        for g in self.groups.iter_mut() {
-            let c = g.1;
-            g.1 = offset;
-            offset += c;
+        let merged = acc.load(j, w).merge(part);
+        acc.store(merged, j, w);
+    }
+}
+
+/// Points per SIMD vector.
+const LANES: usize = 8;
+/// Components evaluated together per chunk of points; more are merged block by block.
+const BLOCK: usize = 8;
+
+/// [`Sums`] of one vector of points.
+#[derive(Debug, Clone, Copy)]
+struct LaneSums {
+    max: f32x8,
+    sum: f32x8,
+    flat: f32x8,
+    orient: f32x8,
+    elev: f32x8,
+}
+
+impl LaneSums {
+    const EMPTY: LaneSums = LaneSums {
+        max: f32x8::new([EMPTY; LANES]),
+        sum: f32x8::ZERO,
+        flat: f32x8::ZERO,
+        orient: f32x8::ZERO,
+        elev: f32x8::ZERO,
+    };
+
+    /// Lanes of `o` where `mask` is set, of `self` elsewhere.
+    #[inline(always)]
+    fn select(self, mask: f32x8, o: LaneSums) -> LaneSums {
+        LaneSums {
+            max: mask.select(o.max, self.max),
+            sum: mask.select(o.sum, self.sum),
+            flat: mask.select(o.flat, self.flat),
+            orient: mask.select(o.orient, self.orient),
+            elev: mask.select(o.elev, self.elev),
         }
-        let total = offset as usize;
-        self.perm.resize(total, 0);
-        for v in [&mut self.gx, &mut self.gy, &mut self.gz] {
-            v.resize(total, 0.0);
-        }
-        let mut cursor: Vec<(u32, u32)> = self.groups.clone();
-        for (j, &b) in self.bins.iter().enumerate() {
-            if b == NEAR {
-                continue;
-            }
-            let Some(g) = cursor.iter_mut().find(|g| g.0 == b) else {
-                continue;
-            };
-            let k = g.1 as usize;
-            self.perm[k] = j as u32;
-            self.gx[k] = self.mx[j];
-            self.gy[k] = self.my[j];
-            self.gz[k] = self.mz[j];
-            g.1 += 1;
-        }
-        self.parts.clear();
-        self.parts.resize(total, NONE);
-        let groups = std::mem::take(&mut self.groups);
-        let (gx, gy, gz, mut parts) = (
-            std::mem::take(&mut self.gx),
-            std::mem::take(&mut self.gy),
-            std::mem::take(&mut self.gz),
-            std::mem::take(&mut self.parts),
-        );
-        for (i, &(seg, start)) in groups.iter().enumerate() {
-            let end = groups.get(i + 1).map_or(total, |g| g.1 as usize);
-            let r = start as usize..end;
-            self.eval(
-                table.segment(seg),
-                &gx[r.clone()],
-                &gy[r.clone()],
-                &gz[r.clone()],
-                &mut parts[r],
-            );
-        }
-        for (&j, p) in self.perm.iter().zip(&parts) {
-            acc[j as usize].merge(p);
-        }
-        (self.groups, self.gx, self.gy, self.gz, self.parts) = (groups, gx, gy, gz, parts);
     }
 
-    /// Partial sums of a run of points against the components of their own segment in
-    /// straight loops over points (vectorised), merged into `acc`.
-    fn eval(&mut self, comps: &[QComp], xs: &[f32], ys: &[f32], zs: &[f32], acc: &mut [Partial]) {
-        let n = acc.len();
-        if comps.is_empty() {
-            return;
-        }
-        let k = comps.len();
-        self.l.resize(k * n, 0.0);
-        // Log-densities, component-major.
-        for (c, q) in comps.iter().enumerate() {
-            let row = &mut self.l[c * n..(c + 1) * n];
-            let p = q.p;
-            for (((r, &x), &y), &z) in row.iter_mut().zip(xs).zip(ys).zip(zs) {
-                let (dx, dy, dz) = (x - q.m[0], y - q.m[1], z - q.m[2]);
-                let d = p[0] * dx * dx
-                    + p[3] * dy * dy
-                    + p[5] * dz * dz
-                    + 2.0 * (p[1] * dx * dy + p[2] * dx * dz + p[4] * dy * dz);
-                *r = q.c - 0.5 * d;
-            }
-        }
-        self.max.clear();
-        self.max.extend_from_slice(&self.l[..n]);
-        for c in 1..k {
-            for (m, &l) in self.max.iter_mut().zip(&self.l[c * n..(c + 1) * n]) {
-                *m = m.max(l);
-            }
-        }
-        for v in [
-            &mut self.sum,
-            &mut self.flat,
-            &mut self.orient,
-            &mut self.elev,
-        ] {
-            v.clear();
-            v.resize(n, 0.0);
-        }
-        let (sum, flat, orient, elev) = (
-            &mut self.sum,
-            &mut self.flat,
-            &mut self.orient,
-            &mut self.elev,
-        );
-        for (c, q) in comps.iter().enumerate() {
-            for ((((&l, &m), s), (f, o)), e) in self.l[c * n..(c + 1) * n]
-                .iter()
-                .zip(&self.max)
-                .zip(sum.iter_mut())
-                .zip(flat.iter_mut().zip(orient.iter_mut()))
-                .zip(elev.iter_mut())
-            {
-                let d = l - m;
-                let w = if d < -LOG_CUTOFF {
-                    0.0
-                } else {
-                    exp_nonpositive(d)
-                };
-                *s += w;
-                *f += w * q.flat;
-                *o += w * q.orient;
-                *e += w * q.elev;
-            }
-        }
-        for (j, a) in acc.iter_mut().enumerate() {
-            a.merge(&Partial {
-                max: self.max[j],
-                sum: sum[j],
-                flat: flat[j],
-                orient: orient[j],
-                elev: elev[j],
-            });
+    /// Streaming log-sum-exp merge; one exponential: the side with the larger maximum
+    /// keeps scale 1.
+    #[inline(always)]
+    fn merge(self, o: LaneSums) -> LaneSums {
+        let e = exp_nonpositive_x8(-(self.max - o.max).abs());
+        let one = f32x8::ONE;
+        let self_larger = self.max.simd_ge(o.max);
+        let a = self_larger.select(one, e);
+        let b = self_larger.select(e, one);
+        LaneSums {
+            max: self.max.max(o.max),
+            sum: self.sum.mul_add(a, o.sum * b),
+            flat: self.flat.mul_add(a, o.flat * b),
+            orient: self.orient.mul_add(a, o.orient * b),
+            elev: self.elev.mul_add(a, o.elev * b),
         }
     }
+}
+
+/// Lanes `j..j + w` of a slice (w ≤ 8), zero-padded.
+#[inline(always)]
+fn load(v: &[f32], j: usize, w: usize) -> f32x8 {
+    match v[j..].first_chunk::<LANES>() {
+        Some(a) => f32x8::new(*a),
+        None => {
+            let mut a = [0.0; LANES];
+            a[..w].copy_from_slice(&v[j..j + w]);
+            f32x8::new(a)
+        }
+    }
+}
+
+#[inline(always)]
+fn store(v: f32x8, out: &mut [f32], j: usize, w: usize) {
+    match out[j..].first_chunk_mut::<LANES>() {
+        Some(a) => *a = v.to_array(),
+        None => out[j..j + w].copy_from_slice(&v.to_array()[..w]),
+    }
+}
+
+impl SumsMut<'_> {
+    #[inline(always)]
+    fn load(&self, j: usize, w: usize) -> LaneSums {
+        LaneSums {
+            max: load(self.max, j, w),
+            sum: load(self.sum, j, w),
+            flat: load(self.flat, j, w),
+            orient: load(self.orient, j, w),
+            elev: load(self.elev, j, w),
+        }
+    }
+
+    #[inline(always)]
+    fn store(&mut self, v: LaneSums, j: usize, w: usize) {
+        store(v.max, self.max, j, w);
+        store(v.sum, self.sum, j, w);
+        store(v.flat, self.flat, j, w);
+        store(v.orient, self.orient, j, w);
+        store(v.elev, self.elev, j, w);
+    }
+}
+
+/// Sums of one vector of points against up to [`BLOCK`] components.
+#[inline(always)]
+fn eval_block(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
+    let mut l = [f32x8::splat(EMPTY); BLOCK];
+    let s = f32x8::splat;
+    for (lc, q) in l.iter_mut().zip(comps) {
+        let (dx, dy, dz) = (x - s(q.m[0]), y - s(q.m[1]), z - s(q.m[2]));
+        let p = q.p;
+        // d = Δᵀ P Δ with P symmetric (upper triangle p).
+        let d = (s(p[0]) * dx).mul_add(dx, (s(p[3]) * dy).mul_add(dy, s(p[5]) * dz * dz));
+        let cross = (s(p[1]) * dx).mul_add(dy, (s(p[2]) * dx).mul_add(dz, s(p[4]) * dy * dz));
+        *lc = s(q.c) - s(0.5) * cross.mul_add(s(2.0), d);
+    }
+    let k = comps.len().min(BLOCK);
+    let mut max = l[0];
+    for lc in &l[1..k] {
+        max = max.max(*lc);
+    }
+    let zero = f32x8::ZERO;
+    let mut r = LaneSums {
+        max,
+        sum: zero,
+        flat: zero,
+        orient: zero,
+        elev: zero,
+    };
+    for (lc, q) in l[..k].iter().zip(comps) {
+        let d = *lc - max;
+        let w = d
+            .simd_lt(s(-LOG_CUTOFF))
+            .select(zero, exp_nonpositive_x8(d));
+        r.sum += w;
+        r.flat = w.mul_add(s(q.flat), r.flat);
+        r.orient = w.mul_add(s(q.orient), r.orient);
+        r.elev = w.mul_add(s(q.elev), r.elev);
+    }
+    r
+}
+
+/// Sums of eight points against a segment's components, [`BLOCK`] components at a time.
+#[inline(always)]
+fn eval_lanes(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
+    let mut blocks = comps.chunks(BLOCK);
+    let Some(first) = blocks.next() else {
+        return LaneSums::EMPTY;
+    };
+    blocks.fold(eval_block(first, x, y, z), |acc, b| {
+        acc.merge(eval_block(b, x, y, z))
+    })
 }

@@ -200,6 +200,60 @@ impl Segmenter {
         );
     }
 
+    /// Ground probabilities of `points` (this scan's own sensor frame, world pose `pose`)
+    /// under `model` and the stored history, exactly as [`Segmenter::segment`] queries them,
+    /// but without changing the history: for benchmarks and callers that query one scan
+    /// several times. Returns the number of models queried.
+    pub fn query_model_posed<P: PointXyz + Sync>(
+        &mut self,
+        model: &FrameModel,
+        points: &[P],
+        pose: &Pose,
+        out: &mut [f32],
+    ) -> Result<usize, SegmentError> {
+        self.check(points, Some(pose), out)?;
+        self.bin_points(points);
+        if self.pose_jump(pose).is_some() {
+            self.query_single(model, out);
+            return Ok(1);
+        }
+        Ok(self.query_history(model, pose, out))
+    }
+
+    /// Query of the binned points against `model` (taken at `pose`) and every stored past
+    /// frame. Returns the number of models queried.
+    fn query_history(&mut self, model: &FrameModel, pose: &Pose, out: &mut [f32]) -> usize {
+        let transforms: Vec<Isometry3<f64>> = self
+            .history
+            .iter()
+            .map(|f| self.mount * f.pose.inverse() * pose * self.mount.inverse())
+            .collect();
+        let mut frames = Vec::with_capacity(self.history.len() + 1);
+        frames.push(QueryFrame {
+            model,
+            transform: None,
+        });
+        frames.extend(
+            self.history
+                .iter()
+                .zip(&transforms)
+                .map(|(f, t)| QueryFrame {
+                    model: &f.model,
+                    transform: Some(t),
+                }),
+        );
+        query(
+            &self.zones,
+            &frames,
+            &self.ground,
+            &self.bins,
+            self.cfg.zones.beyond_max_range,
+            &mut self.query_scratch,
+            out,
+        );
+        frames.len()
+    }
+
     fn fit_grouped(&self) -> (FrameModel, Vec<crate::model::SegmentStats>) {
         let height = &self.height;
         let first_zone = self.zones.first_zone_segments();
@@ -258,35 +312,7 @@ impl Segmenter {
         match pose {
             Some(pose) => {
                 report.history_cleared = self.check_pose_jump(pose);
-                let transforms: Vec<Isometry3<f64>> = self
-                    .history
-                    .iter()
-                    .map(|f| self.mount * f.pose.inverse() * pose * self.mount.inverse())
-                    .collect();
-                let mut frames = Vec::with_capacity(self.history.len() + 1);
-                frames.push(QueryFrame {
-                    model: &model,
-                    transform: None,
-                });
-                frames.extend(
-                    self.history
-                        .iter()
-                        .zip(&transforms)
-                        .map(|(f, t)| QueryFrame {
-                            model: &f.model,
-                            transform: Some(t),
-                        }),
-                );
-                query(
-                    &self.zones,
-                    &frames,
-                    &self.ground,
-                    &self.bins,
-                    self.cfg.zones.beyond_max_range,
-                    &mut self.query_scratch,
-                    out,
-                );
-                report.frames_queried = frames.len();
+                report.frames_queried = self.query_history(&model, pose, out);
                 let keep = self.cfg.history.frames as usize - 1;
                 if keep > 0 {
                     if self.history.len() == keep {
@@ -418,27 +444,32 @@ impl Segmenter {
         }
     }
 
-    /// Clears the history if the new pose is too far from the last stored one.
-    fn check_pose_jump(&mut self, pose: &Pose) -> bool {
-        let Some(last) = self.history.front() else {
-            return false;
-        };
+    /// Translation and rotation from the newest stored pose to `pose`, if beyond the
+    /// configured jump limits.
+    fn pose_jump(&self, pose: &Pose) -> Option<(f64, f64)> {
+        let last = self.history.front()?;
         let rel = last.pose.inverse() * pose;
         let dt = rel.translation.vector.norm();
         let dr = rel.rotation.angle();
         let h = &self.cfg.history;
-        if dt > h.max_translation_jump || dr > h.max_rotation_jump || !dt.is_finite() {
-            warn!(
-                translation_m = dt,
-                rotation_rad = dr,
-                dropped_frames = self.history.len(),
-                "pose jump beyond the configured limit: multi-frame history cleared"
-            );
-            self.history.clear();
-            self.counters.history_resets += 1;
-            return true;
-        }
-        false
+        (dt > h.max_translation_jump || dr > h.max_rotation_jump || !dt.is_finite())
+            .then_some((dt, dr))
+    }
+
+    /// Clears the history if the new pose is too far from the last stored one.
+    fn check_pose_jump(&mut self, pose: &Pose) -> bool {
+        let Some((dt, dr)) = self.pose_jump(pose) else {
+            return false;
+        };
+        warn!(
+            translation_m = dt,
+            rotation_rad = dr,
+            dropped_frames = self.history.len(),
+            "pose jump beyond the configured limit: multi-frame history cleared"
+        );
+        self.history.clear();
+        self.counters.history_resets += 1;
+        true
     }
 
     /// Logs the height filter state (for long runs: call now and then).

@@ -3,11 +3,14 @@
 
 use std::f64::consts::TAU;
 
+use wide::bytemuck::cast;
+use wide::{f32x8, i32x8};
+
 use crate::config::ZoneConfig;
 use crate::error::ConfigError;
+use crate::fastmath::atan2_f32_x8;
 
-/// Zone models with up to this many zones get the vectorised [`ZoneModel::bin_many`].
-const MAX_FAST_ZONES: usize = 8;
+const TAU_F32: f32 = std::f32::consts::TAU;
 
 /// Where a point falls in the zone model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -116,77 +119,20 @@ impl ZoneModel {
     }
 
     /// Packed bins of many points at once (f32, ground-aligned frame): `u32::MAX` for near
-    /// points, the segment index otherwise, with bit 31 set beyond max range.
-    ///
-    /// Branch-free so that the compiler vectorises it: zone parameters are picked with
-    /// selects from tables padded to `MAX_FAST_ZONES`, atan2 is a select-based polynomial.
-    /// Models with more zones fall back to [`ZoneModel::bin`]. Agrees with `bin` except for
-    /// points within f32 rounding of a boundary.
+    /// points, the segment index otherwise, with bit 31 set beyond max range. Agrees with
+    /// [`ZoneModel::bin`] except for points within f32 rounding of a boundary.
     pub fn bin_many(&self, xs: &[f32], ys: &[f32], out: &mut [u32]) {
-        const NEAR: u32 = u32::MAX;
-        const BEYOND: u32 = 1 << 31;
-        let nz = self.rings.len();
-        if nz > MAX_FAST_ZONES {
-            for ((o, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
-                *o = match self.bin(f64::from(x), f64::from(y)) {
-                    Bin::Near => NEAR,
-                    Bin::Segment(s) => s,
-                    Bin::Beyond(s) => s | BEYOND,
-                };
-            }
-            return;
-        }
-        // Per-zone tables, padded with copies of the last zone (never selected).
-        let pad = |f: &dyn Fn(usize) -> f32| -> [f32; MAX_FAST_ZONES] {
-            std::array::from_fn(|k| f(k.min(nz - 1)))
-        };
-        let lower = pad(&|k| self.boundaries[k] as f32);
-        let width = pad(&|k| self.ring_width[k] as f32);
-        let rings = pad(&|k| self.rings[k] as f32);
-        let sectors = pad(&|k| self.sectors[k] as f32);
-        let offset = pad(&|k| self.zone_offset[k] as f32);
-        // Upper edges of zones 0..nz-1; +inf past the last so the count stops there.
-        let upper: [f32; MAX_FAST_ZONES] = std::array::from_fn(|k| {
-            if k + 1 < nz {
-                self.boundaries[k + 1] as f32
-            } else {
-                f32::INFINITY
-            }
-        });
-        let near = self.near_radius as f32;
-        let max_range = self.boundaries[nz] as f32;
-        for ((o, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
-            let r = (x * x + y * y).sqrt();
-            let mut z = 0.0f32;
-            for u in upper {
-                z += if r >= u { 1.0 } else { 0.0 };
-            }
-            let (mut lo, mut w, mut nr, mut ns, mut off) = (0.0, 1.0, 1.0, 1.0, 0.0);
-            for k in 0..MAX_FAST_ZONES {
-                let hit = z == k as f32;
-                lo = if hit { lower[k] } else { lo };
-                w = if hit { width[k] } else { w };
-                nr = if hit { rings[k] } else { nr };
-                ns = if hit { sectors[k] } else { ns };
-                off = if hit { offset[k] } else { off };
-            }
-            // max/min rather than clamp: clamp's argument check blocks vectorisation.
-            let ring = ((r - lo) / w).floor().max(0.0).min(nr - 1.0);
-            let beyond = r >= max_range;
-            let ring = if beyond { nr - 1.0 } else { ring };
-            let theta = crate::fastmath::atan2_f32(y, x);
-            let theta = if theta < 0.0 {
-                theta + std::f32::consts::TAU
-            } else {
-                theta
+        let binner = LaneBinner::new(self);
+        let n = out.len().min(xs.len()).min(ys.len());
+        for j in (0..n).step_by(LANES) {
+            let w = LANES.min(n - j);
+            let lanes = |v: &[f32]| {
+                let mut a = [0.0; LANES];
+                a[..w].copy_from_slice(&v[j..j + w]);
+                f32x8::new(a)
             };
-            let sector = (theta * ns / std::f32::consts::TAU)
-                .floor()
-                .max(0.0)
-                .min(ns - 1.0);
-            let idx = (off + ring * ns + sector) as i32 as u32;
-            let idx = if beyond { idx | BEYOND } else { idx };
-            *o = if r < near { NEAR } else { idx };
+            let packed: [u32; LANES] = cast(binner.bin(lanes(xs), lanes(ys)));
+            out[j..j + w].copy_from_slice(&packed[..w]);
         }
     }
 
@@ -206,12 +152,137 @@ impl ZoneModel {
     }
 }
 
+const LANES: usize = 8;
+
+/// The zone model as SIMD constants: bins eight points at a time.
+#[derive(Debug, Clone)]
+pub(crate) struct LaneBinner {
+    /// Per zone: lower edge, 1 / ring width, rings, sectors, first segment.
+    zones: Vec<[f32x8; 5]>,
+    near: f32x8,
+    max_range: f32x8,
+}
+
+impl LaneBinner {
+    pub(crate) fn new(m: &ZoneModel) -> Self {
+        let c = |v: f64| f32x8::splat(v as f32);
+        let zones = (0..m.rings.len())
+            .map(|k| {
+                [
+                    c(m.boundaries[k]),
+                    c(1.0 / m.ring_width[k]),
+                    c(f64::from(m.rings[k])),
+                    c(f64::from(m.sectors[k])),
+                    c(f64::from(m.zone_offset[k])),
+                ]
+            })
+            .collect();
+        Self {
+            zones,
+            near: c(m.near_radius),
+            max_range: c(m.boundaries[m.rings.len()]),
+        }
+    }
+
+    /// Packed bins (as [`ZoneModel::bin_many`]) of eight points, as i32 lanes: −1 near,
+    /// bit 31 set beyond max range. Zone parameters are picked with selects, atan2 is a
+    /// select-based polynomial: no branches, no gathers.
+    #[inline(always)]
+    pub(crate) fn bin(&self, x: f32x8, y: f32x8) -> i32x8 {
+        let c = f32x8::splat;
+        let r = x.mul_add(x, y * y).sqrt();
+        let [mut lo, mut inv_width, mut nr, mut ns, mut off] = self.zones[0];
+        for &[zlo, zinv, znr, zns, zoff] in &self.zones[1..] {
+            let hit = r.simd_ge(zlo);
+            lo = hit.select(zlo, lo);
+            inv_width = hit.select(zinv, inv_width);
+            nr = hit.select(znr, nr);
+            ns = hit.select(zns, ns);
+            off = hit.select(zoff, off);
+        }
+        let beyond = r.simd_ge(self.max_range);
+        let ring = ((r - lo) * inv_width)
+            .floor()
+            .fast_max(c(0.0))
+            .fast_min(nr - c(1.0));
+        let ring = beyond.select(nr - c(1.0), ring);
+        let theta = atan2_f32_x8(y, x);
+        let theta = theta.simd_lt(c(0.0)).select(theta + c(TAU_F32), theta);
+        let sector = (theta * ns * c(1.0 / TAU_F32))
+            .floor()
+            .fast_max(c(0.0))
+            .fast_min(ns - c(1.0));
+        // The index (< 2^23) lands in the low mantissa bits of idx + 2^23.
+        let idx: i32x8 = cast(off + ring * ns + sector + c(8_388_608.0));
+        let idx = idx & i32x8::splat(0x007f_ffff);
+        let beyond: i32x8 = cast(beyond);
+        let idx = idx | (beyond & i32x8::splat(i32::MIN));
+        let near: i32x8 = cast(r.simd_lt(self.near));
+        idx | near
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn model() -> ZoneModel {
         ZoneModel::new(&ZoneConfig::default(), 0.0).unwrap()
+    }
+
+    /// Distance of (x, y) to the nearest ring edge (m) and sector edge (rad).
+    fn edge_distance(m: &ZoneModel, x: f64, y: f64) -> (f64, f64) {
+        let r = x.hypot(y);
+        let mut dr = f64::INFINITY;
+        let mut da = f64::INFINITY;
+        let theta = y.atan2(x).rem_euclid(TAU);
+        for z in 0..m.rings.len() {
+            for k in 0..=m.rings[z] {
+                let edge = m.boundaries[z] + f64::from(k) * m.ring_width[z];
+                dr = dr.min((r - edge).abs());
+            }
+            let step = TAU / f64::from(m.sectors[z]);
+            let off = theta.rem_euclid(step);
+            da = da.min(off.min(step - off));
+        }
+        (dr, da)
+    }
+
+    #[test]
+    fn vectorised_binning_agrees_with_scalar_binning() {
+        let m = model();
+        // Deterministic pseudo-random points over ±100 m (beyond max range included), and
+        // the tail lengths 1..7 of the vector loop.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((state >> 40) as f64 / (1u64 << 24) as f64) * 200.0 - 100.0
+        };
+        for n in [100_003usize, 1, 7, 9] {
+            let (xs, ys): (Vec<f32>, Vec<f32>) =
+                (0..n).map(|_| (next() as f32, next() as f32)).unzip();
+            let mut out = vec![0; n];
+            m.bin_many(&xs, &ys, &mut out);
+            let mut mismatches = 0;
+            for ((&x, &y), &got) in xs.iter().zip(&ys).zip(&out) {
+                let want = match m.bin(f64::from(x), f64::from(y)) {
+                    Bin::Near => u32::MAX,
+                    Bin::Segment(s) => s,
+                    Bin::Beyond(s) => s | (1 << 31),
+                };
+                if got != want {
+                    let (dr, da) = edge_distance(&m, f64::from(x), f64::from(y));
+                    assert!(
+                        dr < 1e-4 || da < 1e-5,
+                        "({x}, {y}): {got:#x} vs {want:#x}, {dr} m / {da} rad from an edge"
+                    );
+                    mismatches += 1;
+                }
+            }
+            assert!(mismatches * 10_000 <= n, "{mismatches} of {n} differ");
+        }
     }
 
     #[test]
@@ -240,38 +311,6 @@ mod tests {
             other => panic!("{other:?}"),
         };
         assert_eq!((id.zone, id.ring, id.sector), (3, 3, 24));
-    }
-
-    #[test]
-    fn batch_binning_agrees_with_scalar_binning() {
-        let m = model();
-        let (mut xs, mut ys) = (vec![], vec![]);
-        for i in 0..20_000 {
-            let a = i as f64 * 0.006_283_1 + 0.001;
-            // Radii offset from every ring edge (edges fall on multiples of ~0.05 m here).
-            let r = (i % 1000) as f64 * 0.1 + 0.0123;
-            xs.push((r * a.cos()) as f32);
-            ys.push((r * a.sin()) as f32);
-        }
-        xs.push(0.0);
-        ys.push(0.0);
-        let mut batch = vec![0; xs.len()];
-        m.bin_many(&xs, &ys, &mut batch);
-        let mut differ = 0;
-        for ((&x, &y), &b) in xs.iter().zip(&ys).zip(&batch) {
-            let want = match m.bin(f64::from(x), f64::from(y)) {
-                Bin::Near => u32::MAX,
-                Bin::Segment(s) => s,
-                Bin::Beyond(s) => s | (1 << 31),
-            };
-            differ += usize::from(want != b);
-        }
-        // Only points within f32 rounding of a ring or sector edge may differ.
-        assert!(
-            differ <= 2,
-            "{differ} of {} points binned differently",
-            xs.len()
-        );
     }
 
     #[test]
