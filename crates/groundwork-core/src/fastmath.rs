@@ -4,8 +4,8 @@
 //! is a scalar libm call that blocks auto-vectorisation. Responsibilities need about 1e-6
 //! relative accuracy, which a degree-6 polynomial on the reduced argument gives.
 
+use crate::simd::{Vf, Vi};
 use wide::bytemuck::cast;
-use wide::{f32x8, i32x8};
 
 /// e^x for x ≤ 0 (the callers subtract the maximum first). Inputs below −87 return about
 /// 1e-38; NaN is not expected. Relative error below 2e-6 on [−20, 0] and below 2e-5 on
@@ -29,15 +29,15 @@ pub fn exp_nonpositive(x: f32) -> f32 {
     p * f32::from_bits(((fi + 127) as u32) << 23)
 }
 
-/// [`exp_nonpositive`] on eight lanes at once: the same reduction and polynomial, with the
+/// [`exp_nonpositive`] on a vector at once: the same reduction and polynomial, with the
 /// integer part rounded to nearest and turned into 2^i through the bits of i + 127 + 2^23.
 #[inline(always)]
-pub fn exp_nonpositive_x8(x: f32x8) -> f32x8 {
-    let x = x.max(f32x8::splat(-87.0));
-    let t = x * f32x8::splat(std::f32::consts::LOG2_E);
+pub fn exp_nonpositive_v(x: Vf) -> Vf {
+    let x = x.max(Vf::splat(-87.0));
+    let t = x * Vf::splat(std::f32::consts::LOG2_E);
     let fi = t.round();
-    let y = (t - fi) * f32x8::splat(std::f32::consts::LN_2);
-    let c = |v: f32| f32x8::splat(v);
+    let y = (t - fi) * Vf::splat(std::f32::consts::LN_2);
+    let c = |v: f32| Vf::splat(v);
     let p = y.mul_add(c(1.0 / 720.0), c(1.0 / 120.0));
     let p = y.mul_add(p, c(1.0 / 24.0));
     let p = y.mul_add(p, c(1.0 / 6.0));
@@ -45,8 +45,8 @@ pub fn exp_nonpositive_x8(x: f32x8) -> f32x8 {
     let p = y.mul_add(p, c(1.0));
     let p = y.mul_add(p, c(1.0));
     // fi + 127 is an integer in [−0, 127]; adding 2^23 puts it in the low mantissa bits.
-    let biased: i32x8 = cast(fi + c(127.0 + 8_388_608.0));
-    p * cast::<i32x8, f32x8>(biased << 23)
+    let biased: Vi = cast(fi + c(127.0 + 8_388_608.0));
+    p * cast::<Vi, Vf>(biased << 23)
 }
 
 /// ln x for finite x ≥ 1e-30 (the callers pass sums of responsibilities ≥ 1).
@@ -95,15 +95,15 @@ pub fn atan2(y: f64, x: f64) -> f64 {
     if y < 0.0 { -a } else { a }
 }
 
-/// atan2(y, x) in (−π, π] on eight lanes, without branches (selects only). Absolute error
+/// atan2(y, x) in (−π, π] on a vector, without branches (selects only). Absolute error
 /// below 1e-6 rad; atan2(0, 0) = 0.
 #[inline(always)]
-pub fn atan2_f32_x8(y: f32x8, x: f32x8) -> f32x8 {
+pub fn atan2_v(y: Vf, x: Vf) -> Vf {
     use std::f32::consts::{FRAC_PI_2, FRAC_PI_4, PI};
-    let c = f32x8::splat;
+    let c = Vf::splat;
     let (ax, ay) = (x.abs(), y.abs());
     let (num, den) = (ax.fast_min(ay), ax.fast_max(ay));
-    let t = den.simd_gt(f32x8::ZERO).select(num / den, f32x8::ZERO);
+    let t = den.simd_gt(Vf::ZERO).select(num / den, Vf::ZERO);
     let big = t.simd_gt(c(std::f32::consts::SQRT_2 - 1.0));
     let u = big.select((t - c(1.0)) / (t + c(1.0)), t);
     let u2 = u * u;
@@ -114,15 +114,16 @@ pub fn atan2_f32_x8(y: f32x8, x: f32x8) -> f32x8 {
     let series = c(1.0 / 5.0) - u2 * series;
     let series = c(1.0 / 3.0) - u2 * series;
     let series = c(1.0) - u2 * series;
-    let a = u * series + big.select(c(FRAC_PI_4), f32x8::ZERO);
+    let a = u * series + big.select(c(FRAC_PI_4), Vf::ZERO);
     let a = ay.simd_gt(ax).select(c(FRAC_PI_2) - a, a);
-    let a = x.simd_lt(f32x8::ZERO).select(c(PI) - a, a);
-    y.simd_lt(f32x8::ZERO).select(-a, a)
+    let a = x.simd_lt(Vf::ZERO).select(c(PI) - a, a);
+    y.simd_lt(Vf::ZERO).select(-a, a)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simd::LANES;
 
     #[test]
     fn exp_matches_std_on_its_domain() {
@@ -148,16 +149,16 @@ mod tests {
     fn exp_x8_matches_scalar() {
         let mut x = -90.0f32;
         while x <= 0.0 {
-            let v: [f32; 8] = std::array::from_fn(|i| (x + i as f32 * 1e-3).min(0.0));
-            let got = exp_nonpositive_x8(f32x8::new(v)).to_array();
+            let v: [f32; LANES] = std::array::from_fn(|i| (x + i as f32 * 1e-3).min(0.0));
+            let got = exp_nonpositive_v(Vf::new(v)).to_array();
             for (g, &xi) in got.iter().zip(&v) {
                 let want = exp_nonpositive(xi);
                 assert!((g - want).abs() <= 4e-6 * want, "x {xi}: {g} vs {want}");
             }
             x += 0.013;
         }
-        assert_eq!(exp_nonpositive_x8(f32x8::splat(0.0)).to_array(), [1.0; 8]);
-        assert!(exp_nonpositive_x8(f32x8::splat(-1e30)).to_array()[0] < 1e-37);
+        assert_eq!(exp_nonpositive_v(Vf::splat(0.0)).to_array(), [1.0; LANES]);
+        assert!(exp_nonpositive_v(Vf::splat(-1e30)).to_array()[0] < 1e-37);
     }
 
     #[test]
@@ -180,10 +181,10 @@ mod tests {
     fn atan2_x8_matches_std() {
         for i in 0..20_000 {
             let a = i as f32 * std::f32::consts::TAU / 20_000.0 - std::f32::consts::PI;
-            let ys: [f32; 8] = std::array::from_fn(|k| (1.0 + 10.0 * k as f32) * a.sin());
-            let xs: [f32; 8] = std::array::from_fn(|k| (1.0 + 10.0 * k as f32) * a.cos());
-            let got = atan2_f32_x8(f32x8::new(ys), f32x8::new(xs)).to_array();
-            for k in 0..8 {
+            let ys: [f32; LANES] = std::array::from_fn(|k| (1.0 + 10.0 * k as f32) * a.sin());
+            let xs: [f32; LANES] = std::array::from_fn(|k| (1.0 + 10.0 * k as f32) * a.cos());
+            let got = atan2_v(Vf::new(ys), Vf::new(xs)).to_array();
+            for k in 0..LANES {
                 let d = (got[k] - ys[k].atan2(xs[k])).abs();
                 // ±π are the same direction.
                 assert!(
@@ -195,8 +196,8 @@ mod tests {
                 );
             }
         }
-        let zero = atan2_f32_x8(f32x8::ZERO, f32x8::ZERO).to_array();
-        assert_eq!(zero, [0.0; 8]);
+        let zero = atan2_v(Vf::ZERO, Vf::ZERO).to_array();
+        assert_eq!(zero, [0.0; LANES]);
     }
 
     #[test]

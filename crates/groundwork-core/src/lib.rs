@@ -20,6 +20,7 @@ pub mod model;
 pub mod point;
 pub mod query;
 pub mod segmenter;
+mod simd;
 pub mod zones;
 
 pub use config::SegmenterConfig;

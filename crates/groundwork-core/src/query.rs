@@ -14,10 +14,10 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
+use crate::simd::{LANES, Vf, Vi};
 use wide::bytemuck::cast;
-use wide::{f32x8, i32x8};
 
-use crate::fastmath::exp_nonpositive_x8;
+use crate::fastmath::exp_nonpositive_v;
 use crate::model::FrameModel;
 use crate::zones::{Bin, LaneBinner, ZoneModel};
 
@@ -331,18 +331,18 @@ fn group(
 
 /// A rigid transform as f32 lanes: rows of [R | t].
 #[derive(Debug, Clone, Copy)]
-struct Move([[f32x8; 4]; 3]);
+struct Move([[Vf; 4]; 3]);
 
 impl Move {
     fn new(t: &Isometry3<f64>) -> Self {
         let m = t.to_homogeneous();
         Self(std::array::from_fn(|r| {
-            std::array::from_fn(|c| f32x8::splat(m[(r, c)] as f32))
+            std::array::from_fn(|c| Vf::splat(m[(r, c)] as f32))
         }))
     }
 
     #[inline(always)]
-    fn apply(&self, x: f32x8, y: f32x8, z: f32x8) -> [f32x8; 3] {
+    fn apply(&self, x: Vf, y: Vf, z: Vf) -> [Vf; 3] {
         self.0
             .map(|[a, b, c, t]| a.mul_add(x, b.mul_add(y, c.mul_add(z, t))))
     }
@@ -361,7 +361,7 @@ fn eval_own(comps: &[QComp], xs: &[f32], ys: &[f32], zs: &[f32], acc: &mut SumsM
     }
 }
 
-/// Merges into `acc` a run's sums against a past frame. Eight points at a time are moved
+/// Merges into `acc` a run's sums against a past frame. A vector of points at a time is moved
 /// into that frame, binned there, and evaluated against the components of each distinct
 /// segment they fall into (points of one compact current segment are neighbours, so
 /// nearly every vector falls into a single past segment).
@@ -376,28 +376,26 @@ fn eval_moved(
     zs: &[f32],
     acc: &mut SumsMut<'_>,
 ) {
-    let lane_index = i32x8::new(std::array::from_fn(|i| i as i32));
-    let no_key = i32x8::splat(-1);
+    let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
+    let no_key = Vi::splat(-1);
     for j in (0..acc.len()).step_by(LANES) {
         let w = LANES.min(acc.len() - j);
         let [x, y, z] = mv.apply(load(xs, j, w), load(ys, j, w), load(zs, j, w));
         // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
         let packed = binner.bin(x, y);
-        let beyond = packed.simd_lt(i32x8::ZERO) & packed.simd_ne(no_key);
+        let beyond = packed.simd_lt(Vi::ZERO) & packed.simd_ne(no_key);
         let keys = match policy {
-            BeyondRangePolicy::OuterRing => beyond.select(packed & i32x8::splat(i32::MAX), packed),
+            BeyondRangePolicy::OuterRing => beyond.select(packed & Vi::splat(i32::MAX), packed),
             BeyondRangePolicy::NonGround => beyond.select(no_key, packed),
         };
-        let keys = lane_index
-            .simd_lt(i32x8::splat(w as i32))
-            .select(keys, no_key);
+        let keys = lane_index.simd_lt(Vi::splat(w as i32)).select(keys, no_key);
         let lanes = keys.to_array();
-        let mut todo = !cast::<i32x8, f32x8>(keys.simd_eq(no_key)).to_bitmask() & 0xff;
+        let mut todo = !cast::<Vi, Vf>(keys.simd_eq(no_key)).to_bitmask() & ((1 << LANES) - 1);
         let mut part = LaneSums::EMPTY;
         while todo != 0 {
             let seg = lanes[todo.trailing_zeros() as usize];
-            let hit = keys.simd_eq(i32x8::splat(seg));
-            todo &= !cast::<i32x8, f32x8>(hit).to_bitmask();
+            let hit = keys.simd_eq(Vi::splat(seg));
+            todo &= !cast::<Vi, Vf>(hit).to_bitmask();
             let comps = table.segment(seg as u32);
             if comps.is_empty() {
                 continue;
@@ -409,33 +407,31 @@ fn eval_moved(
     }
 }
 
-/// Points per SIMD vector.
-const LANES: usize = 8;
 /// Components evaluated together per chunk of points; more are merged block by block.
 const BLOCK: usize = 8;
 
 /// [`Sums`] of one vector of points.
 #[derive(Debug, Clone, Copy)]
 struct LaneSums {
-    max: f32x8,
-    sum: f32x8,
-    flat: f32x8,
-    orient: f32x8,
-    elev: f32x8,
+    max: Vf,
+    sum: Vf,
+    flat: Vf,
+    orient: Vf,
+    elev: Vf,
 }
 
 impl LaneSums {
     const EMPTY: LaneSums = LaneSums {
-        max: f32x8::new([EMPTY; LANES]),
-        sum: f32x8::ZERO,
-        flat: f32x8::ZERO,
-        orient: f32x8::ZERO,
-        elev: f32x8::ZERO,
+        max: Vf::new([EMPTY; LANES]),
+        sum: Vf::ZERO,
+        flat: Vf::ZERO,
+        orient: Vf::ZERO,
+        elev: Vf::ZERO,
     };
 
     /// Lanes of `o` where `mask` is set, of `self` elsewhere.
     #[inline(always)]
-    fn select(self, mask: f32x8, o: LaneSums) -> LaneSums {
+    fn select(self, mask: Vf, o: LaneSums) -> LaneSums {
         LaneSums {
             max: mask.select(o.max, self.max),
             sum: mask.select(o.sum, self.sum),
@@ -449,8 +445,8 @@ impl LaneSums {
     /// keeps scale 1.
     #[inline(always)]
     fn merge(self, o: LaneSums) -> LaneSums {
-        let e = exp_nonpositive_x8(-(self.max - o.max).abs());
-        let one = f32x8::ONE;
+        let e = exp_nonpositive_v(-(self.max - o.max).abs());
+        let one = Vf::ONE;
         let self_larger = self.max.simd_ge(o.max);
         let a = self_larger.select(one, e);
         let b = self_larger.select(e, one);
@@ -466,19 +462,19 @@ impl LaneSums {
 
 /// Lanes `j..j + w` of a slice (w ≤ 8), zero-padded.
 #[inline(always)]
-fn load(v: &[f32], j: usize, w: usize) -> f32x8 {
+fn load(v: &[f32], j: usize, w: usize) -> Vf {
     match v[j..].first_chunk::<LANES>() {
-        Some(a) => f32x8::new(*a),
+        Some(a) => Vf::new(*a),
         None => {
             let mut a = [0.0; LANES];
             a[..w].copy_from_slice(&v[j..j + w]);
-            f32x8::new(a)
+            Vf::new(a)
         }
     }
 }
 
 #[inline(always)]
-fn store(v: f32x8, out: &mut [f32], j: usize, w: usize) {
+fn store(v: Vf, out: &mut [f32], j: usize, w: usize) {
     match out[j..].first_chunk_mut::<LANES>() {
         Some(a) => *a = v.to_array(),
         None => out[j..j + w].copy_from_slice(&v.to_array()[..w]),
@@ -509,9 +505,9 @@ impl SumsMut<'_> {
 
 /// Sums of one vector of points against up to [`BLOCK`] components.
 #[inline(always)]
-fn eval_block(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
-    let mut l = [f32x8::splat(EMPTY); BLOCK];
-    let s = f32x8::splat;
+fn eval_block(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
+    let mut l = [Vf::splat(EMPTY); BLOCK];
+    let s = Vf::splat;
     for (lc, q) in l.iter_mut().zip(comps) {
         let (dx, dy, dz) = (x - s(q.m[0]), y - s(q.m[1]), z - s(q.m[2]));
         let p = q.p;
@@ -523,9 +519,9 @@ fn eval_block(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
     let k = comps.len().min(BLOCK);
     let mut max = l[0];
     for lc in &l[1..k] {
-        max = max.max(*lc);
+        max = max.fast_max(*lc);
     }
-    let zero = f32x8::ZERO;
+    let zero = Vf::ZERO;
     let mut r = LaneSums {
         max,
         sum: zero,
@@ -535,9 +531,12 @@ fn eval_block(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
     };
     for (lc, q) in l[..k].iter().zip(comps) {
         let d = *lc - max;
-        let w = d
-            .simd_lt(s(-LOG_CUTOFF))
-            .select(zero, exp_nonpositive_x8(d));
+        let live = d.simd_ge(s(-LOG_CUTOFF));
+        // Points of one vector are neighbours: a component often matters to none of them.
+        if live.none() {
+            continue;
+        }
+        let w = live.select(exp_nonpositive_v(d), zero);
         r.sum += w;
         r.flat = w.mul_add(s(q.flat), r.flat);
         r.orient = w.mul_add(s(q.orient), r.orient);
@@ -546,9 +545,9 @@ fn eval_block(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
     r
 }
 
-/// Sums of eight points against a segment's components, [`BLOCK`] components at a time.
+/// Sums of a vector of points against a segment's components, [`BLOCK`] components at a time.
 #[inline(always)]
-fn eval_lanes(comps: &[QComp], x: f32x8, y: f32x8, z: f32x8) -> LaneSums {
+fn eval_lanes(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
     let mut blocks = comps.chunks(BLOCK);
     let Some(first) = blocks.next() else {
         return LaneSums::EMPTY;

@@ -3,12 +3,12 @@
 
 use std::f64::consts::TAU;
 
+use crate::simd::{LANES, Vf, Vi};
 use wide::bytemuck::cast;
-use wide::{f32x8, i32x8};
 
 use crate::config::ZoneConfig;
 use crate::error::ConfigError;
-use crate::fastmath::atan2_f32_x8;
+use crate::fastmath::atan2_v;
 
 const TAU_F32: f32 = std::f32::consts::TAU;
 
@@ -129,7 +129,7 @@ impl ZoneModel {
             let lanes = |v: &[f32]| {
                 let mut a = [0.0; LANES];
                 a[..w].copy_from_slice(&v[j..j + w]);
-                f32x8::new(a)
+                Vf::new(a)
             };
             let packed: [u32; LANES] = cast(binner.bin(lanes(xs), lanes(ys)));
             out[j..j + w].copy_from_slice(&packed[..w]);
@@ -152,20 +152,18 @@ impl ZoneModel {
     }
 }
 
-const LANES: usize = 8;
-
-/// The zone model as SIMD constants: bins eight points at a time.
+/// The zone model as SIMD constants: bins a vector of points at a time.
 #[derive(Debug, Clone)]
 pub(crate) struct LaneBinner {
     /// Per zone: lower edge, 1 / ring width, rings, sectors, first segment.
-    zones: Vec<[f32x8; 5]>,
-    near: f32x8,
-    max_range: f32x8,
+    zones: Vec<[Vf; 5]>,
+    near: Vf,
+    max_range: Vf,
 }
 
 impl LaneBinner {
     pub(crate) fn new(m: &ZoneModel) -> Self {
-        let c = |v: f64| f32x8::splat(v as f32);
+        let c = |v: f64| Vf::splat(v as f32);
         let zones = (0..m.rings.len())
             .map(|k| {
                 [
@@ -184,12 +182,12 @@ impl LaneBinner {
         }
     }
 
-    /// Packed bins (as [`ZoneModel::bin_many`]) of eight points, as i32 lanes: −1 near,
+    /// Packed bins (as [`ZoneModel::bin_many`]) of a vector of points, as i32 lanes: −1 near,
     /// bit 31 set beyond max range. Zone parameters are picked with selects, atan2 is a
     /// select-based polynomial: no branches, no gathers.
     #[inline(always)]
-    pub(crate) fn bin(&self, x: f32x8, y: f32x8) -> i32x8 {
-        let c = f32x8::splat;
+    pub(crate) fn bin(&self, x: Vf, y: Vf) -> Vi {
+        let c = Vf::splat;
         let r = x.mul_add(x, y * y).sqrt();
         let [mut lo, mut inv_width, mut nr, mut ns, mut off] = self.zones[0];
         for &[zlo, zinv, znr, zns, zoff] in &self.zones[1..] {
@@ -206,18 +204,18 @@ impl LaneBinner {
             .fast_max(c(0.0))
             .fast_min(nr - c(1.0));
         let ring = beyond.select(nr - c(1.0), ring);
-        let theta = atan2_f32_x8(y, x);
+        let theta = atan2_v(y, x);
         let theta = theta.simd_lt(c(0.0)).select(theta + c(TAU_F32), theta);
         let sector = (theta * ns * c(1.0 / TAU_F32))
             .floor()
             .fast_max(c(0.0))
             .fast_min(ns - c(1.0));
         // The index (< 2^23) lands in the low mantissa bits of idx + 2^23.
-        let idx: i32x8 = cast(off + ring * ns + sector + c(8_388_608.0));
-        let idx = idx & i32x8::splat(0x007f_ffff);
-        let beyond: i32x8 = cast(beyond);
-        let idx = idx | (beyond & i32x8::splat(i32::MIN));
-        let near: i32x8 = cast(r.simd_lt(self.near));
+        let idx: Vi = cast(off + ring * ns + sector + c(8_388_608.0));
+        let idx = idx & Vi::splat(0x007f_ffff);
+        let beyond: Vi = cast(beyond);
+        let idx = idx | (beyond & Vi::splat(i32::MIN));
+        let near: Vi = cast(r.simd_lt(self.near));
         idx | near
     }
 }
