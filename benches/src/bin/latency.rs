@@ -5,11 +5,14 @@
 //!   answering with a mask → sink), publication of the scan to receipt of the mask;
 //! - `uds-copy`: the same round trip over a Unix domain socket (the payload is copied);
 //! - `pipeline-echo`: producer → segmenter (`--echo`: answers with a mask of the right size
-//!   without computing) → consumer, three processes; transport = scan hop + mask hop;
+//!   without computing) → consumer, three processes; transport = scan hop + mask hop, per
+//!   message, and scan publication → mask receipt (the path the relay measures);
 //! - `pipeline-full`: the same with real segmentation.
 //!
-//! Prints p50/p90/p99/p99.9/max per method and size, the pipeline's transport overhead as a
-//! ratio to bare iceoryx2, and optionally CSV.
+//! The machine is shared and noisy, so every method runs `--rounds` times, interleaved, and
+//! each percentile is the median over the rounds. Prints p50/p90/p99/p99.9/max per method
+//! and size, the pipeline's transport as a ratio to bare iceoryx2 (ping-pong and relay),
+//! and optionally CSV.
 //!
 //! `cargo build --release -p groundwork-cli -p groundwork-benches && target/release/latency`
 
@@ -49,6 +52,9 @@ struct Args {
     /// Also write the table as CSV here.
     #[arg(long)]
     csv: Option<PathBuf>,
+    /// Rounds of every method (interleaved); percentiles are medians over rounds.
+    #[arg(long, default_value_t = 3)]
+    rounds: usize,
     /// Skip the full pipeline (transport only).
     #[arg(long)]
     no_full: bool,
@@ -399,16 +405,56 @@ fn stage_row(method: &str, bytes: usize, report: &serde_json::Value, stage: &str
     }
 }
 
-/// Transport of a pipeline run: scan hop + mask hop, per percentile (an upper bound: the
-/// percentiles of a sum are at most the sums of the percentiles).
-fn transport_row(method: &str, bytes: usize, report: &serde_json::Value) -> Row {
-    let a = stage_row(method, bytes, report, "scan transport");
-    let b = stage_row(method, bytes, report, "mask transport");
-    Row {
-        method: method.into(),
-        bytes,
-        p: std::array::from_fn(|i| a.p[i] + b.p[i]),
+/// Per method, the median over rounds of each percentile.
+fn median_rows(rounds: &[Vec<Row>]) -> Vec<Row> {
+    let Some(first) = rounds.first() else {
+        return Vec::new();
+    };
+    (0..first.len())
+        .map(|m| {
+            let p = std::array::from_fn(|i| {
+                let mut v: Vec<f64> = rounds.iter().map(|r| r[m].p[i]).collect();
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            });
+            Row {
+                method: first[m].method.clone(),
+                bytes: first[m].bytes,
+                p,
+            }
+        })
+        .collect()
+}
+
+/// One round of every method for one payload size; the bare baselines first.
+fn round(args: &Args, exe: &Path, groundwork: &Path, n: usize) -> Result<Vec<Row>> {
+    let bytes = n * 16;
+    let (iters, rate) = (args.iterations, args.echo_rate);
+    let mut rows = vec![
+        row("iox-pingpong", bytes, &ping_iox(exe, n, iters, rate)?),
+        relay_iox(exe, n, iters, rate)?,
+        row("uds-copy", bytes, &ping_uds(exe, n, iters, rate)?),
+    ];
+    let echo = pipeline(groundwork, n, args.pipeline_scans, rate, true)?;
+    rows.extend([
+        stage_row("pipeline-echo transport", bytes, &echo, "transport"),
+        stage_row(
+            "pipeline-echo scan→mask",
+            bytes,
+            &echo,
+            "scan published to mask received",
+        ),
+        stage_row("pipeline-echo end-to-end", bytes, &echo, "end to end"),
+    ]);
+    if !args.no_full {
+        let full = pipeline(groundwork, n, args.full_scans, 15.0, false)?;
+        rows.extend([
+            stage_row("pipeline-full transport", bytes, &full, "transport"),
+            stage_row("pipeline-full segment", bytes, &full, "segment"),
+            stage_row("pipeline-full end-to-end", bytes, &full, "end to end"),
+        ]);
     }
+    Ok(rows)
 }
 
 fn main() -> Result<()> {
@@ -444,50 +490,37 @@ fn main() -> Result<()> {
     let mut ratios = Vec::new();
     for &n in &args.points {
         let bytes = n * 16;
-        eprintln!("payload {n} points ({:.1} KB) …", bytes as f64 / 1024.0);
-        let iox = row(
-            "iox-pingpong",
-            bytes,
-            &ping_iox(&exe, n, args.iterations, args.echo_rate)?,
-        );
-        let uds = row(
-            "uds-copy",
-            bytes,
-            &ping_uds(&exe, n, args.iterations, args.echo_rate)?,
-        );
-        let relay = relay_iox(&exe, n, args.iterations, args.echo_rate)?;
-        let echo = pipeline(&groundwork, n, args.pipeline_scans, args.echo_rate, true)?;
-        let echo_t = transport_row("pipeline-echo transport", bytes, &echo);
-        let echo_e2e = stage_row("pipeline-echo end-to-end", bytes, &echo, "end to end");
-        // Same path as the relay measures: publication of the scan to receipt of the mask.
-        let echo_path = {
-            let s = stage_row("", bytes, &echo, "segment");
-            Row {
-                method: "pipeline-echo scan→mask".into(),
-                bytes,
-                p: std::array::from_fn(|i| echo_t.p[i] + s.p[i]),
-            }
+        let mut rounds = Vec::new();
+        for r in 0..args.rounds.max(1) {
+            eprintln!(
+                "payload {n} points ({:.1} KB), round {} of {} …",
+                bytes as f64 / 1024.0,
+                r + 1,
+                args.rounds.max(1)
+            );
+            rounds.push(round(&args, &exe, &groundwork, n)?);
+        }
+        let med = median_rows(&rounds);
+        let p = |name: &str| {
+            med.iter()
+                .find(|r| r.method == name)
+                .map_or([f64::NAN; 5], |r| r.p)
         };
+        let (iox, relay, uds) = (
+            p("iox-pingpong"),
+            p("iox-relay (3 processes)"),
+            p("uds-copy"),
+        );
+        let (transport, path) = (p("pipeline-echo transport"), p("pipeline-echo scan→mask"));
         ratios.push((
             bytes,
-            echo_t.p[0] / iox.p[0],
-            echo_t.p[2] / iox.p[2],
-            uds.p[0] / iox.p[0],
-            echo_path.p[0] / relay.p[0],
-            echo_path.p[2] / relay.p[2],
+            transport[0] / iox[0],
+            transport[2] / iox[2],
+            uds[0] / iox[0],
+            path[0] / relay[0],
+            path[2] / relay[2],
         ));
-        rows.extend([iox, relay, uds, echo_t, echo_path, echo_e2e]);
-        if !args.no_full {
-            let full = pipeline(&groundwork, n, args.full_scans, 15.0, false)?;
-            rows.push(transport_row("pipeline-full transport", bytes, &full));
-            rows.push(stage_row("pipeline-full segment", bytes, &full, "segment"));
-            rows.push(stage_row(
-                "pipeline-full end-to-end",
-                bytes,
-                &full,
-                "end to end",
-            ));
-        }
+        rows.extend(med);
     }
     println!(
         "{:<28} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
@@ -505,7 +538,11 @@ fn main() -> Result<()> {
             r.p[4]
         );
     }
-    println!("\npipeline transport (scan hop + mask hop) / bare iceoryx2 round trip, same run:");
+    println!(
+        "\nmedians of {} rounds; pipeline transport (scan hop + mask hop, per message) / bare \
+         iceoryx2 round trip, and pipeline scan→mask / bare 3-process relay, same run:",
+        args.rounds.max(1)
+    );
     for (bytes, p50, p99, uds, r50, r99) in &ratios {
         println!(
             "  {:>7.0} KB: p50 {p50:.2}x, p99 {p99:.2}x (budget <= 1.5x); UDS copy / iceoryx2 p50 {uds:.1}x; \

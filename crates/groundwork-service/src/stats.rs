@@ -6,11 +6,14 @@ use hdrhistogram::Histogram;
 use serde::Serialize;
 
 /// Stages a message passes, in order.
-pub const STAGES: [&str; 5] = [
+pub const STAGES: [&str; 7] = [
     "producer fill",
     "scan transport",
     "segment",
     "mask transport",
+    // Per message, not a sum of percentiles (which overstates the tail).
+    "transport",
+    "scan published to mask received",
     "end to end",
 ];
 
@@ -63,11 +66,15 @@ impl LatencyStats {
         seg_out: u64,
         consumed: u64,
     ) {
+        let scan_hop = seg_in.saturating_sub(published);
+        let mask_hop = consumed.saturating_sub(seg_out);
         let d = [
             published.saturating_sub(produced),
-            seg_in.saturating_sub(published),
+            scan_hop,
             seg_out.saturating_sub(seg_in),
-            consumed.saturating_sub(seg_out),
+            mask_hop,
+            scan_hop + mask_hop,
+            consumed.saturating_sub(published),
             consumed.saturating_sub(produced),
         ];
         for (h, v) in self.hist.iter_mut().zip(d) {
@@ -138,7 +145,10 @@ mod tests {
         assert_eq!(p[0].count, 100);
         assert!((p[0].p50 - 1.0).abs() < 0.01, "{:?}", p[0]);
         assert!((p[2].p50 - 7.0).abs() < 0.01, "{:?}", p[2]);
-        assert!((p[4].max - 10.099).abs() < 0.02, "{:?}", p[4]);
+        // Transport: 1.0 + i ns scan hop + 1.0 µs mask hop, per message.
+        assert!((p[4].p50 - 2.05).abs() < 0.01, "{:?}", p[4]);
+        assert!((p[5].max - 9.099).abs() < 0.02, "{:?}", p[5]);
+        assert!((p[6].max - 10.099).abs() < 0.02, "{:?}", p[6]);
         assert!(s.table().contains("end to end"));
     }
 }
