@@ -100,19 +100,29 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
                      stats: &mut LatencyStats,
                      st: &mut State|
      -> anyhow::Result<()> {
-        while let Some(scan) = scan_sub.receive().context("receive scan")? {
-            let h = *scan.user_header();
-            report.scans += 1;
-            report.dropped_scans += st.scan_gap(h.producer_epoch, h.sequence);
-            st.pending
-                .insert((h.producer_epoch, h.sequence), h.source_index);
-            if st.pending.len() > PAIRING_WINDOW {
-                st.pending.pop_first();
-                report.unmatched_scans += 1;
+        let drain_scans = |report: &mut ConsumerReport, st: &mut State| -> anyhow::Result<()> {
+            while let Some(scan) = scan_sub.receive().context("receive scan")? {
+                let h = *scan.user_header();
+                report.scans += 1;
+                report.dropped_scans += st.scan_gap(h.producer_epoch, h.sequence);
+                st.pending
+                    .insert((h.producer_epoch, h.sequence), h.source_index);
+                if st.pending.len() > PAIRING_WINDOW {
+                    st.pending.pop_first();
+                    report.unmatched_scans += 1;
+                }
             }
-        }
-        while let Some(mask) = mask_sub.receive().context("receive mask")? {
+            Ok(())
+        };
+        // A mask is stamped the moment it is taken, before the scans it answers are read
+        // (they are published earlier, so they are queued by now).
+        loop {
+            let next = mask_sub.receive().context("receive mask")?;
             let now = monotonic_ns();
+            drain_scans(report, st)?;
+            let Some(mask) = next else {
+                break;
+            };
             let h = *mask.user_header();
             report.masks += 1;
             report.dropped_masks +=
