@@ -128,3 +128,45 @@ fn history_answers_for_points_the_current_frame_cannot_model() {
         .unwrap();
     assert!(out.iter().all(|&p| p == 0.0), "{out:?}");
 }
+
+#[test]
+fn posed_query_matches_segment_and_leaves_the_history_alone() {
+    let mut cfg = SegmenterConfig::default();
+    cfg.history.frames = 4;
+    let mut seg = Segmenter::new(cfg).unwrap();
+    for step in 0..3 {
+        let pts = street(step as f32 * 0.8);
+        let mut out = vec![0.0; pts.len()];
+        seg.segment(&pts, Some(&pose_at(step as f64 * 0.8)), &mut out)
+            .unwrap();
+    }
+    assert_eq!(seg.history_len(), 3);
+    let pts = street(2.4);
+    let pose = pose_at(2.4);
+    let model = seg.fit(&pts).unwrap();
+    let mut queried = vec![0.0; pts.len()];
+    for _ in 0..2 {
+        let frames = seg
+            .query_model_posed(&model, &pts, &pose, &mut queried)
+            .unwrap();
+        assert_eq!(frames, 4, "the model and three past frames");
+        assert_eq!(seg.history_len(), 3, "querying must not push a frame");
+    }
+    // `segment` fits the same model (the height filter has not moved in between) and
+    // queries the same history.
+    let mut segmented = vec![0.0; pts.len()];
+    let report = seg.segment(&pts, Some(&pose), &mut segmented).unwrap();
+    assert_eq!(report.frames_queried, 4);
+    let worst = queried
+        .iter()
+        .zip(&segmented)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-6, "posed query vs segment: worst {worst}");
+    // A pose beyond the jump limit queries the model alone.
+    let far = pose_at(100.0);
+    let frames = seg
+        .query_model_posed(&model, &pts, &far, &mut queried)
+        .unwrap();
+    assert_eq!(frames, 1);
+}
