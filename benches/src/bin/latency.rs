@@ -1,4 +1,4 @@
-//! Latency benchmark of the service with real processes, in one run, per payload size:
+//! Latency benchmark of the service with real processes, all methods in one run, per payload size:
 //! - `iox-pingpong`: bare iceoryx2 round trip between two processes (scan out, mask back,
 //!   event wake-ups), the floor any iceoryx2 pipeline stands on;
 //! - `iox-relay`: bare iceoryx2 through three processes like the pipeline (source → relay

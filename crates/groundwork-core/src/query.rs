@@ -5,10 +5,12 @@
 //! responsibility-weighted likelihoods. With one frame this is exactly the single-frame
 //! query.
 //!
-//! Implementation: per frame, the query points are grouped by the segment they fall into in
-//! that frame (counting sort), each segment's run is evaluated against its components in
-//! straight f32 loops that the compiler vectorises, and the per-point partial sums are
-//! merged across frames with a streaming log-sum-exp (max, Σw, Σw·p_λ, Σw·p_θ, Σw·p_e).
+//! Implementation: the points are grouped once by their segment in the query scan (counting
+//! sort). Each run is then evaluated frame by frame, 16 points per SIMD vector: against its
+//! own segment's components for the query scan's model; for a past frame the vector is
+//! moved into that frame, binned there and evaluated against each distinct segment it falls
+//! into. Per-point sums are merged across frames with a streaming log-sum-exp (max, Σw,
+//! Σw·p_λ, Σw·p_θ, Σw·p_e).
 
 use nalgebra::Isometry3;
 use rayon::prelude::*;
