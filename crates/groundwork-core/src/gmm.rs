@@ -132,6 +132,8 @@ pub struct EmScratch {
     /// w / Σ_c e^{l_c − max}
     inv: Vec<f32>,
     best: Vec<u32>,
+    /// (coordinate hash, index) of the points fitted, in canonical order.
+    order: Vec<(u64, u32)>,
 }
 
 /// A well-mixed 64-bit hash of a point's coordinates (splitmix64 finaliser).
@@ -177,12 +179,6 @@ pub fn fit_segment_with(
     if n == 0 {
         return SegmentFit::default();
     }
-    let nf = n as f64;
-    let centroid = [
-        xs.iter().sum::<f64>() / nf,
-        ys.iter().sum::<f64>() / nf,
-        zs.iter().sum::<f64>() / nf,
-    ];
     let (zmin, zmax) = zs
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &z| {
@@ -191,28 +187,44 @@ pub fn fit_segment_with(
     let reg = cfg.covariance_regularization;
 
     // Dense segments are fitted on a subsample of about `max_fit_points` points. Which
-    // points are kept depends on a hash of their coordinates, not on their position in the
-    // scan, so the fit (and every output) does not depend on the order a driver delivers
-    // points in. Support counts are scaled back to the whole segment for τ_N pruning.
+    // points are kept depends on a hash of their coordinates, and they are fitted in the
+    // order of that hash, not in the order of the scan: EM's float sums then see the same
+    // sequence whatever order a driver delivers points in, so the fit (and every output) is
+    // exactly independent of it. Support counts are scaled back to the whole segment for τ_N
+    // pruning.
     let stride = match cfg.max_fit_points {
         0 => 1,
         cap => n.div_ceil(cap as usize).max(1),
     };
     let threshold = u64::MAX / stride as u64;
-    let keep = |i: usize| stride == 1 || point_hash(xs[i], ys[i], zs[i]) <= threshold;
+    s.order.clear();
+    s.order.extend((0..n).filter_map(|i| {
+        let h = point_hash(xs[i], ys[i], zs[i]);
+        (h <= threshold).then_some((h, i as u32))
+    }));
+    if s.order.is_empty() {
+        // Astronomically unlikely; fall back to one point rather than fit nothing.
+        s.order.push((0, 0));
+    }
+    // Equal hashes mean equal coordinates (or a 2^-64 collision): their order is moot.
+    s.order.sort_unstable_by_key(|&(h, _)| h);
+    let m = s.order.len();
+    let mut centroid = [0.0; 3];
+    for &(_, i) in &s.order {
+        let i = i as usize;
+        centroid[0] += xs[i];
+        centroid[1] += ys[i];
+        centroid[2] += zs[i];
+    }
+    let centroid = centroid.map(|c| c / m as f64);
     for v in [&mut s.x, &mut s.y, &mut s.z] {
         v.clear();
     }
-    for i in (0..n).filter(|&i| keep(i)) {
+    for &(_, i) in &s.order {
+        let i = i as usize;
         s.x.push((xs[i] - centroid[0]) as f32);
         s.y.push((ys[i] - centroid[1]) as f32);
         s.z.push((zs[i] - centroid[2]) as f32);
-    }
-    if s.x.is_empty() {
-        // Astronomically unlikely; fall back to one point rather than fit nothing.
-        s.x.push((xs[0] - centroid[0]) as f32);
-        s.y.push((ys[0] - centroid[1]) as f32);
-        s.z.push((zs[0] - centroid[2]) as f32);
     }
     let m = s.x.len();
     let scale = n as f64 / m as f64;
