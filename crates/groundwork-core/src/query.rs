@@ -16,7 +16,7 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
-use crate::simd::{LANES, Vf, Vi};
+use crate::simd::{LANES, Vf, Vi, load, store};
 use wide::bytemuck::cast;
 
 use crate::fastmath::exp_nonpositive_v;
@@ -459,27 +459,6 @@ impl LaneSums {
             orient: self.orient.mul_add(a, o.orient * b),
             elev: self.elev.mul_add(a, o.elev * b),
         }
-    }
-}
-
-/// Lanes `j..j + w` of a slice (w ≤ 8), zero-padded.
-#[inline(always)]
-fn load(v: &[f32], j: usize, w: usize) -> Vf {
-    match v[j..].first_chunk::<LANES>() {
-        Some(a) => Vf::new(*a),
-        None => {
-            let mut a = [0.0; LANES];
-            a[..w].copy_from_slice(&v[j..j + w]);
-            Vf::new(a)
-        }
-    }
-}
-
-#[inline(always)]
-fn store(v: Vf, out: &mut [f32], j: usize, w: usize) {
-    match out[j..].first_chunk_mut::<LANES>() {
-        Some(a) => *a = v.to_array(),
-        None => out[j..j + w].copy_from_slice(&v.to_array()[..w]),
     }
 }
 

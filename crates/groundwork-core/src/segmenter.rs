@@ -179,25 +179,8 @@ impl Segmenter {
     ) -> Result<(), SegmentError> {
         self.check(points, None, out)?;
         self.bin_points(points);
-        self.query_single(model, out);
+        self.query_frames(model, None, out);
         Ok(())
-    }
-
-    /// Single-frame query of the binned points against `model`.
-    fn query_single(&mut self, model: &FrameModel, out: &mut [f32]) {
-        let frames = [QueryFrame {
-            model,
-            transform: None,
-        }];
-        query(
-            &self.zones,
-            &frames,
-            &self.ground,
-            &self.bins,
-            self.cfg.zones.beyond_max_range,
-            &mut self.query_scratch,
-            out,
-        );
     }
 
     /// Ground probabilities of `points` (this scan's own sensor frame, world pose `pose`)
@@ -213,21 +196,22 @@ impl Segmenter {
     ) -> Result<usize, SegmentError> {
         self.check(points, Some(pose), out)?;
         self.bin_points(points);
-        if self.pose_jump(pose).is_some() {
-            self.query_single(model, out);
-            return Ok(1);
-        }
-        Ok(self.query_history(model, pose, out))
+        let pose = (self.pose_jump(pose).is_none()).then_some(pose);
+        Ok(self.query_frames(model, pose, out))
     }
 
-    /// Query of the binned points against `model` (taken at `pose`) and every stored past
-    /// frame. Returns the number of models queried.
-    fn query_history(&mut self, model: &FrameModel, pose: &Pose, out: &mut [f32]) -> usize {
-        let transforms: Vec<Isometry3<f64>> = self
-            .history
-            .iter()
-            .map(|f| self.mount * f.pose.inverse() * pose * self.mount.inverse())
-            .collect();
+    /// Query of the binned points against `model` and, given the scan's pose, every stored
+    /// past frame; without a pose, against `model` alone. Returns the number of models
+    /// queried.
+    fn query_frames(&mut self, model: &FrameModel, pose: Option<&Pose>, out: &mut [f32]) -> usize {
+        let transforms: Vec<Isometry3<f64>> = match pose {
+            Some(pose) => self
+                .history
+                .iter()
+                .map(|f| self.mount * f.pose.inverse() * pose * self.mount.inverse())
+                .collect(),
+            None => Vec::new(),
+        };
         let mut frames = Vec::with_capacity(self.history.len() + 1);
         frames.push(QueryFrame {
             model,
@@ -312,7 +296,7 @@ impl Segmenter {
         match pose {
             Some(pose) => {
                 report.history_cleared = self.check_pose_jump(pose);
-                report.frames_queried = self.query_history(&model, pose, out);
+                report.frames_queried = self.query_frames(&model, Some(pose), out);
                 let keep = self.cfg.history.frames as usize - 1;
                 if keep > 0 {
                     if self.history.len() == keep {
@@ -323,8 +307,7 @@ impl Segmenter {
             }
             None => {
                 self.counters.without_pose += 1;
-                self.query_single(&model, out);
-                report.frames_queried = 1;
+                report.frames_queried = self.query_frames(&model, None, out);
             }
         }
         report.query_time = t1.elapsed();

@@ -8,3 +8,25 @@ pub(crate) type Vf = wide::f32x16;
 pub(crate) type Vi = wide::i32x16;
 /// Lanes per vector.
 pub(crate) const LANES: usize = 16;
+
+/// Lanes `j..j + w` of a slice (w ≤ [`LANES`]), zero-padded.
+#[inline(always)]
+pub(crate) fn load(v: &[f32], j: usize, w: usize) -> Vf {
+    match v[j..].first_chunk::<LANES>() {
+        Some(a) => Vf::new(*a),
+        None => {
+            let mut a = [0.0; LANES];
+            a[..w].copy_from_slice(&v[j..j + w]);
+            Vf::new(a)
+        }
+    }
+}
+
+/// Writes the first `w` lanes of `v` to `out[j..j + w]`.
+#[inline(always)]
+pub(crate) fn store(v: Vf, out: &mut [f32], j: usize, w: usize) {
+    match out[j..].first_chunk_mut::<LANES>() {
+        Some(a) => *a = v.to_array(),
+        None => out[j..j + w].copy_from_slice(&v.to_array()[..w]),
+    }
+}

@@ -3,7 +3,7 @@
 
 use std::f64::consts::TAU;
 
-use crate::simd::{LANES, Vf, Vi};
+use crate::simd::{LANES, Vf, Vi, load};
 use wide::bytemuck::cast;
 
 use crate::config::ZoneConfig;
@@ -126,12 +126,7 @@ impl ZoneModel {
         let n = out.len().min(xs.len()).min(ys.len());
         for j in (0..n).step_by(LANES) {
             let w = LANES.min(n - j);
-            let lanes = |v: &[f32]| {
-                let mut a = [0.0; LANES];
-                a[..w].copy_from_slice(&v[j..j + w]);
-                Vf::new(a)
-            };
-            let packed: [u32; LANES] = cast(binner.bin(lanes(xs), lanes(ys)));
+            let packed: [u32; LANES] = cast(binner.bin(load(xs, j, w), load(ys, j, w)));
             out[j..j + w].copy_from_slice(&packed[..w]);
         }
     }
