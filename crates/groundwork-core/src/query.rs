@@ -6,20 +6,22 @@
 //! query.
 //!
 //! Implementation: the points are grouped once by their segment in the query scan (counting
-//! sort). Each run is then evaluated frame by frame, 16 points per SIMD vector: against its
-//! own segment's components for the query scan's model; for a past frame the vector is
-//! moved into that frame, binned there and evaluated against each distinct segment it falls
-//! into. Per-point sums are merged across frames with a streaming log-sum-exp (max, Σw,
-//! Σw·p_λ, Σw·p_θ, Σw·p_e).
+//! sort). Each run is evaluated 16 points per SIMD vector, and each vector against every
+//! frame while it stays in registers: against its own segment's components for the query
+//! scan's model; for a past frame the vector is moved into that frame, binned there and
+//! evaluated against each distinct segment it falls into. Per-point sums (Σw, Σw·p_λ,
+//! Σw·p_θ, Σw·p_e) are kept relative to a reference log-density, the query scan's best
+//! component; past frames add to them without rescaling, and a log-sum-exp merge takes over
+//! only where a component would exceed the reference by e^60.
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Matrix3};
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
 use crate::simd::{LANES, Vf, Vi, load, store};
 use wide::bytemuck::cast;
 
-use crate::fastmath::exp_nonpositive_v;
+use crate::fastmath::exp_v;
 use crate::model::FrameModel;
 use crate::zones::{Bin, LaneBinner, ZoneModel};
 
@@ -51,9 +53,13 @@ fn segment_of(packed: u32, policy: BeyondRangePolicy) -> Option<u32> {
     }
 }
 
-/// Components further below the best one than this (in log-density) carry a weight under
-/// e^-30 ≈ 1e-13 relative: they are skipped (and would only produce denormals).
+/// Components further below the reference than this (in log-density) carry a weight under
+/// e^-30 ≈ 1e-13 relative: they count as 0 (and would only produce denormals).
 const LOG_CUTOFF: f32 = 30.0;
+
+/// How far (in log-density) a component may exceed a point's running reference before the
+/// sums are rescaled: weights stay below e^60 ≈ 1e26, far from f32 overflow.
+const LOG_HEADROOM: f32 = 60.0;
 
 /// Log-density floor for "no component seen yet": finite so that merges never compute
 /// −∞ − (−∞).
@@ -67,10 +73,15 @@ pub(crate) struct QueryTable {
     comps: Vec<QComp>,
 }
 
+/// One component for the query: log N(x) = c − |U·x − b|², where UᵀU = P/2 (P the
+/// precision, U upper triangular: `u` holds its rows' non-zero entries) and b = U·mean.
+/// Folding the mean and the ½ in makes a log-density nine fused multiply-adds; the
+/// cancellation in U·x − b costs about |U·x|·6e-8 ≈ 1e-5 even 80 m out, far below what
+/// matters in a weight.
 #[derive(Debug, Clone, Copy)]
 struct QComp {
-    m: [f32; 3],
-    p: [f32; 6],
+    u: [f32; 6],
+    b: [f32; 3],
     c: f32,
     flat: f32,
     orient: f32,
@@ -84,9 +95,10 @@ impl QueryTable {
         start.push(0);
         for s in 0..model.segment_count() {
             for g in model.segment(s as u32) {
+                let (u, b) = half_precision_factor(&g.eval.precision, &g.eval.mean);
                 comps.push(QComp {
-                    m: g.eval.mean.map(|v| v as f32),
-                    p: g.eval.precision.map(|v| v as f32),
+                    u: u.map(|v| v as f32),
+                    b: b.map(|v| v as f32),
                     c: g.eval.log_coef as f32,
                     flat: g.flatness as f32,
                     orient: g.orientation as f32,
@@ -108,6 +120,32 @@ impl QueryTable {
     }
 }
 
+/// U (rows' non-zero entries) and b = U·mean with UᵀU = P/2, for P given by its upper
+/// triangle. A precision that is not positive definite (not produced by the fit, which
+/// regularises covariances) is factored through its diagonal, clamped at 0.
+fn half_precision_factor(p: &[f64; 6], mean: &[f64; 3]) -> ([f64; 6], [f64; 3]) {
+    let half = Matrix3::new(p[0], p[1], p[2], p[1], p[3], p[4], p[2], p[4], p[5]) * 0.5;
+    let l = half.cholesky().map_or_else(
+        || Matrix3::from_diagonal(&half.diagonal().map(|d| d.max(0.0).sqrt())),
+        |c| c.l(),
+    );
+    // U = Lᵀ: row i holds column i of L from the diagonal down.
+    let u = [
+        l[(0, 0)],
+        l[(1, 0)],
+        l[(2, 0)],
+        l[(1, 1)],
+        l[(2, 1)],
+        l[(2, 2)],
+    ];
+    let b = [
+        u[0] * mean[0] + u[1] * mean[1] + u[2] * mean[2],
+        u[3] * mean[1] + u[4] * mean[2],
+        u[5] * mean[2],
+    ];
+    (u, b)
+}
+
 /// One model to query, with the transform from the query scan's ground-aligned frame into
 /// that model's ground-aligned frame (`None` for the query scan's own model).
 #[derive(Debug, Clone, Copy)]
@@ -118,9 +156,8 @@ pub struct QueryFrame<'a> {
     pub transform: Option<&'a Isometry3<f64>>,
 }
 
-/// Running sums per point over the components seen so far, structure of arrays so that
-/// merges vectorise: the largest log-density `max`, and relative to it Σw, Σw·p_λ, Σw·p_θ
-/// and Σw·p_e.
+/// Sums per point over every component asked, structure of arrays: a reference
+/// log-density `max`, and relative to it Σw, Σw·p_λ, Σw·p_θ and Σw·p_e.
 #[derive(Debug, Default)]
 struct Sums {
     max: Vec<f32>,
@@ -245,19 +282,16 @@ pub(crate) fn query(
     let runs = split_runs(&s.start, s.acc.slices());
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
     let binner = LaneBinner::new(zones);
-    let moves: Vec<Option<Move>> = frames.iter().map(|f| f.transform.map(Move::new)).collect();
+    let tables: Vec<(&QueryTable, Option<Move>)> = frames
+        .iter()
+        .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
+        .collect();
     runs.into_par_iter()
         .with_max_len(1)
         .for_each(|(seg, a, mut acc)| {
             let r = a..a + acc.len();
             let (x, y, z) = (&xs[r.clone()], &ys[r.clone()], &zs[r]);
-            for (f, mv) in frames.iter().zip(&moves) {
-                let table = f.model.query_table();
-                match mv {
-                    None => eval_own(table.segment(seg), x, y, z, &mut acc),
-                    Some(mv) => eval_moved(&binner, table, mv, policy, x, y, z, &mut acc),
-                }
-            }
+            eval_run(&binner, &tables, policy, seg, x, y, z, &mut acc);
         });
     out.fill(0.0);
     let a = &s.acc;
@@ -350,29 +384,17 @@ impl Move {
     }
 }
 
-/// Merges into `acc` a run's sums against its own segment's components.
-fn eval_own(comps: &[QComp], xs: &[f32], ys: &[f32], zs: &[f32], acc: &mut SumsMut<'_>) {
-    if comps.is_empty() {
-        return;
-    }
-    for j in (0..acc.len()).step_by(LANES) {
-        let w = LANES.min(acc.len() - j);
-        let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
-        let merged = acc.load(j, w).merge(eval_lanes(comps, x, y, z));
-        acc.store(merged, j, w);
-    }
-}
-
-/// Merges into `acc` a run's sums against a past frame. A vector of points at a time is moved
-/// into that frame, binned there, and evaluated against the components of each distinct
-/// segment they fall into (points of one compact current segment are neighbours, so
-/// nearly every vector falls into a single past segment).
+/// Sums of a run of points (all in query-scan segment `seg`) over every frame, a vector of
+/// points at a time: the vector stays in registers while all frames are asked. For a past
+/// frame the vector is moved into that frame, binned there, and evaluated against the
+/// components of each distinct segment it falls into (points of one compact current segment
+/// are neighbours, so nearly every vector falls into a single past segment).
 #[allow(clippy::too_many_arguments)]
-fn eval_moved(
+fn eval_run(
     binner: &LaneBinner,
-    table: &QueryTable,
-    mv: &Move,
+    frames: &[(&QueryTable, Option<Move>)],
     policy: BeyondRangePolicy,
+    seg: u32,
     xs: &[f32],
     ys: &[f32],
     zs: &[f32],
@@ -382,37 +404,45 @@ fn eval_moved(
     let no_key = Vi::splat(-1);
     for j in (0..acc.len()).step_by(LANES) {
         let w = LANES.min(acc.len() - j);
-        let [x, y, z] = mv.apply(load(xs, j, w), load(ys, j, w), load(zs, j, w));
-        // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
-        let packed = binner.bin(x, y);
-        let beyond = packed.simd_lt(Vi::ZERO) & packed.simd_ne(no_key);
-        let keys = match policy {
-            BeyondRangePolicy::OuterRing => beyond.select(packed & Vi::splat(i32::MAX), packed),
-            BeyondRangePolicy::NonGround => beyond.select(no_key, packed),
-        };
-        let keys = lane_index.simd_lt(Vi::splat(w as i32)).select(keys, no_key);
-        let lanes = keys.to_array();
-        let mut todo = !cast::<Vi, Vf>(keys.simd_eq(no_key)).to_bitmask() & ((1 << LANES) - 1);
-        let mut part = LaneSums::EMPTY;
-        while todo != 0 {
-            let seg = lanes[todo.trailing_zeros() as usize];
-            let hit = keys.simd_eq(Vi::splat(seg));
-            todo &= !cast::<Vi, Vf>(hit).to_bitmask();
-            let comps = table.segment(seg as u32);
-            if comps.is_empty() {
+        let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
+        let real = lane_index.simd_lt(Vi::splat(w as i32));
+        let mut sums = LaneSums::EMPTY;
+        for (table, mv) in frames {
+            let Some(mv) = mv else {
+                // The query scan's own model: every lane is in segment `seg`.
+                let comps = table.segment(seg);
+                if !comps.is_empty() {
+                    sums = sums.merge(eval_lanes(comps, x, y, z));
+                }
                 continue;
+            };
+            let [x, y, z] = mv.apply(x, y, z);
+            // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
+            let packed = binner.bin(x, y);
+            let beyond = packed.simd_lt(Vi::ZERO) & packed.simd_ne(no_key);
+            let keys = match policy {
+                BeyondRangePolicy::OuterRing => beyond.select(packed & Vi::splat(i32::MAX), packed),
+                BeyondRangePolicy::NonGround => beyond.select(no_key, packed),
+            };
+            let keys = real.select(keys, no_key);
+            let lanes = keys.to_array();
+            let mut todo = !cast::<Vi, Vf>(keys.simd_eq(no_key)).to_bitmask() & ((1 << LANES) - 1);
+            while todo != 0 {
+                let seg = lanes[todo.trailing_zeros() as usize];
+                let hit = keys.simd_eq(Vi::splat(seg));
+                todo &= !cast::<Vi, Vf>(hit).to_bitmask();
+                sums.add_segment(table.segment(seg as u32), x, y, z, cast(hit));
             }
-            part = part.select(cast(hit), eval_lanes(comps, x, y, z));
         }
-        let merged = acc.load(j, w).merge(part);
-        acc.store(merged, j, w);
+        acc.store(sums, j, w);
     }
 }
 
 /// Components evaluated together per chunk of points; more are merged block by block.
 const BLOCK: usize = 8;
 
-/// [`Sums`] of one vector of points.
+/// [`Sums`] of one vector of points; `max` is the reference: the largest log-density when
+/// the sums were last rescaled.
 #[derive(Debug, Clone, Copy)]
 struct LaneSums {
     max: Vf,
@@ -447,7 +477,7 @@ impl LaneSums {
     /// keeps scale 1.
     #[inline(always)]
     fn merge(self, o: LaneSums) -> LaneSums {
-        let e = exp_nonpositive_v(-(self.max - o.max).abs());
+        let e = exp_v(-(self.max - o.max).abs());
         let one = Vf::ONE;
         let self_larger = self.max.simd_ge(o.max);
         let a = self_larger.select(one, e);
@@ -460,20 +490,37 @@ impl LaneSums {
             elev: self.elev.mul_add(a, o.elev * b),
         }
     }
+
+    /// Adds, in the lanes of `hit`, the weights of a segment's components relative to the
+    /// running maximum, which is kept as a fixed reference: one pass in registers, no
+    /// rescaling and no extra exponential. If a component exceeds the reference by more
+    /// than [`LOG_HEADROOM`] in some lane (or the lane has seen no component yet), that
+    /// pass is dropped and the segment is merged with rescaling instead, so that nothing
+    /// overflows.
+    #[inline(always)]
+    fn add_segment(&mut self, comps: &[QComp], x: Vf, y: Vf, z: Vf, hit: Vf) {
+        let s = Vf::splat;
+        let mut next = *self;
+        let mut over = Vf::ZERO;
+        for q in comps {
+            let d = log_density(q, x, y, z) - self.max;
+            over |= d.simd_gt(s(LOG_HEADROOM));
+            let live = hit & d.simd_ge(s(-LOG_CUTOFF));
+            let w = live.select(exp_v(d), Vf::ZERO);
+            next.sum += w;
+            next.flat = w.mul_add(s(q.flat), next.flat);
+            next.orient = w.mul_add(s(q.orient), next.orient);
+            next.elev = w.mul_add(s(q.elev), next.elev);
+        }
+        *self = if cast::<Vf, Vi>(over & hit).any() {
+            self.select(hit, self.merge(eval_lanes(comps, x, y, z)))
+        } else {
+            next
+        };
+    }
 }
 
 impl SumsMut<'_> {
-    #[inline(always)]
-    fn load(&self, j: usize, w: usize) -> LaneSums {
-        LaneSums {
-            max: load(self.max, j, w),
-            sum: load(self.sum, j, w),
-            flat: load(self.flat, j, w),
-            orient: load(self.orient, j, w),
-            elev: load(self.elev, j, w),
-        }
-    }
-
     #[inline(always)]
     fn store(&mut self, v: LaneSums, j: usize, w: usize) {
         store(v.max, self.max, j, w);
@@ -484,19 +531,26 @@ impl SumsMut<'_> {
     }
 }
 
-/// Sums of one vector of points against up to [`BLOCK`] components.
+/// Log-density of one vector of points under one component.
+#[inline(always)]
+fn log_density(q: &QComp, x: Vf, y: Vf, z: Vf) -> Vf {
+    let s = Vf::splat;
+    let u = q.u;
+    let u3 = s(u[5]).mul_sub(z, s(q.b[2]));
+    let u2 = s(u[3]).mul_add(y, s(u[4]).mul_sub(z, s(q.b[1])));
+    let u1 = s(u[0]).mul_add(x, s(u[1]).mul_add(y, s(u[2]).mul_sub(z, s(q.b[0]))));
+    u1.mul_neg_add(u1, u2.mul_neg_add(u2, u3.mul_neg_add(u3, s(q.c))))
+}
+
+/// Sums of one vector of points against up to [`BLOCK`] components, relative to their own
+/// maximum.
 #[inline(always)]
 fn eval_block(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
     let mut l = [Vf::splat(EMPTY); BLOCK];
-    let s = Vf::splat;
     for (lc, q) in l.iter_mut().zip(comps) {
-        let (dx, dy, dz) = (x - s(q.m[0]), y - s(q.m[1]), z - s(q.m[2]));
-        let p = q.p;
-        // d = Δᵀ P Δ with P symmetric (upper triangle p).
-        let d = (s(p[0]) * dx).mul_add(dx, (s(p[3]) * dy).mul_add(dy, s(p[5]) * dz * dz));
-        let cross = (s(p[1]) * dx).mul_add(dy, (s(p[2]) * dx).mul_add(dz, s(p[4]) * dy * dz));
-        *lc = s(q.c) - s(0.5) * cross.mul_add(s(2.0), d);
+        *lc = log_density(q, x, y, z);
     }
+    let s = Vf::splat;
     let k = comps.len().min(BLOCK);
     let mut max = l[0];
     for lc in &l[1..k] {
@@ -517,7 +571,7 @@ fn eval_block(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
         if live.none() {
             continue;
         }
-        let w = live.select(exp_nonpositive_v(d), zero);
+        let w = live.select(exp_v(d), zero);
         r.sum += w;
         r.flat = w.mul_add(s(q.flat), r.flat);
         r.orient = w.mul_add(s(q.orient), r.orient);
@@ -536,4 +590,146 @@ fn eval_lanes(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
     blocks.fold(eval_block(first, x, y, z), |acc, b| {
         acc.merge(eval_block(b, x, y, z))
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
+    use super::*;
+    use crate::point::mount_transform;
+    use crate::{Point, Segmenter, SegmenterConfig};
+    use nalgebra::{Point3, Translation3, UnitQuaternion};
+
+    /// A ring-scanned road (sensor frame, sensor 1.73 m up) with a gentle bump, a car-sized
+    /// box and a wall, seen from `x0` metres further along x, the road raised by `lift`.
+    fn scene(x0: f32, lift: f32) -> Vec<Point> {
+        let mut pts = Vec::new();
+        for ring in 0..64 {
+            let r = 3.0 + ring as f32 * 0.6;
+            for k in 0..720 {
+                let a = k as f32 * std::f32::consts::TAU / 720.0;
+                let (x, y) = (r * a.cos(), r * a.sin());
+                let bump = 0.15 * (-((x + x0 - 15.0).powi(2) + y * y) / 20.0).exp();
+                let wobble = ((ring * 7 + k * 13) % 11) as f32 * 0.002;
+                pts.push(Point::new(x, y, -1.73 + lift + bump + wobble));
+            }
+        }
+        for i in 0..40 {
+            for k in 0..30 {
+                let x = 12.0 + i as f32 * 0.05 - x0;
+                pts.push(Point::new(x, 3.0, -1.7 + k as f32 * 0.05));
+                pts.push(Point::new(x, -8.0, -1.7 + k as f32 * 0.1));
+            }
+        }
+        pts
+    }
+
+    /// The multi-frame equation evaluated directly, in f64: every component of the segment
+    /// that answers for the point in each frame, normalised together.
+    fn reference(zones: &ZoneModel, frames: &[QueryFrame<'_>], p: [f64; 3]) -> f64 {
+        let mut terms = Vec::new();
+        for f in frames {
+            let q = f.transform.map_or(Point3::from(p), |t| t * Point3::from(p));
+            let Some(seg) = segment_of(pack(zones.bin(q.x, q.y)), BeyondRangePolicy::OuterRing)
+            else {
+                continue;
+            };
+            for g in f.model.segment(seg) {
+                let e = &g.eval;
+                let (dx, dy, dz) = (q.x - e.mean[0], q.y - e.mean[1], q.z - e.mean[2]);
+                let l = e.log_coef - 0.5 * crate::gmm::quad_form(&e.precision, dx, dy, dz);
+                terms.push((l, g.flatness, g.orientation, g.elevation));
+            }
+        }
+        let Some(top) = terms.iter().map(|t| t.0).reduce(f64::max) else {
+            return 0.0;
+        };
+        let (mut s, mut f, mut o, mut e) = (0.0, 0.0, 0.0, 0.0);
+        for (l, pf, po, pe) in terms {
+            let w = (l - top).exp();
+            (s, f, o, e) = (s + w, f + w * pf, o + w * po, e + w * pe);
+        }
+        ((f / s) * (o / s) * (e / s)).clamp(0.0, 1.0)
+    }
+
+    #[test]
+    fn multi_frame_query_matches_the_equation_evaluated_directly() {
+        let cfg = SegmenterConfig::default();
+        let mount = mount_transform(&cfg.sensor.mount).unwrap();
+        let mut seg = Segmenter::new(cfg).unwrap();
+        let now = scene(0.0, 0.0);
+        // The query scan's own model saw the road 0.3 m higher (a bad fit, on purpose): past
+        // frames then outrank it by far more than e^60 on the road, and the rescaling path
+        // is asked as well as the fixed-reference one.
+        let model = seg.fit(&scene(0.0, 0.3)).unwrap();
+        let past: Vec<_> = [0.8f32, 1.6, 2.4]
+            .iter()
+            .map(|&x0| seg.fit(&scene(-x0, 0.0)).unwrap())
+            .collect();
+        // Query frame → past frame: the past sensor stood x0 behind; the last one also
+        // turned by 2°.
+        let transforms: Vec<Isometry3<f64>> = vec![
+            Translation3::new(0.8, 0.0, 0.0).into(),
+            Translation3::new(1.6, 0.0, 0.0).into(),
+            Isometry3::from_parts(
+                Translation3::new(2.4, 0.0, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, 0.035),
+            ),
+        ];
+        let mut frames = vec![QueryFrame {
+            model: &model,
+            transform: None,
+        }];
+        frames.extend(past.iter().zip(&transforms).map(|(m, t)| QueryFrame {
+            model: m,
+            transform: Some(t),
+        }));
+        let ground: Vec<[f64; 3]> = now
+            .iter()
+            .map(|p| {
+                let q = mount * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                [q.x, q.y, q.z]
+            })
+            .collect();
+        let zones = seg.zones();
+        let bins: Vec<u32> = ground.iter().map(|p| pack(zones.bin(p[0], p[1]))).collect();
+        let mut out = vec![0.0; ground.len()];
+        query(
+            zones,
+            &frames,
+            &ground,
+            &bins,
+            BeyondRangePolicy::OuterRing,
+            &mut QueryScratch::default(),
+            &mut out,
+        );
+        let mut off = 0;
+        let mut worst_typical: f64 = 0.0;
+        for (p, &got) in ground.iter().zip(&out) {
+            let want = reference(zones, &frames, *p);
+            let diff = (f64::from(got) - want).abs();
+            // A point within float rounding of a bin edge may land in the neighbour.
+            if diff > 1e-4 {
+                off += 1;
+            } else {
+                worst_typical = worst_typical.max(diff);
+            }
+        }
+        assert!(
+            off * 2000 <= ground.len(),
+            "{off} of {} points differ from the direct evaluation by more than 1e-4",
+            ground.len()
+        );
+        assert!(
+            worst_typical < 1e-4,
+            "worst typical difference {worst_typical}"
+        );
+        let ground_like = out.iter().filter(|&&p| p > 0.5).count();
+        assert!(
+            ground_like * 2 > out.len(),
+            "the road must come out as ground ({ground_like} of {})",
+            out.len()
+        );
+    }
 }
