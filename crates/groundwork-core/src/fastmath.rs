@@ -36,8 +36,13 @@ pub fn exp_nonpositive(x: f32) -> f32 {
 /// those bits, plus 127, into the exponent.
 #[inline(always)]
 pub fn exp_v(x: Vf) -> Vf {
+    exp_v_from(x.max(Vf::splat(-87.0)))
+}
+
+/// [`exp_v`] for x in [−87, 88], without the clamp.
+#[inline(always)]
+pub fn exp_v_from(x: Vf) -> Vf {
     const ROUND: f32 = 12_582_912.0; // 1.5·2^23
-    let x = x.max(Vf::splat(-87.0));
     let t = x * Vf::splat(std::f32::consts::LOG2_E);
     let shifted = t + Vf::splat(ROUND);
     let fi = shifted - Vf::splat(ROUND);

@@ -21,7 +21,7 @@ use crate::config::BeyondRangePolicy;
 use crate::simd::{LANES, Vf, Vi, load, store};
 use wide::bytemuck::cast;
 
-use crate::fastmath::exp_v;
+use crate::fastmath::{exp_v, exp_v_from};
 use crate::model::FrameModel;
 use crate::zones::{Bin, LaneBinner, ZoneModel};
 
@@ -60,6 +60,9 @@ const LOG_CUTOFF: f32 = 30.0;
 /// How far (in log-density) a component may exceed a point's running reference before the
 /// sums are rescaled: weights stay below e^60 ≈ 1e26, far from f32 overflow.
 const LOG_HEADROOM: f32 = 60.0;
+
+/// Past components further below the reference than this count as this far below.
+const LOG_FLOOR: f32 = 60.0;
 
 /// Log-density floor for "no component seen yet": finite so that merges never compute
 /// −∞ − (−∞).
@@ -501,17 +504,19 @@ impl LaneSums {
     fn add_segment(&mut self, comps: &[QComp], x: Vf, y: Vf, z: Vf, hit: Vf) {
         let s = Vf::splat;
         let mut next = *self;
-        let mut over = Vf::ZERO;
+        let mut top = s(EMPTY);
         for q in comps {
             let d = log_density(q, x, y, z) - self.max;
-            over |= d.simd_gt(s(LOG_HEADROOM));
-            let live = hit & d.simd_ge(s(-LOG_CUTOFF));
-            let w = live.select(exp_v(d), Vf::ZERO);
+            top = top.fast_max(d);
+            // Below the floor a weight counts as e^-60 (≤ 1e-26 of the sums, which hold
+            // the reference's weight 1): no compare, and no denormal products.
+            let w = exp_v_from(d.fast_max(s(-LOG_FLOOR))) & hit;
             next.sum += w;
             next.flat = w.mul_add(s(q.flat), next.flat);
             next.orient = w.mul_add(s(q.orient), next.orient);
             next.elev = w.mul_add(s(q.elev), next.elev);
         }
+        let over = top.simd_gt(s(LOG_HEADROOM));
         *self = if cast::<Vf, Vi>(over & hit).any() {
             self.select(hit, self.merge(eval_lanes(comps, x, y, z)))
         } else {
