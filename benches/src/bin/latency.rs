@@ -78,6 +78,10 @@ struct Row {
     p: [f64; 5],
 }
 
+/// Messages sent first and left out of every figure (first touches of shared memory, cold
+/// caches), by every method alike.
+const WARMUP: u64 = 50;
+
 fn hist() -> Histogram<u64> {
     Histogram::new_with_bounds(1, 60_000_000_000, 3).expect("static bounds are valid")
 }
@@ -105,8 +109,8 @@ fn pong_iox(prefix: &str, n: usize) -> Result<()> {
     let node = transport::node("latency-pong")?;
     let sub = transport::scan_subscriber(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let publ = transport::mask_publisher(&transport::mask_service(&node, &cfg)?, &cfg)?;
-    let (_sn, scan_listener) = transport::event_ports(&node, &cfg, "scans")?;
-    let (mask_notifier, _ml) = transport::event_ports(&node, &cfg, "masks")?;
+    let scan_listener = transport::event_listener(&node, &cfg, "scans")?;
+    let mask_notifier = transport::event_notifier(&node, &cfg, "masks")?;
     loop {
         if scan_listener
             .timed_wait(|_| {}, Duration::from_secs(10))
@@ -137,7 +141,7 @@ fn sink_iox(prefix: &str, n: usize, count: u64) -> Result<()> {
     let cfg = service_cfg(prefix, n);
     let node = transport::node("latency-sink")?;
     let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
-    let (_mn, mask_listener) = transport::event_ports(&node, &cfg, "masks")?;
+    let mask_listener = transport::event_listener(&node, &cfg, "masks")?;
     let mut h = hist();
     let mut seen = 0;
     while seen < count {
@@ -152,7 +156,7 @@ fn sink_iox(prefix: &str, n: usize, count: u64) -> Result<()> {
             let now = groundwork_msg::monotonic_ns();
             let sent = m.user_header().stamps.published_ns;
             seen += 1;
-            if seen > 50 {
+            if seen > WARMUP {
                 h.saturating_record(now.saturating_sub(sent).max(1));
             }
         }
@@ -169,8 +173,8 @@ fn relay_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Row> {
     let cfg = service_cfg(&prefix, n);
     let node = transport::node("latency-source")?;
     let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
-    let (scan_notifier, _sl) = transport::event_ports(&node, &cfg, "scans")?;
-    let total = iterations + 50;
+    let scan_notifier = transport::event_notifier(&node, &cfg, "scans")?;
+    let total = iterations + WARMUP;
     let mut relay = role(exe, "pong-iox", &prefix, n).spawn()?;
     let sink = role(exe, "sink-iox", &prefix, n)
         .args(["--count", &total.to_string()])
@@ -245,13 +249,13 @@ fn ping_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
     let node = transport::node("latency-ping")?;
     let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
-    let (scan_notifier, _sl) = transport::event_ports(&node, &cfg, "scans")?;
-    let (_mn, mask_listener) = transport::event_ports(&node, &cfg, "masks")?;
+    let scan_notifier = transport::event_notifier(&node, &cfg, "scans")?;
+    let mask_listener = transport::event_listener(&node, &cfg, "masks")?;
     let mut child = role(exe, "pong-iox", &prefix, n).spawn()?;
     std::thread::sleep(Duration::from_millis(500));
     let mut h = hist();
     let t0 = Instant::now();
-    for i in 0..iterations + 50 {
+    for i in 0..iterations + WARMUP {
         pace(t0, i, rate);
         let t = send_scan(&publ, &scan_notifier, n, i)?;
         loop {
@@ -264,7 +268,7 @@ fn ping_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
                 break;
             }
         }
-        if i >= 50 {
+        if i >= WARMUP {
             h.saturating_record(t.elapsed().as_nanos() as u64);
         }
     }
@@ -309,12 +313,12 @@ fn ping_uds(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
     let mut mask = vec![0u8; n * 4];
     let mut h = hist();
     let t0 = Instant::now();
-    for i in 0..iterations + 50 {
+    for i in 0..iterations + WARMUP {
         pace(t0, i, rate);
         let t = Instant::now();
         s.write_all(&scan)?;
         s.read_exact(&mut mask)?;
-        if i >= 50 {
+        if i >= WARMUP {
             h.saturating_record(t.elapsed().as_nanos() as u64);
         }
     }
@@ -344,6 +348,8 @@ fn pipeline(
         ),
     )?;
     let json = dir.path().join("consumer.json");
+    // As the bare baselines, leave the first WARMUP messages out.
+    let scans = scans + WARMUP;
     let stage = |name: &str| {
         let mut c = Command::new(groundwork);
         c.arg(name)
@@ -365,6 +371,8 @@ fn pipeline(
             &scans.to_string(),
             "--idle-timeout",
             "5",
+            "--warmup",
+            &WARMUP.to_string(),
             "--report-json",
         ])
         .arg(&json)

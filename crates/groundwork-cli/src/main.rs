@@ -138,6 +138,10 @@ enum Command {
         /// Seconds to stall.
         #[arg(long, default_value_t = 0.0)]
         stall_secs: f64,
+        /// Leave the first N segmented masks out of the latency figures (first touches of
+        /// shared memory, cold caches).
+        #[arg(long, default_value_t = 0)]
+        warmup: u64,
     },
     /// Segment scans: writes <out>/<scan>.prob (f32 per point) and <out>/<scan>.ground (u8).
     Segment {
@@ -261,6 +265,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             report_json,
             stall_after,
             stall_secs,
+            warmup,
         } => {
             let cfg = load_service(&service)?;
             let secs =
@@ -275,6 +280,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     report_json,
                     stall_after,
                     stall: secs(stall_secs)?,
+                    warmup,
                 },
             )?;
             Ok(ExitCode::SUCCESS)

@@ -33,6 +33,8 @@ pub struct ConsumerOptions {
     pub stall_after: Option<u64>,
     /// How long to stall.
     pub stall: Duration,
+    /// Segmented masks left out of the latency figures at the start.
+    pub warmup: u64,
 }
 
 /// The consumer's final report.
@@ -75,7 +77,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     let masks = transport::mask_service(&node, cfg)?;
     let scan_sub = transport::scan_subscriber(&scans, cfg)?;
     let mask_sub = transport::mask_subscriber(&masks, cfg)?;
-    let (_n2, mask_listener) = transport::event_ports(&node, cfg, "masks")?;
+    let mask_listener = transport::event_listener(&node, cfg, "masks")?;
     // Only masks wake the consumer: it reads the scans it pairs them with from its queue at
     // that moment. Waking on scans as well would put a third process on the CPU exactly
     // when the segmenter needs it, and cost the pipeline latency. It blocks on the mask
@@ -145,14 +147,16 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
                 continue;
             }
             report.segmented += 1;
-            let s = h.stamps;
-            stats.record(
-                s.produced_ns,
-                s.published_ns,
-                s.segmenter_received_ns,
-                s.segmenter_published_ns,
-                now,
-            );
+            if report.segmented > opts.warmup {
+                let s = h.stamps;
+                stats.record(
+                    s.produced_ns,
+                    s.published_ns,
+                    s.segmenter_received_ns,
+                    s.segmenter_published_ns,
+                    now,
+                );
+            }
             let probs: &[f32] = mask.payload();
             if let Some(dir) = &opts.labels {
                 st.score(dir, h.source_index, probs);

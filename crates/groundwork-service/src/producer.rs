@@ -110,7 +110,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
     let node = transport::node("groundwork-producer")?;
     let svc = transport::scan_service(&node, cfg)?;
     let publisher = transport::scan_publisher(&svc, cfg)?;
-    let (notifier, _listener) = transport::event_ports(&node, cfg, "scans")?;
+    let notifier = transport::event_notifier(&node, cfg, "scans")?;
     let epoch = new_epoch();
     let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
     let period = (rate > 0.0).then(|| Duration::from_secs_f64(1.0 / rate));

@@ -98,8 +98,8 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
     let masks = transport::mask_service(&node, cfg)?;
     let subscriber = transport::scan_subscriber(&scans, cfg)?;
     let publisher = transport::mask_publisher(&masks, cfg)?;
-    let (_scan_notifier, scan_listener) = transport::event_ports(&node, cfg, "scans")?;
-    let (mask_notifier, _mask_listener) = transport::event_ports(&node, cfg, "masks")?;
+    let scan_listener = transport::event_listener(&node, cfg, "scans")?;
+    let mask_notifier = transport::event_notifier(&node, cfg, "masks")?;
     let epoch = new_epoch();
     info!(prefix = %cfg.prefix, frames = opts.segmenter.history.frames, echo = opts.echo, "segmenter started");
 

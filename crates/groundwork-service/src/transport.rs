@@ -109,28 +109,43 @@ pub fn mask_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::R
     topic(node, cfg, "masks", cfg.mask_queue)
 }
 
-/// The wake-up side of a topic: notifier for its publisher, listener for its readers.
-pub fn event_ports(
+/// Opens (or creates) a topic's event service.
+fn event_service(
     node: &Node<ipc::Service>,
     cfg: &ServiceConfig,
     topic: &str,
-) -> anyhow::Result<(EventNotifier, EventListener)> {
-    let ev = node
-        .service_builder(&service_name(cfg, topic)?)
+) -> anyhow::Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>> {
+    node.service_builder(&service_name(cfg, topic)?)
         .event()
         .max_notifiers(4)
         .max_listeners(cfg.max_subscribers + 2)
         .open_or_create()
-        .map_err(|e| anyhow::anyhow!("{}/{topic} (event): {e:?}", cfg.prefix))?;
-    let n = ev
+        .map_err(|e| anyhow::anyhow!("{}/{topic} (event): {e:?}", cfg.prefix))
+}
+
+/// The wake-up side of a topic's publisher. Every listener of the topic costs each
+/// notification a datagram, so a process creates only the side it uses.
+pub fn event_notifier(
+    node: &Node<ipc::Service>,
+    cfg: &ServiceConfig,
+    topic: &str,
+) -> anyhow::Result<EventNotifier> {
+    event_service(node, cfg, topic)?
         .notifier_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("{topic} notifier: {e:?}"))?;
-    let l = ev
+        .map_err(|e| anyhow::anyhow!("{topic} notifier: {e:?}"))
+}
+
+/// The wake-up side of a topic's readers.
+pub fn event_listener(
+    node: &Node<ipc::Service>,
+    cfg: &ServiceConfig,
+    topic: &str,
+) -> anyhow::Result<EventListener> {
+    event_service(node, cfg, topic)?
         .listener_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("{topic} listener: {e:?}"))?;
-    Ok((n, l))
+        .map_err(|e| anyhow::anyhow!("{topic} listener: {e:?}"))
 }
 
 /// A publisher whose memory is sized once for `max_points` values (no growth at run time)
