@@ -23,20 +23,12 @@ use wide::bytemuck::cast;
 
 use crate::fastmath::{exp_v, exp_v_from};
 use crate::model::FrameModel;
-use crate::zones::{Bin, LaneBinner, ZoneModel};
+use crate::zones::{LaneBinner, ZoneModel};
 
-/// Packed bin of a point in its own scan: segment index, `BEYOND` flag, or `NEAR`.
+/// Packed bin of a point in its own scan (as [`ZoneModel::bin_many`] and the vectorised
+/// binner give it): segment index, `BEYOND` flag, or `NEAR`.
 pub(crate) const NEAR: u32 = u32::MAX;
 pub(crate) const BEYOND: u32 = 1 << 31;
-
-#[inline]
-pub(crate) fn pack(bin: Bin) -> u32 {
-    match bin {
-        Bin::Near => NEAR,
-        Bin::Segment(s) => s,
-        Bin::Beyond(s) => s | BEYOND,
-    }
-}
 
 /// Segment whose model answers for a packed bin, or `None` if no model is asked.
 #[inline]
@@ -603,8 +595,18 @@ mod tests {
 
     use super::*;
     use crate::point::mount_transform;
+    use crate::zones::Bin;
     use crate::{Point, Segmenter, SegmenterConfig};
     use nalgebra::{Point3, Translation3, UnitQuaternion};
+
+    /// [`Bin`] in the packed form (for the direct evaluation in tests).
+    fn pack(bin: Bin) -> u32 {
+        match bin {
+            Bin::Near => NEAR,
+            Bin::Segment(s) => s,
+            Bin::Beyond(s) => s | BEYOND,
+        }
+    }
 
     /// A ring-scanned road (sensor frame, sensor 1.73 m up) with a gentle bump, a car-sized
     /// box and a wall, seen from `x0` metres further along x, the road raised by `lift`.

@@ -14,8 +14,10 @@ use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, mount_transform};
-use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, pack, query, segment_offsets};
-use crate::zones::ZoneModel;
+use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, query, segment_offsets};
+use crate::simd::{LANES, Vf};
+use crate::zones::{LaneBinner, ZoneModel};
+use wide::bytemuck::cast;
 
 /// The segment a point is fitted in: in-range points only (beyond-range points are
 /// queried, never fitted).
@@ -370,21 +372,31 @@ impl Segmenter {
         // A rotation matrix costs 9 multiply-adds per point, a unit quaternion about 30.
         let r = self.mount.rotation.to_rotation_matrix().into_inner();
         let t = self.mount.translation.vector;
-        let zones = &self.zones;
+        let binner = LaneBinner::new(&self.zones);
+        // Chunks of whole vectors: each is transformed, then binned 16 points at a time.
+        const CHUNK: usize = 256 * LANES;
         self.ground
-            .par_iter_mut()
-            .zip(self.bins.par_iter_mut())
-            .zip(points.par_iter())
-            .with_min_len(4096)
-            .for_each(|((g, b), p)| {
-                let [x, y, z] = p.xyz().map(f64::from);
-                let q = [
-                    r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
-                    r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
-                    r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
-                ];
-                *g = q;
-                *b = pack(zones.bin(q[0], q[1]));
+            .par_chunks_mut(CHUNK)
+            .zip(self.bins.par_chunks_mut(CHUNK))
+            .zip(points.par_chunks(CHUNK))
+            .for_each(|((ground, bins), points)| {
+                for (g, p) in ground.iter_mut().zip(points) {
+                    let [x, y, z] = p.xyz().map(f64::from);
+                    *g = [
+                        r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
+                        r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
+                        r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
+                    ];
+                }
+                for (g, b) in ground.chunks(LANES).zip(bins.chunks_mut(LANES)) {
+                    let lane = |c: usize| {
+                        Vf::new(std::array::from_fn(|i| {
+                            g.get(i).map_or(0.0, |q| q[c] as f32)
+                        }))
+                    };
+                    let packed: [u32; LANES] = cast(binner.bin(lane(0), lane(1)));
+                    b.copy_from_slice(&packed[..b.len()]);
+                }
             });
     }
 
