@@ -397,12 +397,15 @@ fn eval_run(
 ) {
     let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
     let no_key = Vi::splat(-1);
+    // Per frame, the past segment the previous vector fell into first: neighbours mostly
+    // fall into the same one, and a cheap test confirms it (or the vector is binned).
+    let mut guess = vec![u32::MAX; frames.len()];
     for j in (0..acc.len()).step_by(LANES) {
         let w = LANES.min(acc.len() - j);
         let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
         let real = lane_index.simd_lt(Vi::splat(w as i32));
         let mut sums = LaneSums::EMPTY;
-        for (table, mv) in frames {
+        for ((table, mv), guess) in frames.iter().zip(guess.iter_mut()) {
             let Some(mv) = mv else {
                 // The query scan's own model: every lane is in segment `seg`.
                 let comps = table.segment(seg);
@@ -412,6 +415,10 @@ fn eval_run(
                 continue;
             };
             let [x, y, z] = mv.apply(x, y, z);
+            if binner.all_inside(*guess, x, y, real) {
+                sums.add_segment(table.segment(*guess), x, y, z, cast(real));
+                continue;
+            }
             // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
             let packed = binner.bin(x, y);
             let beyond = packed.simd_lt(Vi::ZERO) & packed.simd_ne(no_key);
@@ -422,6 +429,9 @@ fn eval_run(
             let keys = real.select(keys, no_key);
             let lanes = keys.to_array();
             let mut todo = !cast::<Vi, Vf>(keys.simd_eq(no_key)).to_bitmask() & ((1 << LANES) - 1);
+            if todo != 0 {
+                *guess = lanes[todo.trailing_zeros() as usize] as u32;
+            }
             while todo != 0 {
                 let seg = lanes[todo.trailing_zeros() as usize];
                 let hit = keys.simd_eq(Vi::splat(seg));

@@ -154,7 +154,14 @@ pub(crate) struct LaneBinner {
     zones: Vec<[Vf; 5]>,
     near: Vf,
     max_range: Vf,
+    /// Per segment, its cell shrunk by [`CELL_MARGIN`]: r² bounds and the unit directions
+    /// of its two sector edges, for [`LaneBinner::all_inside`].
+    cells: Vec<[f32; 6]>,
 }
+
+/// Points closer than this (metres) to a cell's edge are left to the full binning, whose
+/// f32 rounding (below 1e-4 m) could put them on either side.
+const CELL_MARGIN: f64 = 2e-3;
 
 impl LaneBinner {
     pub(crate) fn new(m: &ZoneModel) -> Self {
@@ -170,11 +177,50 @@ impl LaneBinner {
                 ]
             })
             .collect();
+        let mut cells = vec![[0.0; 6]; m.segments as usize];
+        for k in 0..m.rings.len() {
+            let step = TAU / f64::from(m.sectors[k]);
+            for ring in 0..m.rings[k] {
+                let lo = m.boundaries[k] + f64::from(ring) * m.ring_width[k];
+                let lo = lo.max(m.near_radius) + CELL_MARGIN;
+                let hi = m.boundaries[k] + f64::from(ring + 1) * m.ring_width[k] - CELL_MARGIN;
+                for sector in 0..m.sectors[k] {
+                    let (a0, a1) = (f64::from(sector) * step, f64::from(sector + 1) * step);
+                    let idx = m.zone_offset[k] + ring * m.sectors[k] + sector;
+                    cells[idx as usize] =
+                        [lo * lo, hi * hi, a0.cos(), a0.sin(), a1.cos(), a1.sin()]
+                            .map(|v| v as f32);
+                }
+            }
+        }
         Self {
             zones,
             near: c(m.near_radius),
             max_range: c(m.boundaries[m.rings.len()]),
+            cells,
         }
+    }
+
+    /// Whether every lane where `lanes` is set lies inside segment `seg`'s cell, away from
+    /// its edges: then [`LaneBinner::bin`] would give `seg` for each of them (in range, not
+    /// near), and the full binning can be skipped. Sectors span less than π, so a cell is
+    /// the ring between two radii intersected with two half-planes through the origin.
+    #[inline(always)]
+    pub(crate) fn all_inside(&self, seg: u32, x: Vf, y: Vf, lanes: Vi) -> bool {
+        let Some(&[lo2, hi2, c0, s0, c1, s1]) = self.cells.get(seg as usize) else {
+            return false;
+        };
+        let s = Vf::splat;
+        let r2 = x.mul_add(x, y * y);
+        let m = s(CELL_MARGIN as f32);
+        // Signed distances from the edges: ahead of the first, behind the second.
+        let after_first = s(c0).mul_sub(y, s(s0) * x);
+        let before_second = s(s1).mul_sub(x, s(c1) * y);
+        let inside = r2.simd_ge(s(lo2))
+            & r2.simd_lt(s(hi2))
+            & after_first.simd_ge(m)
+            & before_second.simd_ge(m);
+        (cast::<Vf, Vi>(inside) | !lanes).all()
     }
 
     /// Packed bins (as [`ZoneModel::bin_many`]) of a vector of points, as i32 lanes: −1 near,
@@ -239,6 +285,56 @@ mod tests {
             da = da.min(off.min(step - off));
         }
         (dr, da)
+    }
+
+    #[test]
+    fn the_cell_test_implies_the_full_binning_result() {
+        let m = model();
+        let binner = LaneBinner::new(&m);
+        let all = Vi::splat(-1);
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let (mut confirmed, mut tried) = (0, 0);
+        for _ in 0..20_000 {
+            // 16 neighbours, like consecutive points of a scan, anywhere within 85 m.
+            let (cx, cy) = (next() * 170.0 - 85.0, next() * 170.0 - 85.0);
+            let spread = 0.05 + next() * 1.5;
+            let x = Vf::new(std::array::from_fn(|_| cx + (next() - 0.5) * spread));
+            let y = Vf::new(std::array::from_fn(|_| cy + (next() - 0.5) * spread));
+            let packed = binner.bin(x, y).to_array();
+            if packed[0] < 0 {
+                continue; // near or beyond: never a guess
+            }
+            tried += 1;
+            if binner.all_inside(packed[0] as u32, x, y, all) {
+                confirmed += 1;
+                assert!(packed.iter().all(|&p| p == packed[0]), "{packed:?}");
+            }
+        }
+        // The test must confirm most clustered vectors, or it saves nothing.
+        assert!(confirmed * 2 > tried, "{confirmed} of {tried} confirmed");
+        // A point on a sector edge, or on a ring edge, is never confirmed.
+        let on_sector_edge = Vf::new(std::array::from_fn(|i| if i == 3 { 0.0 } else { 5.0 }));
+        let y = Vf::new(std::array::from_fn(|i| if i == 3 { 5.0 } else { 0.5 }));
+        let seg = binner.bin(Vf::splat(5.0), Vf::splat(0.5)).to_array()[0] as u32;
+        assert!(!binner.all_inside(seg, on_sector_edge, y, all));
+        let edge = (m.boundaries[1] + m.ring_width[1]) as f32;
+        let x = Vf::new(std::array::from_fn(
+            |i| if i == 5 { edge } else { edge - 0.5 },
+        ));
+        let seg = binner
+            .bin(Vf::splat(edge - 0.5), Vf::splat(0.01))
+            .to_array()[0] as u32;
+        assert!(binner.all_inside(seg, Vf::splat(edge - 0.5), Vf::splat(0.01), all));
+        assert!(!binner.all_inside(seg, x, Vf::splat(0.01), all));
+        // Lanes outside the given set do not count.
+        let first_lanes = Vi::new(std::array::from_fn(|i| if i == 5 { 0 } else { -1 }));
+        assert!(binner.all_inside(seg, x, Vf::splat(0.01), first_lanes));
     }
 
     #[test]
