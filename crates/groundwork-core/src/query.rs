@@ -23,10 +23,10 @@ use wide::bytemuck::cast;
 
 use crate::fastmath::{exp_v, exp_v_from};
 use crate::model::FrameModel;
-use crate::zones::{LaneBinner, ZoneModel};
+use crate::zones::LaneBinner;
 
-/// Packed bin of a point in its own scan (as [`ZoneModel::bin_many`] and the vectorised
-/// binner give it): segment index, `BEYOND` flag, or `NEAR`.
+/// Packed bin of a point in its own scan (as [`LaneBinner::bin_all`] gives it): segment
+/// index, `BEYOND` flag, or `NEAR`.
 pub(crate) const NEAR: u32 = u32::MAX;
 pub(crate) const BEYOND: u32 = 1 << 31;
 
@@ -151,11 +151,11 @@ pub struct QueryFrame<'a> {
     pub transform: Option<&'a Isometry3<f64>>,
 }
 
-/// Sums per point over every component asked, structure of arrays: a reference
-/// log-density `max`, and relative to it Σw, Σw·p_λ, Σw·p_θ and Σw·p_e.
+/// Final sums per point over every component asked, structure of arrays: Σw, Σw·p_λ, Σw·p_θ
+/// and Σw·p_e, all relative to the same (per point) reference, which the probability does
+/// not need.
 #[derive(Debug, Default)]
 struct Sums {
-    max: Vec<f32>,
     sum: Vec<f32>,
     flat: Vec<f32>,
     orient: Vec<f32>,
@@ -163,24 +163,20 @@ struct Sums {
 }
 
 impl Sums {
-    /// `n` points with no component seen yet.
-    fn reset(&mut self, n: usize) {
+    /// Room for `n` points; the query writes every entry.
+    fn resize(&mut self, n: usize) {
         for v in [
             &mut self.sum,
             &mut self.flat,
             &mut self.orient,
             &mut self.elev,
         ] {
-            v.clear();
             v.resize(n, 0.0);
         }
-        self.max.clear();
-        self.max.resize(n, EMPTY);
     }
 
     fn slices(&mut self) -> SumsMut<'_> {
         SumsMut {
-            max: &mut self.max,
             sum: &mut self.sum,
             flat: &mut self.flat,
             orient: &mut self.orient,
@@ -192,7 +188,6 @@ impl Sums {
 /// Mutable view of a range of [`Sums`].
 #[derive(Debug)]
 struct SumsMut<'a> {
-    max: &'a mut [f32],
     sum: &'a mut [f32],
     flat: &'a mut [f32],
     orient: &'a mut [f32],
@@ -201,25 +196,22 @@ struct SumsMut<'a> {
 
 impl<'a> SumsMut<'a> {
     fn len(&self) -> usize {
-        self.max.len()
+        self.sum.len()
     }
 
     fn split_at(self, mid: usize) -> (SumsMut<'a>, SumsMut<'a>) {
-        let (max, max2) = self.max.split_at_mut(mid);
         let (sum, sum2) = self.sum.split_at_mut(mid);
         let (flat, flat2) = self.flat.split_at_mut(mid);
         let (orient, orient2) = self.orient.split_at_mut(mid);
         let (elev, elev2) = self.elev.split_at_mut(mid);
         (
             SumsMut {
-                max,
                 sum,
                 flat,
                 orient,
                 elev,
             },
             SumsMut {
-                max: max2,
                 sum: sum2,
                 flat: flat2,
                 orient: orient2,
@@ -260,11 +252,10 @@ pub(crate) struct QueryScratch {
 /// and `bins` their packed bins in it. Points near the sensor, beyond range under the
 /// `NonGround` policy, or in no fitted segment of any frame get 0.
 ///
-/// The points are grouped once by their segment in the query scan; every frame is then
-/// evaluated in that order, so each pass reads and writes memory sequentially and a
-/// segment's points (a compact patch of ground) stay in cache while its history is asked.
+/// The points are grouped once by their segment in the query scan, so that a vector of
+/// them is a compact patch of ground, mostly in one cell of every past frame too.
 pub(crate) fn query(
-    zones: &ZoneModel,
+    binner: &LaneBinner,
     frames: &[QueryFrame<'_>],
     points: &[[f64; 3]],
     bins: &[u32],
@@ -272,11 +263,10 @@ pub(crate) fn query(
     s: &mut QueryScratch,
     out: &mut [f32],
 ) {
-    group(s, points, bins, zones.segment_count(), policy);
-    s.acc.reset(s.order.len());
+    group(s, points, bins, binner.segment_count(), policy);
+    s.acc.resize(s.order.len());
     let runs = split_runs(&s.start, s.acc.slices());
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
-    let binner = LaneBinner::new(zones);
     let tables: Vec<(&QueryTable, Option<Move>)> = frames
         .iter()
         .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
@@ -286,7 +276,7 @@ pub(crate) fn query(
         .for_each(|(seg, a, mut acc)| {
             let r = a..a + acc.len();
             let (x, y, z) = (&xs[r.clone()], &ys[r.clone()], &zs[r]);
-            eval_run(&binner, &tables, policy, seg, x, y, z, &mut acc);
+            eval_run(binner, &tables, policy, seg, x, y, z, &mut acc);
         });
     out.fill(0.0);
     let a = &s.acc;
@@ -496,6 +486,16 @@ impl LaneSums {
         }
     }
 
+    /// Adds weights `w` of component `q` (relative to the reference).
+    #[inline(always)]
+    fn add_weight(&mut self, w: Vf, q: &QComp) {
+        let s = Vf::splat;
+        self.sum += w;
+        self.flat = w.mul_add(s(q.flat), self.flat);
+        self.orient = w.mul_add(s(q.orient), self.orient);
+        self.elev = w.mul_add(s(q.elev), self.elev);
+    }
+
     /// Adds, in the lanes of `hit`, the weights of a segment's components relative to the
     /// running maximum, which is kept as a fixed reference: one pass in registers, no
     /// rescaling and no extra exponential. If a component exceeds the reference by more
@@ -512,11 +512,7 @@ impl LaneSums {
             top = top.fast_max(d);
             // Below the floor a weight counts as e^-60 (≤ 1e-26 of the sums, which hold
             // the reference's weight 1): no compare, and no denormal products.
-            let w = exp_v_from(d.fast_max(s(-LOG_FLOOR))) & hit;
-            next.sum += w;
-            next.flat = w.mul_add(s(q.flat), next.flat);
-            next.orient = w.mul_add(s(q.orient), next.orient);
-            next.elev = w.mul_add(s(q.elev), next.elev);
+            next.add_weight(exp_v_from(d.fast_max(s(-LOG_FLOOR))) & hit, q);
         }
         let over = top.simd_gt(s(LOG_HEADROOM));
         *self = if cast::<Vf, Vi>(over & hit).any() {
@@ -530,7 +526,6 @@ impl LaneSums {
 impl SumsMut<'_> {
     #[inline(always)]
     fn store(&mut self, v: LaneSums, j: usize, w: usize) {
-        store(v.max, self.max, j, w);
         store(v.sum, self.sum, j, w);
         store(v.flat, self.flat, j, w);
         store(v.orient, self.orient, j, w);
@@ -578,11 +573,7 @@ fn eval_block(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
         if live.none() {
             continue;
         }
-        let w = live.select(exp_v(d), zero);
-        r.sum += w;
-        r.flat = w.mul_add(s(q.flat), r.flat);
-        r.orient = w.mul_add(s(q.orient), r.orient);
-        r.elev = w.mul_add(s(q.elev), r.elev);
+        r.add_weight(live.select(exp_v(d), zero), q);
     }
     r
 }
@@ -605,7 +596,7 @@ mod tests {
 
     use super::*;
     use crate::point::mount_transform;
-    use crate::zones::Bin;
+    use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};
     use nalgebra::{Point3, Translation3, UnitQuaternion};
 
@@ -713,7 +704,7 @@ mod tests {
         let bins: Vec<u32> = ground.iter().map(|p| pack(zones.bin(p[0], p[1]))).collect();
         let mut out = vec![0.0; ground.len()];
         query(
-            zones,
+            &LaneBinner::new(zones),
             &frames,
             &ground,
             &bins,

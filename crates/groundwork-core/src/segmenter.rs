@@ -15,9 +15,8 @@ use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, mount_transform};
 use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, query, segment_offsets};
-use crate::simd::{LANES, Vf};
+use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
-use wide::bytemuck::cast;
 
 /// The segment a point is fitted in: in-range points only (beyond-range points are
 /// queried, never fitted).
@@ -84,6 +83,8 @@ struct PastFrame {
 pub struct Segmenter {
     cfg: SegmenterConfig,
     zones: ZoneModel,
+    /// The zone model as SIMD constants, for binning this scan and the query.
+    binner: LaneBinner,
     mount: Isometry3<f64>,
     height: HeightFilter,
     history: VecDeque<PastFrame>,
@@ -105,6 +106,7 @@ impl Segmenter {
         Ok(Self {
             history: VecDeque::with_capacity(cfg.history.frames as usize),
             cfg,
+            binner: LaneBinner::new(&zones),
             zones,
             mount,
             height,
@@ -229,7 +231,7 @@ impl Segmenter {
                 }),
         );
         query(
-            &self.zones,
+            &self.binner,
             &frames,
             &self.ground,
             &self.bins,
@@ -372,7 +374,7 @@ impl Segmenter {
         // A rotation matrix costs 9 multiply-adds per point, a unit quaternion about 30.
         let r = self.mount.rotation.to_rotation_matrix().into_inner();
         let t = self.mount.translation.vector;
-        let binner = LaneBinner::new(&self.zones);
+        let binner = &self.binner;
         // Chunks of whole vectors: each is transformed, then binned 16 points at a time.
         const CHUNK: usize = 256 * LANES;
         self.ground
@@ -388,15 +390,7 @@ impl Segmenter {
                         r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
                     ];
                 }
-                for (g, b) in ground.chunks(LANES).zip(bins.chunks_mut(LANES)) {
-                    let lane = |c: usize| {
-                        Vf::new(std::array::from_fn(|i| {
-                            g.get(i).map_or(0.0, |q| q[c] as f32)
-                        }))
-                    };
-                    let packed: [u32; LANES] = cast(binner.bin(lane(0), lane(1)));
-                    b.copy_from_slice(&packed[..b.len()]);
-                }
+                binner.bin_all(ground, bins);
             });
     }
 

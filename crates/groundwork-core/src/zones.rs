@@ -3,7 +3,7 @@
 
 use std::f64::consts::TAU;
 
-use crate::simd::{LANES, Vf, Vi, load};
+use crate::simd::{LANES, Vf, Vi};
 use wide::bytemuck::cast;
 
 use crate::config::ZoneConfig;
@@ -118,19 +118,6 @@ impl ZoneModel {
         }
     }
 
-    /// Packed bins of many points at once (f32, ground-aligned frame): `u32::MAX` for near
-    /// points, the segment index otherwise, with bit 31 set beyond max range. Agrees with
-    /// [`ZoneModel::bin`] except for points within f32 rounding of a boundary.
-    pub fn bin_many(&self, xs: &[f32], ys: &[f32], out: &mut [u32]) {
-        let binner = LaneBinner::new(self);
-        let n = out.len().min(xs.len()).min(ys.len());
-        for j in (0..n).step_by(LANES) {
-            let w = LANES.min(n - j);
-            let packed: [u32; LANES] = cast(binner.bin(load(xs, j, w), load(ys, j, w)));
-            out[j..j + w].copy_from_slice(&packed[..w]);
-        }
-    }
-
     /// Zone, ring and sector of a flat segment index.
     pub fn segment_id(&self, idx: u32) -> Option<SegmentId> {
         if idx >= self.segments {
@@ -223,7 +210,28 @@ impl LaneBinner {
         (cast::<Vf, Vi>(inside) | !lanes).all()
     }
 
-    /// Packed bins (as [`ZoneModel::bin_many`]) of a vector of points, as i32 lanes: −1 near,
+    /// Segments of the zone model.
+    pub(crate) fn segment_count(&self) -> usize {
+        self.cells.len()
+    }
+
+    /// Packed bins of ground-aligned points (x and y rounded to f32), 16 at a time:
+    /// `u32::MAX` for near points, the segment index otherwise, with bit 31 set beyond max
+    /// range. Agrees with [`ZoneModel::bin`] except for points within f32 rounding of a
+    /// boundary.
+    pub(crate) fn bin_all(&self, ground: &[[f64; 3]], out: &mut [u32]) {
+        for (g, b) in ground.chunks(LANES).zip(out.chunks_mut(LANES)) {
+            let lane = |c: usize| {
+                Vf::new(std::array::from_fn(|i| {
+                    g.get(i).map_or(0.0, |q| q[c] as f32)
+                }))
+            };
+            let packed: [u32; LANES] = cast(self.bin(lane(0), lane(1)));
+            b.copy_from_slice(&packed[..b.len()]);
+        }
+    }
+
+    /// Packed bins (as [`LaneBinner::bin_all`]) of a vector of points, as i32 lanes: −1 near,
     /// bit 31 set beyond max range. Zone parameters are picked with selects, atan2 is a
     /// select-based polynomial: no branches, no gathers.
     #[inline(always)]
@@ -349,11 +357,17 @@ mod tests {
                 .wrapping_add(1_442_695_040_888_963_407);
             ((state >> 40) as f64 / (1u64 << 24) as f64) * 200.0 - 100.0
         };
+        let binner = LaneBinner::new(&m);
         for n in [100_003usize, 1, 7, 9] {
             let (xs, ys): (Vec<f32>, Vec<f32>) =
                 (0..n).map(|_| (next() as f32, next() as f32)).unzip();
+            let ground: Vec<[f64; 3]> = xs
+                .iter()
+                .zip(&ys)
+                .map(|(&x, &y)| [f64::from(x), f64::from(y), 0.0])
+                .collect();
             let mut out = vec![0; n];
-            m.bin_many(&xs, &ys, &mut out);
+            binner.bin_all(&ground, &mut out);
             let mut mismatches = 0;
             for ((&x, &y), &got) in xs.iter().zip(&ys).zip(&out) {
                 let want = match m.bin(f64::from(x), f64::from(y)) {
