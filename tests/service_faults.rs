@@ -116,7 +116,23 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("kill-seg");
-    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "3"]);
+    // The consumer's periodic sweep for dead processes would race the new segmenter's
+    // sweep at start, which is what this test checks: keep it out of the test's window.
+    let quiet = tmp.path().join("quiet.toml");
+    let service = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../config/service.toml");
+    let service = std::fs::read_to_string(service).unwrap();
+    assert!(service.contains("report_interval_s = 2.0"), "{service}");
+    std::fs::write(
+        &quiet,
+        service.replace("report_interval_s = 2.0", "report_interval_s = 60.0"),
+    )
+    .unwrap();
+    let (mut consumer, json) = consumer(
+        tmp.path(),
+        "consumer",
+        &p,
+        &["--idle-timeout", "3", "--service", quiet.to_str().unwrap()],
+    );
     let mut seg_a = Proc::start(tmp.path(), "segmenter-a", &p, &["--frames", "1"]);
     sleep(0.5);
     let started = Instant::now();
