@@ -107,6 +107,26 @@ fn published(log: &str) -> u64 {
     v.split_whitespace().next().unwrap().parse().unwrap()
 }
 
+/// The states ("alive", "dead", "other") of the iceoryx2 nodes called `name`.
+fn node_states(name: &str) -> Vec<&'static str> {
+    use iceoryx2::node::NodeView;
+    use iceoryx2::prelude::*;
+    let mut states = Vec::new();
+    Node::<ipc::Service>::list(iceoryx2::config::Config::global_config(), |s| {
+        let (details, state) = match &s {
+            NodeState::Alive(v) => (v.details(), "alive"),
+            NodeState::Dead(v) => (v.details(), "dead"),
+            _ => (&None, "other"),
+        };
+        if details.as_ref().is_some_and(|d| d.name().as_str() == name) {
+            states.push(state);
+        }
+        CallbackProgression::Continue
+    })
+    .unwrap();
+    states
+}
+
 fn sleep(s: f64) {
     std::thread::sleep(Duration::from_secs_f64(s));
 }
@@ -176,13 +196,26 @@ fn killed_producer_leaves_the_others_serving_and_a_new_one_resumes() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("kill-prod");
-    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "4"]);
+    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "6"]);
     let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
     sleep(0.5);
-    let mut prod_a = Proc::start(tmp.path(), "producer-a", &p, &["--rate", "20"]);
+    // 10 Hz leaves the segmenter room on a loaded machine: this test is about the kill,
+    // not about keeping up (dropped masks are asserted to be zero below).
+    let mut prod_a = Proc::start(tmp.path(), "producer-a", &p, &["--rate", "10"]);
     sleep(1.5);
+    let producer = format!("{p}/producer");
+    assert_eq!(node_states(&producer), ["alive"]);
     prod_a.kill9();
-    sleep(1.5);
+    // The survivors' periodic sweep (every 2 s) removes what the killed producer left,
+    // before any new process comes to do it at start.
+    let t = Instant::now();
+    while !node_states(&producer).is_empty() {
+        assert!(
+            t.elapsed() < Duration::from_secs(6),
+            "dead producer not removed"
+        );
+        sleep(0.1);
+    }
     assert!(
         seg.alive() && consumer.alive(),
         "segmenter and consumer survive the producer"
@@ -191,21 +224,21 @@ fn killed_producer_leaves_the_others_serving_and_a_new_one_resumes() {
         tmp.path(),
         "producer-b",
         &p,
-        &["--rate", "20", "--count", "20"],
+        &["--rate", "10", "--count", "20"],
     );
     assert!(prod_b.wait(Duration::from_secs(10)).success());
-    // The killed producer's leftovers were removed: by a survivor's periodic sweep or by
-    // the new producer at start, whichever came first.
-    let logs = [prod_b.log(), consumer.log(), seg.log()].concat();
-    assert!(logs.contains("removed stale resources"), "{logs}");
-    consumer.wait(Duration::from_secs(10));
+    assert!(
+        node_states(&producer).is_empty(),
+        "a clean exit leaves no node"
+    );
+    consumer.wait(Duration::from_secs(12));
     assert!(seg.alive());
     seg.term();
     assert!(seg.wait(Duration::from_secs(5)).success(), "{}", seg.log());
     assert!(!seg.log().contains("ERROR"), "{}", seg.log());
     let r = report(&json);
     // All 20 scans of the second producer were answered, after those of the first.
-    assert!(r["segmented"].as_u64().unwrap() >= 20 + 10, "{r}");
+    assert!(r["segmented"].as_u64().unwrap() >= 20 + 5, "{r}");
     assert_eq!(r["dropped_masks"], 0, "{r}");
 }
 
@@ -222,7 +255,7 @@ fn stalled_consumer_costs_only_its_own_messages() {
             "--stall-after",
             "3",
             "--stall-secs",
-            "3",
+            "4",
             "--idle-timeout",
             "2",
         ],
@@ -231,7 +264,7 @@ fn stalled_consumer_costs_only_its_own_messages() {
         tmp.path(),
         "consumer-fast",
         &p,
-        &["--count", "100", "--idle-timeout", "3"],
+        &["--count", "60", "--idle-timeout", "3"],
     );
     let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
     sleep(0.5);
@@ -240,7 +273,9 @@ fn stalled_consumer_costs_only_its_own_messages() {
         tmp.path(),
         "producer",
         &p,
-        &["--rate", "20", "--count", "100"],
+        // KITTI's 10 Hz: on a loaded 2-core machine 20 Hz can outrun the segmenter
+        // itself, and this test is about the stalled reader.
+        &["--rate", "10", "--count", "60"],
     );
     let rss = |pid: u32| -> u64 {
         let s = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
@@ -260,11 +295,11 @@ fn stalled_consumer_costs_only_its_own_messages() {
     seg.term();
     seg.wait(Duration::from_secs(5));
 
-    // The producer kept its rate: 100 scans at 20 Hz in about 5 s.
-    assert!(secs < 7.0, "producer took {secs:.1} s");
-    // The segmenter answered everything (the fast consumer saw all 100 masks).
+    // The producer kept its rate: 60 scans at 10 Hz in about 6 s.
+    assert!(secs < 8.0, "producer took {secs:.1} s");
+    // The segmenter answered everything (the fast consumer saw all 60 masks).
     let f = report(&fast_json);
-    assert_eq!(f["segmented"], 100, "{f}");
+    assert_eq!(f["segmented"], 60, "{f}");
     // Bounded memory while a reader stalls: the segmenter did not grow by more than 32 MiB.
     assert!(
         rss_late < rss_early + 32 * 1024,
@@ -274,7 +309,7 @@ fn stalled_consumer_costs_only_its_own_messages() {
     let s = report(&slow_json);
     let dropped = s["dropped_scans"].as_u64().unwrap() + s["dropped_masks"].as_u64().unwrap();
     assert!(dropped > 20, "{s}");
-    assert!(s["masks"].as_u64().unwrap() < 100, "{s}");
+    assert!(s["masks"].as_u64().unwrap() < 60, "{s}");
 }
 
 #[test]
@@ -361,7 +396,7 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
         .collect();
     let out = Command::new(env!("CARGO_BIN_EXE_groundwork"))
         .args([
-            "pipeline", "--count", "12", "--rate", "20", "--prefix", &p, "--out",
+            "pipeline", "--count", "12", "--rate", "10", "--prefix", &p, "--out",
         ])
         .arg(tmp.path())
         .output()

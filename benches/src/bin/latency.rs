@@ -106,7 +106,7 @@ fn service_cfg(prefix: &str, n: usize) -> ServiceConfig {
 /// The answering side of the iceoryx2 ping-pong: every scan gets a mask of n f32 back.
 fn pong_iox(prefix: &str, n: usize) -> Result<()> {
     let cfg = service_cfg(prefix, n);
-    let node = transport::node("latency-pong")?;
+    let node = transport::node(&cfg, "pong")?;
     let sub = transport::scan_subscriber(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let publ = transport::mask_publisher(&transport::mask_service(&node, &cfg)?, &cfg)?;
     let scan_listener = transport::event_listener(&node, &cfg, "scans")?;
@@ -139,7 +139,7 @@ fn pong_iox(prefix: &str, n: usize) -> Result<()> {
 /// from the scan's publication (its stamp) to receipt, as JSON [p50, p90, p99, p99.9, max] µs.
 fn sink_iox(prefix: &str, n: usize, count: u64) -> Result<()> {
     let cfg = service_cfg(prefix, n);
-    let node = transport::node("latency-sink")?;
+    let node = transport::node(&cfg, "sink")?;
     let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
     let mask_listener = transport::event_listener(&node, &cfg, "masks")?;
     let mut h = hist();
@@ -171,7 +171,7 @@ fn sink_iox(prefix: &str, n: usize, count: u64) -> Result<()> {
 fn relay_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Row> {
     let prefix = format!("latency-relay-{}-{n}", std::process::id());
     let cfg = service_cfg(&prefix, n);
-    let node = transport::node("latency-source")?;
+    let node = transport::node(&cfg, "source")?;
     let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let scan_notifier = transport::event_notifier(&node, &cfg, "scans")?;
     let total = iterations + WARMUP;
@@ -246,7 +246,7 @@ fn pace(t0: Instant, i: u64, rate: f64) {
 fn ping_iox(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogram<u64>> {
     let prefix = format!("latency-iox-{}-{n}", std::process::id());
     let cfg = service_cfg(&prefix, n);
-    let node = transport::node("latency-ping")?;
+    let node = transport::node(&cfg, "ping")?;
     let publ = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let sub = transport::mask_subscriber(&transport::mask_service(&node, &cfg)?, &cfg)?;
     let scan_notifier = transport::event_notifier(&node, &cfg, "scans")?;

@@ -72,7 +72,7 @@ const PAIRING_WINDOW: usize = 256;
 /// Runs the consumer until `count` masks, the idle timeout, or a termination signal.
 pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
     check_shared_memory(cfg)?;
-    let node = transport::node("groundwork-consumer")?;
+    let node = transport::node(cfg, "consumer")?;
     let scans = transport::scan_service(&node, cfg)?;
     let masks = transport::mask_service(&node, cfg)?;
     let scan_sub = transport::scan_subscriber(&scans, cfg)?;

@@ -107,7 +107,7 @@ fn pose_matrix(p: &Pose) -> [f64; 16] {
 pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<ProducerReport> {
     check_shared_memory(cfg)?;
     let frames = load(&opts.source, cfg.max_points)?;
-    let node = transport::node("groundwork-producer")?;
+    let node = transport::node(cfg, "producer")?;
     let svc = transport::scan_service(&node, cfg)?;
     let publisher = transport::scan_publisher(&svc, cfg)?;
     let notifier = transport::event_notifier(&node, cfg, "scans")?;

@@ -93,7 +93,7 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
     check_shared_memory(cfg)?;
     let max_points = cfg.max_points.min(opts.segmenter.sensor.max_points);
     let mut seg = Segmenter::new(opts.segmenter.clone())?;
-    let node = transport::node("groundwork-segmenter")?;
+    let node = transport::node(cfg, "segmenter")?;
     let scans = transport::scan_service(&node, cfg)?;
     let masks = transport::mask_service(&node, cfg)?;
     let subscriber = transport::scan_subscriber(&scans, cfg)?;

@@ -35,13 +35,20 @@ fn dead_nodes(config: &iceoryx2::config::Config) -> u64 {
     dead
 }
 
-/// Creates this process's node. Creating a node removes the ports and shared memory of
-/// processes that died without cleaning up (killed with -9, crashed); we count them first
-/// so that the log says what was removed.
-pub fn node(name: &str) -> anyhow::Result<Node<ipc::Service>> {
+/// The iceoryx2 node name of a pipeline's stage: `<prefix>/<stage>`, so that a node
+/// listing tells which pipeline a process (alive or dead) belongs to.
+pub fn node_name(cfg: &ServiceConfig, stage: &str) -> String {
+    format!("{}/{stage}", cfg.prefix)
+}
+
+/// Creates this process's node, named after the pipeline and the stage. Creating a node
+/// removes the ports and shared memory of processes that died without cleaning up (killed
+/// with -9, crashed); we count them first so that the log says what was removed.
+pub fn node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Service>> {
+    let name = node_name(cfg, stage);
     let stale = dead_nodes(iceoryx2::config::Config::global_config());
     let node = NodeBuilder::new()
-        .name(&NodeName::new(name).map_err(|e| anyhow::anyhow!("node name {name}: {e:?}"))?)
+        .name(&NodeName::new(&name).map_err(|e| anyhow::anyhow!("node name {name}: {e:?}"))?)
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"))?;
     // Whatever creation did not remove (e.g. a configuration that disables it) goes now.
