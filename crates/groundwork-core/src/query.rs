@@ -12,7 +12,7 @@
 //! evaluated against each distinct segment it falls into. Per-point sums (Σw, Σw·p_λ,
 //! Σw·p_θ, Σw·p_e) are kept relative to a reference log-density, the query scan's best
 //! component; past frames add to them without rescaling, and a log-sum-exp merge takes over
-//! only where a component would exceed the reference by e^60.
+//! only where a component would exceed the reference by 2^86 (e^60).
 
 use nalgebra::{Isometry3, Matrix3};
 use rayon::prelude::*;
@@ -21,7 +21,7 @@ use crate::config::BeyondRangePolicy;
 use crate::simd::{LANES, Vf, Vi, load, store};
 use wide::bytemuck::cast;
 
-use crate::fastmath::{exp_v, exp_v_from};
+use crate::fastmath::{exp2_v, exp2_v_from};
 use crate::model::FrameModel;
 use crate::zones::LaneBinner;
 
@@ -45,16 +45,19 @@ fn segment_of(packed: u32, policy: BeyondRangePolicy) -> Option<u32> {
     }
 }
 
-/// Components further below the reference than this (in log-density) carry a weight under
-/// e^-30 ≈ 1e-13 relative: they count as 0 (and would only produce denormals).
-const LOG_CUTOFF: f32 = 30.0;
+// Log-densities are in bits (log2) throughout: weights are then 2^d, without a
+// multiplication by log2(e) in every exponential.
 
-/// How far (in log-density) a component may exceed a point's running reference before the
-/// sums are rescaled: weights stay below e^60 ≈ 1e26, far from f32 overflow.
-const LOG_HEADROOM: f32 = 60.0;
+/// Components further below the reference than this (bits) carry a weight under
+/// 2^-43 ≈ 1e-13 relative: they count as 0 (and would only produce denormals).
+const LOG_CUTOFF: f32 = 43.0;
+
+/// How far (bits) a component may exceed a point's running reference before the sums are
+/// rescaled: weights stay below 2^86 ≈ 1e26, far from f32 overflow.
+const LOG_HEADROOM: f32 = 86.0;
 
 /// Past components further below the reference than this count as this far below.
-const LOG_FLOOR: f32 = 60.0;
+const LOG_FLOOR: f32 = 86.0;
 
 /// Log-density floor for "no component seen yet": finite so that merges never compute
 /// −∞ − (−∞).
@@ -66,13 +69,15 @@ pub(crate) struct QueryTable {
     /// Components of segment s are `start[s]..start[s+1]`.
     start: Vec<u32>,
     comps: Vec<QComp>,
+    /// Per segment, the largest log-density any of its components reaches (its largest c).
+    peak: Vec<f32>,
 }
 
-/// One component for the query: log N(x) = c − |U·x − b|², where UᵀU = P/2 (P the
-/// precision, U upper triangular: `u` holds its rows' non-zero entries) and b = U·mean.
-/// Folding the mean and the ½ in makes a log-density nine fused multiply-adds; the
-/// cancellation in U·x − b costs about |U·x|·6e-8 ≈ 1e-5 even 80 m out, far below what
-/// matters in a weight.
+/// One component for the query: log2 N(x) = c − |U·x − b|², where UᵀU = log2(e)·P/2 (P
+/// the precision, U upper triangular: `u` holds its rows' non-zero entries), b = U·mean and
+/// c is the log-normaliser in bits. Folding the mean, the ½ and the base in makes a
+/// log-density nine fused multiply-adds; the cancellation in U·x − b costs about
+/// |U·x|·6e-8 ≈ 1e-5 even 80 m out, far below what matters in a weight.
 #[derive(Debug, Clone, Copy)]
 struct QComp {
     u: [f32; 6],
@@ -86,23 +91,27 @@ struct QComp {
 impl QueryTable {
     pub(crate) fn new(model: &FrameModel) -> Self {
         let mut start = Vec::with_capacity(model.segment_count() + 1);
-        let mut comps = Vec::with_capacity(model.components().len());
+        let mut comps: Vec<QComp> = Vec::with_capacity(model.components().len());
+        let mut peak = Vec::with_capacity(model.segment_count());
         start.push(0);
         for s in 0..model.segment_count() {
             for g in model.segment(s as u32) {
                 let (u, b) = half_precision_factor(&g.eval.precision, &g.eval.mean);
+                let bits = std::f64::consts::LOG2_E.sqrt();
                 comps.push(QComp {
-                    u: u.map(|v| v as f32),
-                    b: b.map(|v| v as f32),
-                    c: g.eval.log_coef as f32,
+                    u: u.map(|v| (v * bits) as f32),
+                    b: b.map(|v| (v * bits) as f32),
+                    c: (g.eval.log_coef * std::f64::consts::LOG2_E) as f32,
                     flat: g.flatness as f32,
                     orient: g.orientation as f32,
                     elev: g.elevation as f32,
                 });
             }
+            let first = *start.last().unwrap_or(&0) as usize;
+            peak.push(comps[first..].iter().map(|q| q.c).fold(EMPTY, f32::max));
             start.push(comps.len() as u32);
         }
-        Self { start, comps }
+        Self { start, comps, peak }
     }
 
     #[inline]
@@ -112,6 +121,15 @@ impl QueryTable {
             (Some(&a), Some(&b)) => &self.comps[a as usize..b as usize],
             _ => &[],
         }
+    }
+
+    /// A segment's components and the largest log-density they reach.
+    #[inline]
+    fn segment_peak(&self, s: u32) -> (&[QComp], f32) {
+        (
+            self.segment(s),
+            self.peak.get(s as usize).copied().unwrap_or(EMPTY),
+        )
     }
 }
 
@@ -387,14 +405,21 @@ fn eval_run(
 ) {
     let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
     let no_key = Vi::splat(-1);
-    // Per frame, the past segment the previous vector fell into first: neighbours mostly
-    // fall into the same one, and a cheap test confirms it (or the vector is binned).
-    let mut guess = vec![u32::MAX; frames.len()];
+    // Per frame, the (up to two) past segments the previous vector fell into: neighbours
+    // mostly fall into the same ones, and a cheap test confirms it (or the vector is
+    // binned). Two, because 43 % of vectors straddle a past cell's edge.
+    let mut guess = vec![[u32::MAX; 2]; frames.len()];
+    let last_lane = |mask: Vf| 31 - mask.to_bitmask().leading_zeros();
     for j in (0..acc.len()).step_by(LANES) {
         let w = LANES.min(acc.len() - j);
         let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
         let real = lane_index.simd_lt(Vi::splat(w as i32));
+        let real_f: Vf = cast(real);
         let mut sums = LaneSums::EMPTY;
+        // The lowest reference over the real lanes once the query scan's own model is in
+        // (references only grow): a past segment whose peak is within the headroom of it
+        // cannot overflow, and skips the check.
+        let mut low = EMPTY;
         for ((table, mv), guess) in frames.iter().zip(guess.iter_mut()) {
             let Some(mv) = mv else {
                 // The query scan's own model: every lane is in segment `seg`.
@@ -402,11 +427,33 @@ fn eval_run(
                 if !comps.is_empty() {
                     sums = sums.merge(eval_lanes(comps, x, y, z));
                 }
+                low = cast::<Vi, Vf>(real)
+                    .select(sums.max, Vf::splat(f32::INFINITY))
+                    .to_array()
+                    .into_iter()
+                    .fold(f32::INFINITY, f32::min);
                 continue;
             };
-            let [x, y, z] = mv.apply(x, y, z);
-            if binner.all_inside(*guess, x, y, real) {
-                sums.add_segment(table.segment(*guess), x, y, z, cast(real));
+            let moved = mv.apply(x, y, z);
+            let (x, y) = (moved[0], moved[1]);
+            let [g0, g1] = *guess;
+            let in0 = binner.inside(g0, x, y) & real_f;
+            if in0.to_bitmask() == real_f.to_bitmask() {
+                sums.add_segment(table.segment_peak(g0), low, &moved, real_f);
+                continue;
+            }
+            let in1 = binner.inside(g1, x, y) & real_f;
+            if (in0 | in1).to_bitmask() == real_f.to_bitmask() {
+                if in0.any() {
+                    sums.add_segment(table.segment_peak(g0), low, &moved, in0);
+                }
+                sums.add_segment(table.segment_peak(g1), low, &moved, in1);
+                // The next vector continues where this one ends.
+                if in0.to_bitmask() >> last_lane(real_f) & 1 == 1 {
+                    *guess = [g0, g1];
+                } else {
+                    *guess = [g1, g0];
+                }
                 continue;
             }
             // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
@@ -420,13 +467,15 @@ fn eval_run(
             let lanes = keys.to_array();
             let mut todo = !cast::<Vi, Vf>(keys.simd_eq(no_key)).to_bitmask() & ((1 << LANES) - 1);
             if todo != 0 {
-                *guess = lanes[todo.trailing_zeros() as usize] as u32;
+                // The last lane's segment first, the previous one second.
+                let last = lanes[31 - todo.leading_zeros() as usize] as u32;
+                *guess = [last, if last == guess[0] { guess[1] } else { guess[0] }];
             }
             while todo != 0 {
                 let seg = lanes[todo.trailing_zeros() as usize];
                 let hit = keys.simd_eq(Vi::splat(seg));
                 todo &= !cast::<Vi, Vf>(hit).to_bitmask();
-                sums.add_segment(table.segment(seg as u32), x, y, z, cast(hit));
+                sums.add_segment(table.segment_peak(seg as u32), low, &moved, cast(hit));
             }
         }
         acc.store(sums, j, w);
@@ -472,7 +521,7 @@ impl LaneSums {
     /// keeps scale 1.
     #[inline(always)]
     fn merge(self, o: LaneSums) -> LaneSums {
-        let e = exp_v(-(self.max - o.max).abs());
+        let e = exp2_v(-(self.max - o.max).abs());
         let one = Vf::ONE;
         let self_larger = self.max.simd_ge(o.max);
         let a = self_larger.select(one, e);
@@ -503,16 +552,25 @@ impl LaneSums {
     /// pass is dropped and the segment is merged with rescaling instead, so that nothing
     /// overflows.
     #[inline(always)]
-    fn add_segment(&mut self, comps: &[QComp], x: Vf, y: Vf, z: Vf, hit: Vf) {
+    fn add_segment(&mut self, (comps, peak): (&[QComp], f32), low: f32, p: &[Vf; 3], hit: Vf) {
+        let [x, y, z] = *p;
         let s = Vf::splat;
+        if peak - low <= LOG_HEADROOM {
+            // No component can exceed any lane's reference by more than the headroom.
+            for q in comps {
+                let d = log_density(q, x, y, z) - self.max;
+                self.add_weight(exp2_v_from(d.fast_max(s(-LOG_FLOOR))) & hit, q);
+            }
+            return;
+        }
         let mut next = *self;
         let mut top = s(EMPTY);
         for q in comps {
             let d = log_density(q, x, y, z) - self.max;
             top = top.fast_max(d);
-            // Below the floor a weight counts as e^-60 (≤ 1e-26 of the sums, which hold
+            // Below the floor a weight counts as 2^-86 (≤ 1e-26 of the sums, which hold
             // the reference's weight 1): no compare, and no denormal products.
-            next.add_weight(exp_v_from(d.fast_max(s(-LOG_FLOOR))) & hit, q);
+            next.add_weight(exp2_v_from(d.fast_max(s(-LOG_FLOOR))) & hit, q);
         }
         let over = top.simd_gt(s(LOG_HEADROOM));
         *self = if cast::<Vf, Vi>(over & hit).any() {
@@ -533,7 +591,7 @@ impl SumsMut<'_> {
     }
 }
 
-/// Log-density of one vector of points under one component.
+/// Log-density (bits) of one vector of points under one component.
 #[inline(always)]
 fn log_density(q: &QComp, x: Vf, y: Vf, z: Vf) -> Vf {
     let s = Vf::splat;
@@ -573,7 +631,7 @@ fn eval_block(comps: &[QComp], x: Vf, y: Vf, z: Vf) -> LaneSums {
         if live.none() {
             continue;
         }
-        r.add_weight(live.select(exp_v(d), zero), q);
+        r.add_weight(live.select(exp2_v(d), zero), q);
     }
     r
 }
@@ -668,7 +726,7 @@ mod tests {
         let mut seg = Segmenter::new(cfg).unwrap();
         let now = scene(0.0, 0.0);
         // The query scan's own model saw the road 0.3 m higher (a bad fit, on purpose): past
-        // frames then outrank it by far more than e^60 on the road, and the rescaling path
+        // frames then outrank it by far more than 2^86 on the road, and the rescaling path
         // is asked as well as the fixed-reference one.
         let model = seg.fit(&scene(0.0, 0.3)).unwrap();
         let past: Vec<_> = [0.8f32, 1.6, 2.4]

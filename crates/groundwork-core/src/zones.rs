@@ -142,7 +142,7 @@ pub(crate) struct LaneBinner {
     near: Vf,
     max_range: Vf,
     /// Per segment, its cell shrunk by [`CELL_MARGIN`]: r² bounds and the unit directions
-    /// of its two sector edges, for [`LaneBinner::all_inside`].
+    /// of its two sector edges, for [`LaneBinner::inside`].
     cells: Vec<[f32; 6]>,
 }
 
@@ -188,14 +188,14 @@ impl LaneBinner {
         }
     }
 
-    /// Whether every lane where `lanes` is set lies inside segment `seg`'s cell, away from
-    /// its edges: then [`LaneBinner::bin`] would give `seg` for each of them (in range, not
-    /// near), and the full binning can be skipped. Sectors span less than π, so a cell is
-    /// the ring between two radii intersected with two half-planes through the origin.
+    /// Lanes that lie inside segment `seg`'s cell by more than [`CELL_MARGIN`]: for them
+    /// [`LaneBinner::bin`] would give `seg` (in range, not near), so the full binning can be
+    /// skipped (no lane for an unknown segment). Sectors span less than π, so a cell is the
+    /// ring between two radii intersected with two half-planes through the origin.
     #[inline(always)]
-    pub(crate) fn all_inside(&self, seg: u32, x: Vf, y: Vf, lanes: Vi) -> bool {
+    pub(crate) fn inside(&self, seg: u32, x: Vf, y: Vf) -> Vf {
         let Some(&[lo2, hi2, c0, s0, c1, s1]) = self.cells.get(seg as usize) else {
-            return false;
+            return Vf::ZERO;
         };
         let s = Vf::splat;
         let r2 = x.mul_add(x, y * y);
@@ -203,11 +203,7 @@ impl LaneBinner {
         // Signed distances from the edges: ahead of the first, behind the second.
         let after_first = s(c0).mul_sub(y, s(s0) * x);
         let before_second = s(s1).mul_sub(x, s(c1) * y);
-        let inside = r2.simd_ge(s(lo2))
-            & r2.simd_lt(s(hi2))
-            & after_first.simd_ge(m)
-            & before_second.simd_ge(m);
-        (cast::<Vf, Vi>(inside) | !lanes).all()
+        r2.simd_ge(s(lo2)) & r2.simd_lt(s(hi2)) & after_first.simd_ge(m) & before_second.simd_ge(m)
     }
 
     /// Segments of the zone model.
@@ -299,7 +295,6 @@ mod tests {
     fn the_cell_test_implies_the_full_binning_result() {
         let m = model();
         let binner = LaneBinner::new(&m);
-        let all = Vi::splat(-1);
         let mut state = 0x2545_f491_4f6c_dd1du64;
         let mut next = || {
             state = state
@@ -307,30 +302,42 @@ mod tests {
                 .wrapping_add(1_442_695_040_888_963_407);
             (state >> 40) as f32 / (1u64 << 24) as f32
         };
-        let (mut confirmed, mut tried) = (0, 0);
+        let (mut confirmed, mut lanes) = (0, 0);
         for _ in 0..20_000 {
-            // 16 neighbours, like consecutive points of a scan, anywhere within 85 m.
+            // 16 neighbours, like consecutive points of a scan, anywhere within 85 m; the
+            // guesses are the cells of the first and the last of them, as in the query.
             let (cx, cy) = (next() * 170.0 - 85.0, next() * 170.0 - 85.0);
             let spread = 0.05 + next() * 1.5;
             let x = Vf::new(std::array::from_fn(|_| cx + (next() - 0.5) * spread));
             let y = Vf::new(std::array::from_fn(|_| cy + (next() - 0.5) * spread));
             let packed = binner.bin(x, y).to_array();
-            if packed[0] < 0 {
-                continue; // near or beyond: never a guess
-            }
-            tried += 1;
-            if binner.all_inside(packed[0] as u32, x, y, all) {
-                confirmed += 1;
-                assert!(packed.iter().all(|&p| p == packed[0]), "{packed:?}");
+            for guess in [packed[0], packed[LANES - 1]] {
+                if guess < 0 {
+                    continue; // near or beyond: never a guess
+                }
+                lanes += LANES;
+                let inside = binner.inside(guess as u32, x, y).to_bitmask();
+                for (k, &p) in packed.iter().enumerate() {
+                    if inside >> k & 1 == 1 {
+                        confirmed += 1;
+                        assert_eq!(p, guess, "lane {k} of {packed:?}");
+                    }
+                }
             }
         }
-        // The test must confirm most clustered vectors, or it saves nothing.
-        assert!(confirmed * 2 > tried, "{confirmed} of {tried} confirmed");
-        // A point on a sector edge, or on a ring edge, is never confirmed.
+        // The test must confirm most lanes, or it saves nothing.
+        assert!(
+            confirmed * 4 > lanes * 3,
+            "{confirmed} of {lanes} lanes confirmed"
+        );
+        // A point on a sector edge, or on a ring edge, is never confirmed; its neighbours are.
         let on_sector_edge = Vf::new(std::array::from_fn(|i| if i == 3 { 0.0 } else { 5.0 }));
         let y = Vf::new(std::array::from_fn(|i| if i == 3 { 5.0 } else { 0.5 }));
         let seg = binner.bin(Vf::splat(5.0), Vf::splat(0.5)).to_array()[0] as u32;
-        assert!(!binner.all_inside(seg, on_sector_edge, y, all));
+        assert_eq!(
+            binner.inside(seg, on_sector_edge, y).to_bitmask(),
+            0xffff & !(1 << 3)
+        );
         let edge = (m.boundaries[1] + m.ring_width[1]) as f32;
         let x = Vf::new(std::array::from_fn(
             |i| if i == 5 { edge } else { edge - 0.5 },
@@ -338,11 +345,12 @@ mod tests {
         let seg = binner
             .bin(Vf::splat(edge - 0.5), Vf::splat(0.01))
             .to_array()[0] as u32;
-        assert!(binner.all_inside(seg, Vf::splat(edge - 0.5), Vf::splat(0.01), all));
-        assert!(!binner.all_inside(seg, x, Vf::splat(0.01), all));
-        // Lanes outside the given set do not count.
-        let first_lanes = Vi::new(std::array::from_fn(|i| if i == 5 { 0 } else { -1 }));
-        assert!(binner.all_inside(seg, x, Vf::splat(0.01), first_lanes));
+        assert_eq!(
+            binner.inside(seg, x, Vf::splat(0.01)).to_bitmask(),
+            0xffff & !(1 << 5)
+        );
+        // An unknown segment holds no lane.
+        assert_eq!(binner.inside(u32::MAX, x, Vf::splat(0.01)).to_bitmask(), 0);
     }
 
     #[test]
