@@ -37,12 +37,13 @@ pub fn exp2_v(t: Vf) -> Vf {
     exp2_v_from(t.max(Vf::splat(-126.0)))
 }
 
-/// [`exp2_v`] for t in [−126, 127], without the clamp. The integer part is rounded to
-/// nearest by adding 1.5·2^23 (its low mantissa bits then hold it, biased), and turned into
-/// 2^i by shifting those bits, plus 127, into the exponent.
+/// [`exp2_v`] for t in [−126, 127], without the clamp. The integer part i is rounded to
+/// nearest by adding 1.5·2^23 + 127: the low mantissa bits of the sum then hold
+/// 2^22 + 127 + i, and shifting them left by 23 drops everything but 127 + i, the biased
+/// exponent of 2^i.
 #[inline(always)]
 pub fn exp2_v_from(t: Vf) -> Vf {
-    const ROUND: f32 = 12_582_912.0; // 1.5·2^23
+    const ROUND: f32 = 12_583_039.0; // 1.5·2^23 + 127
     let shifted = t + Vf::splat(ROUND);
     let f = t - (shifted - Vf::splat(ROUND)); // in [−0.5, 0.5]
     let c = |v: f32| Vf::splat(v);
@@ -53,10 +54,7 @@ pub fn exp2_v_from(t: Vf) -> Vf {
     let p = f.mul_add(p, c(0.240_222_8));
     let p = f.mul_add(p, c(std::f32::consts::LN_2));
     let p = f.mul_add(p, c(1.0));
-    // The low bits of `shifted` are 2^22 + i in two's complement over 23 bits: adding
-    // 127 − 2^22 leaves i + 127 ∈ [1, 254] there.
-    let biased: Vi = cast::<Vf, Vi>(shifted) + Vi::splat(127 - (1 << 22));
-    p * cast::<Vi, Vf>(biased << 23)
+    p * cast::<Vi, Vf>(cast::<Vf, Vi>(shifted) << 23)
 }
 
 /// ln x for finite x ≥ 1e-30 (the callers pass sums of responsibilities ≥ 1).
