@@ -71,6 +71,16 @@ struct Args {
     count: Option<u64>,
 }
 
+/// Same-run ratios of one payload size, [p50, p99].
+#[derive(Debug, Clone)]
+struct Ratios {
+    bytes: usize,
+    vs_pingpong: [f64; 2],
+    vs_relay: [f64; 2],
+    path_vs_relay: [f64; 2],
+    uds: f64,
+}
+
 #[derive(Debug, Clone)]
 struct Row {
     method: String,
@@ -520,14 +530,13 @@ fn main() -> Result<()> {
             p("uds-copy"),
         );
         let (transport, path) = (p("pipeline-echo transport"), p("pipeline-echo scan→mask"));
-        ratios.push((
+        ratios.push(Ratios {
             bytes,
-            transport[0] / iox[0],
-            transport[2] / iox[2],
-            uds[0] / iox[0],
-            path[0] / relay[0],
-            path[2] / relay[2],
-        ));
+            vs_pingpong: [transport[0] / iox[0], transport[2] / iox[2]],
+            vs_relay: [transport[0] / relay[0], transport[2] / relay[2]],
+            path_vs_relay: [path[0] / relay[0], path[2] / relay[2]],
+            uds: uds[0] / iox[0],
+        });
         rows.extend(med);
     }
     println!(
@@ -547,15 +556,22 @@ fn main() -> Result<()> {
         );
     }
     println!(
-        "\nmedians of {} rounds; pipeline transport (scan hop + mask hop, per message) / bare \
-         iceoryx2 round trip, and pipeline scan→mask / bare 3-process relay, same run:",
+        "\nmedians of {} rounds, same run. Pipeline transport is the scan hop plus the mask hop \
+         of each message (the segmenter's own work excluded); the bare 3-process relay does the \
+         same two hops with a trivial middle stage; the ping-pong is a round trip between two \
+         processes:",
         args.rounds.max(1)
     );
-    for (bytes, p50, p99, uds, r50, r99) in &ratios {
+    for r in &ratios {
+        let [a, b] = r.vs_relay;
+        let [c, d] = r.vs_pingpong;
+        let [e, f] = r.path_vs_relay;
         println!(
-            "  {:>7.0} KB: p50 {p50:.2}x, p99 {p99:.2}x (budget <= 1.5x); UDS copy / iceoryx2 p50 {uds:.1}x; \
-             pipeline / bare 3-process relay: p50 {r50:.2}x, p99 {r99:.2}x",
-            *bytes as f64 / 1024.0
+            "  {:>7.0} KB: transport / bare relay p50 {a:.2}x p99 {b:.2}x (budget <= 1.5x); \
+             transport / ping-pong p50 {c:.2}x p99 {d:.2}x; scan→mask / bare relay p50 {e:.2}x \
+             p99 {f:.2}x; UDS copy / ping-pong p50 {:.1}x",
+            r.bytes as f64 / 1024.0,
+            r.uds
         );
     }
     if let Some(path) = &args.csv {
