@@ -203,7 +203,13 @@ fn killed_producer_leaves_the_others_serving_and_a_new_one_resumes() {
     // not about keeping up (dropped masks are asserted to be zero below).
     let mut prod_a = Proc::start(tmp.path(), "producer-a", &p, &["--rate", "10"]);
     sleep(1.5);
-    let producer = format!("{p}/producer");
+    let producer = groundwork_service::transport::node_name(
+        &groundwork_service::ServiceConfig {
+            prefix: p.clone(),
+            ..Default::default()
+        },
+        "producer",
+    );
     assert_eq!(node_states(&producer), ["alive"]);
     prod_a.kill9();
     // The survivors' periodic sweep (every 2 s) removes what the killed producer left,

@@ -94,10 +94,11 @@ impl QueryTable {
         let mut comps: Vec<QComp> = Vec::with_capacity(model.components().len());
         let mut peak = Vec::with_capacity(model.segment_count());
         start.push(0);
+        // Scaling U and b by √log2(e) puts |U·x − b|² in bits.
+        let bits = std::f64::consts::LOG2_E.sqrt();
         for s in 0..model.segment_count() {
             for g in model.segment(s as u32) {
                 let (u, b) = half_precision_factor(&g.eval.precision, &g.eval.mean);
-                let bits = std::f64::consts::LOG2_E.sqrt();
                 comps.push(QComp {
                     u: u.map(|v| (v * bits) as f32),
                     b: b.map(|v| (v * bits) as f32),
@@ -409,12 +410,12 @@ fn eval_run(
     // mostly fall into the same ones, and a cheap test confirms it (or the vector is
     // binned). Two, because 43 % of vectors straddle a past cell's edge.
     let mut guess = vec![[u32::MAX; 2]; frames.len()];
-    let last_lane = |mask: Vf| 31 - mask.to_bitmask().leading_zeros();
     for j in (0..acc.len()).step_by(LANES) {
         let w = LANES.min(acc.len() - j);
         let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
         let real = lane_index.simd_lt(Vi::splat(w as i32));
         let real_f: Vf = cast(real);
+        let last_lane = 1u32 << (w - 1);
         let mut sums = LaneSums::EMPTY;
         // The lowest reference over the real lanes once the query scan's own model is in
         // (references only grow): a past segment whose peak is within the headroom of it
@@ -427,7 +428,7 @@ fn eval_run(
                 if !comps.is_empty() {
                     sums = sums.merge(eval_lanes(comps, x, y, z));
                 }
-                low = cast::<Vi, Vf>(real)
+                low = real_f
                     .select(sums.max, Vf::splat(f32::INFINITY))
                     .to_array()
                     .into_iter()
@@ -449,7 +450,7 @@ fn eval_run(
                 }
                 sums.add_segment(table.segment_peak(g1), low, &moved, in1);
                 // The next vector continues where this one ends.
-                if in0.to_bitmask() >> last_lane(real_f) & 1 == 1 {
+                if in0.to_bitmask() & last_lane != 0 {
                     *guess = [g0, g1];
                 } else {
                     *guess = [g1, g0];
@@ -545,6 +546,17 @@ impl LaneSums {
         self.elev = w.mul_add(s(q.elev), self.elev);
     }
 
+    /// Adds, in the lanes of `hit`, the weight of component `q` relative to `reference`;
+    /// returns the log-density over the reference.
+    #[inline(always)]
+    fn add_component(&mut self, q: &QComp, x: Vf, y: Vf, z: Vf, reference: Vf, hit: Vf) -> Vf {
+        let d = log_density(q, x, y, z) - reference;
+        // Below the floor a weight counts as 2^-86 (≤ 1e-26 of the sums, which hold the
+        // reference's weight 1): no compare, and no denormal products.
+        self.add_weight(exp2_v_from(d.fast_max(Vf::splat(-LOG_FLOOR))) & hit, q);
+        d
+    }
+
     /// Adds, in the lanes of `hit`, the weights of a segment's components relative to the
     /// running maximum, which is kept as a fixed reference: one pass in registers, no
     /// rescaling and no extra exponential. If a component exceeds the reference by more
@@ -557,20 +569,16 @@ impl LaneSums {
         let s = Vf::splat;
         if peak - low <= LOG_HEADROOM {
             // No component can exceed any lane's reference by more than the headroom.
+            let reference = self.max;
             for q in comps {
-                let d = log_density(q, x, y, z) - self.max;
-                self.add_weight(exp2_v_from(d.fast_max(s(-LOG_FLOOR))) & hit, q);
+                self.add_component(q, x, y, z, reference, hit);
             }
             return;
         }
         let mut next = *self;
         let mut top = s(EMPTY);
         for q in comps {
-            let d = log_density(q, x, y, z) - self.max;
-            top = top.fast_max(d);
-            // Below the floor a weight counts as 2^-86 (≤ 1e-26 of the sums, which hold
-            // the reference's weight 1): no compare, and no denormal products.
-            next.add_weight(exp2_v_from(d.fast_max(s(-LOG_FLOOR))) & hit, q);
+            top = top.fast_max(next.add_component(q, x, y, z, self.max, hit));
         }
         let over = top.simd_gt(s(LOG_HEADROOM));
         *self = if cast::<Vf, Vi>(over & hit).any() {
