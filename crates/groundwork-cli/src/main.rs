@@ -80,6 +80,11 @@ enum Command {
         /// Consumer writes .prob/.ground files here.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Start a stage that dies (killed, crashed) again, up to this many times per
+        /// stage; each restart is logged and counted. Default 0: a dead stage stops the
+        /// pipeline, which then exits non-zero.
+        #[arg(long, default_value_t = 0)]
+        restart: u32,
     },
     /// Stage: publish scans from a folder (looping) or synthetic scans.
     Producer {
@@ -175,7 +180,15 @@ enum ProtocolArg {
     Terraseg,
 }
 
+/// Exit codes: 0 done; 1 done, but some input was bad (reported and counted); 2 error;
+/// 3 this CPU cannot run this build.
 fn main() -> ExitCode {
+    // First of all: on a CPU below the build's target (x86-64-v3) the first vector
+    // instruction would kill the process with SIGILL and no word of why.
+    if let Err(e) = groundwork_core::cpu::check() {
+        eprintln!("error: {e}");
+        return ExitCode::from(3);
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -214,7 +227,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             count,
             rate,
             out,
-        } => pipeline(&common, &service, data, count, rate, out),
+            restart,
+        } => pipeline(&common, &service, data, count, rate, out, restart),
         Command::Producer {
             service,
             count,
@@ -228,7 +242,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 Some(n) => producer::Source::Synthetic(n),
                 None => producer::Source::Sequence(data.unwrap_or_else(|| BUNDLED_DATA.into())),
             };
-            producer::run(
+            let r = producer::run(
                 &cfg,
                 &producer::ProducerOptions {
                     source,
@@ -237,7 +251,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     malformed_every,
                 },
             )?;
-            Ok(ExitCode::SUCCESS)
+            // Report, count, go on, and say so at the end.
+            Ok(if r.skipped_files.is_empty() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(1)
+            })
         }
         Command::Segmenter {
             common,
@@ -307,6 +326,7 @@ fn pipeline(
     count: Option<u64>,
     rate: Option<f64>,
     out: Option<PathBuf>,
+    restart: u32,
 ) -> Result<ExitCode> {
     // Validate everything here, before any process starts.
     let cfg = load_service(service)?;
@@ -350,6 +370,7 @@ fn pipeline(
     }
     prod.arg(&data);
     let outcome = launcher::run(
+        &cfg,
         vec![
             launcher::Stage {
                 name: "segmenter",
@@ -365,14 +386,17 @@ fn pipeline(
             },
         ],
         "consumer",
+        restart,
     )?;
-    let ok = outcome
-        .iter()
-        .all(|(_, s)| s.is_some_and(|s| s.success() || s.code().is_none()));
-    for (name, s) in &outcome {
-        info!(stage = *name, status = ?s, "stage stopped");
+    for s in &outcome.stages {
+        match &s.failure {
+            Some(f) => error!(stage = s.name, restarts = s.restarts, "failed: {f}"),
+            None => {
+                info!(stage = s.name, status = ?s.status, restarts = s.restarts, "stage stopped")
+            }
+        }
     }
-    Ok(if ok {
+    Ok(if outcome.success() {
         ExitCode::SUCCESS
     } else {
         ExitCode::from(1)
@@ -402,43 +426,92 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     pb
 }
 
+/// One scan to segment: its file, pose, and the input (folder) it came from.
+struct Job {
+    path: PathBuf,
+    pose: Option<groundwork_core::Pose>,
+    input: usize,
+}
+
 fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
     let cfg = load(common)?;
     let thr = cfg.ground.ground_threshold;
     let max = cfg.sensor.max_points;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
 
-    // Each input is a scan file or a folder; a folder may carry poses for history.
-    let mut jobs: Vec<(PathBuf, Option<groundwork_core::Pose>)> = Vec::new();
-    for input in inputs {
-        if input.is_dir() {
-            let seq = Sequence::open(input, common.poses.as_deref(), common.calib.as_deref())?;
-            let poses = seq.poses.clone();
-            for (i, s) in seq.scans.into_iter().enumerate() {
-                jobs.push((s, poses.as_ref().and_then(|p| p.get(i).copied())));
+    // Each input is a scan file or a folder; a folder may carry poses for history. An
+    // input that cannot be used is reported and counted, and the others still run.
+    let mut failed = 0usize;
+    let mut jobs: Vec<Job> = Vec::new();
+    for (input, path) in inputs.iter().enumerate() {
+        if path.is_dir() {
+            match Sequence::open(path, common.poses.as_deref(), common.calib.as_deref()) {
+                Ok(seq) => {
+                    let poses = seq.poses.clone();
+                    jobs.extend(seq.scans.into_iter().enumerate().map(|(i, s)| Job {
+                        path: s,
+                        pose: poses.as_ref().and_then(|p| p.get(i).copied()),
+                        input,
+                    }));
+                }
+                Err(e) => {
+                    failed += 1;
+                    error!("skipped: {e}");
+                }
             }
-        } else if input.is_file() {
-            jobs.push((input.clone(), None));
+        } else if path.is_file() {
+            jobs.push(Job {
+                path: path.clone(),
+                pose: None,
+                input,
+            });
         } else {
-            bail!("{}: no such file or folder", input.display());
+            failed += 1;
+            error!("skipped: {}: no such file or folder", path.display());
         }
     }
-    if cfg.history.frames > 1 && jobs.iter().all(|j| j.1.is_none()) {
+    if cfg.history.frames > 1 && jobs.iter().all(|j| j.pose.is_none()) {
         info!("no poses found: scans are segmented single-frame");
     }
-    let mut seg = Segmenter::new(cfg)?;
+    // The same stage as the service's segmenter process: same checks, same counters.
+    let mut stage = segmenter::SegmenterStage::new(
+        &segmenter::SegmenterOptions {
+            segmenter: cfg,
+            count: None,
+            echo: false,
+        },
+        max,
+    )?;
     let pb = progress(jobs.len(), "segment");
-    let (mut failed, mut times) = (0usize, Vec::with_capacity(jobs.len()));
+    let mut times = Vec::with_capacity(jobs.len());
     let mut probs = Vec::new();
-    for (path, pose) in &jobs {
+    let mut sequence_resets = 0u64;
+    for (k, job) in jobs.iter().enumerate() {
+        // Every input folder is a sequence of its own: the history of the previous one
+        // describes another place (and KITTI sequences all start at the identity pose).
+        if k > 0 && jobs[k - 1].input != job.input && stage.new_sequence() {
+            sequence_resets += 1;
+        }
         let result = (|| -> Result<()> {
-            let points = read_scan(path, max)?;
-            probs.resize(points.len(), 0.0);
+            let points = read_scan(&job.path, max)?;
+            let header = offline_header(job, k, points.len());
+            probs.resize(stage.mask_len(&header, &points), 0.0);
             let t = Instant::now();
-            seg.segment(&points, pose.as_ref(), &mut probs)
-                .with_context(|| path.display().to_string())?;
+            let mask = stage.process(&header, &points, 0, &mut probs);
+            if let Some(reason) = stage.last_rejection() {
+                bail!("{}: {reason}", job.path.display());
+            }
             times.push(t.elapsed().as_secs_f64() * 1e3);
-            write_outputs(out, &scan_stem(path), &probs, thr)?;
+            if mask.out_of_bounds_points > 0 {
+                pb.suspend(|| {
+                    tracing::warn!(
+                        points = mask.out_of_bounds_points,
+                        "{}: points beyond the coordinate bound (probability 0)",
+                        job.path.display()
+                    )
+                });
+            }
+            write_outputs(out, &scan_stem(&job.path), &probs, thr)?;
             Ok(())
         })();
         if let Err(e) = result {
@@ -449,10 +522,14 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
         pb.inc(1);
     }
     pb.finish_and_clear();
-    seg.log_state();
+    stage.segmenter().log_state();
+    let c = stage.segmenter().counters();
     info!(
         scans = jobs.len(),
         failed,
+        sequence_resets,
+        history_resets = c.history_resets,
+        out_of_bounds_points = c.out_of_bounds_points,
         median_ms = median(times),
         out = %out.display(),
         "segmentation done"
@@ -462,6 +539,24 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// The header a scan read from a file would carry in the service: its folder is its
+/// producer run, its place in the job list its sequence number.
+fn offline_header(job: &Job, k: usize, points: usize) -> groundwork_msg::ScanHeader {
+    let mut h = groundwork_msg::ScanHeader {
+        point_count: u32::try_from(points).unwrap_or(u32::MAX),
+        sequence: k as u64,
+        producer_epoch: job.input as u64 + 1,
+        source_index: k as u64,
+        ..Default::default()
+    };
+    if let Some(p) = &job.pose {
+        let m = p.to_homogeneous();
+        h.has_pose = 1;
+        h.pose = std::array::from_fn(|i| m[(i / 4, i % 4)]);
+    }
+    h
 }
 
 fn eval(common: &Common, dir: &Path, protocol: ProtocolArg, json: bool) -> Result<ExitCode> {

@@ -45,6 +45,12 @@ pub struct SensorConfig {
     pub ego_radius: f64,
     /// Scans with more points are rejected (protects the service's fixed-size buffers).
     pub max_points: usize,
+    /// Largest plausible coordinate, metres, on any axis of the sensor frame. A finite but
+    /// absurd return beyond it (a corrupted packet: (10, 0, 1e20)) would overflow the f32
+    /// moments of its segment's EM and poison the whole segment with NaN; such points get
+    /// probability 0, are never fitted, and are counted (`out_of_bounds_points`). Default
+    /// (absent): 4 × `zones.max_range`.
+    pub max_coordinate: Option<f64>,
 }
 
 impl Default for SensorConfig {
@@ -54,6 +60,7 @@ impl Default for SensorConfig {
             mount: MountConfig::default(),
             ego_radius: 0.0,
             max_points: 400_000,
+            max_coordinate: None,
         }
     }
 }
@@ -279,6 +286,11 @@ pub struct HistoryConfig {
     pub max_translation_jump: f64,
     /// Same for rotation (radians).
     pub max_rotation_jump: f64,
+    /// A sensor-time gap between consecutive stamped scans larger than this (seconds), or
+    /// time running backwards, clears the history: the stored models are of a world that
+    /// may have changed (a paused recording, a restarted driver). Scans without a sensor
+    /// time are not checked.
+    pub max_time_gap: f64,
 }
 
 impl Default for HistoryConfig {
@@ -287,6 +299,7 @@ impl Default for HistoryConfig {
             frames: 2,
             max_translation_jump: 5.0,
             max_rotation_jump: 0.5,
+            max_time_gap: 0.5,
         }
     }
 }
@@ -295,6 +308,13 @@ impl Default for HistoryConfig {
 pub const MAX_HISTORY_FRAMES: u32 = 16;
 
 impl SegmenterConfig {
+    /// The coordinate bound in use (metres): `sensor.max_coordinate`, or 4 × max range.
+    pub fn max_coordinate(&self) -> f64 {
+        self.sensor
+            .max_coordinate
+            .unwrap_or(4.0 * self.zones.max_range)
+    }
+
     /// Checks every value for consistency; the error names the offending field.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let z = &self.zones;
@@ -418,7 +438,21 @@ impl SegmenterConfig {
                 "must be > 0",
             ));
         }
+        if !(self.history.max_time_gap.is_finite() && self.history.max_time_gap > 0.0) {
+            return Err(ConfigError::invalid(
+                "history.max_time_gap",
+                "must be finite and > 0",
+            ));
+        }
         let s = &self.sensor;
+        if let Some(c) = s.max_coordinate {
+            if !(c.is_finite() && c > z.max_range.max(z.min_range)) {
+                return Err(ConfigError::invalid(
+                    "sensor.max_coordinate",
+                    "must be finite and larger than zones.max_range",
+                ));
+            }
+        }
         if !(s.ego_radius.is_finite() && s.ego_radius >= 0.0) {
             return Err(ConfigError::invalid(
                 "sensor.ego_radius",

@@ -11,6 +11,7 @@
 //!    last N_f fitted frames ([`query`], [`Segmenter`]).
 
 pub mod config;
+pub mod cpu;
 pub mod error;
 mod fastmath;
 pub mod gmm;
@@ -26,4 +27,4 @@ pub mod zones;
 pub use config::SegmenterConfig;
 pub use error::{ConfigError, SegmentError};
 pub use point::{Point, PointXyz, Pose, pose_from_matrix};
-pub use segmenter::{FrameReport, Segmenter, SegmenterCounters};
+pub use segmenter::{FrameReport, HistoryReset, Segmenter, SegmenterCounters};

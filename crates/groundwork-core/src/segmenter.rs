@@ -33,6 +33,9 @@ pub struct FrameReport {
     pub near_points: usize,
     /// Points beyond max range.
     pub beyond_points: usize,
+    /// Points beyond the coordinate bound (`sensor.max_coordinate`): probability 0, not
+    /// counted in `near_points`.
+    pub out_of_bounds_points: usize,
     /// Segments that ended with at least one component.
     pub fitted_segments: usize,
     /// Components over all segments.
@@ -66,8 +69,20 @@ pub struct SegmenterCounters {
     pub rejected: u64,
     /// Scans that came without a pose (segmented single-frame).
     pub without_pose: u64,
-    /// Times a pose jump cleared the history.
+    /// Times the history was cleared, for any reason (the sum of the next three).
     pub history_resets: u64,
+    /// ... because the pose jumped beyond the configured limits.
+    pub resets_pose_jump: u64,
+    /// ... because the sensor time jumped beyond `history.max_time_gap` or ran backwards.
+    pub resets_time_gap: u64,
+    /// ... because the caller asked ([`Segmenter::reset_history`]: a new sequence, a new
+    /// producer run whose pose does not continue the history).
+    pub resets_requested: u64,
+    /// Points beyond the coordinate bound, over all scans.
+    pub out_of_bounds_points: u64,
+    /// Probabilities that came out non-finite and were written as 0 (a defect, logged as
+    /// an error; none is known).
+    pub non_finite_outputs: u64,
 }
 
 /// A past frame kept for multi-frame queries.
@@ -76,6 +91,17 @@ struct PastFrame {
     model: FrameModel,
     /// World from sensor.
     pose: Pose,
+}
+
+/// Why the multi-frame history was cleared.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HistoryReset {
+    /// The pose jumped beyond `history.max_translation_jump` / `max_rotation_jump`.
+    PoseJump,
+    /// The sensor time jumped beyond `history.max_time_gap`, or ran backwards.
+    TimeGap,
+    /// The caller asked (a new sequence, a new producer run).
+    Requested,
 }
 
 /// The GMM ground segmenter with its between-frame state.
@@ -88,6 +114,8 @@ pub struct Segmenter {
     mount: Isometry3<f64>,
     height: HeightFilter,
     history: VecDeque<PastFrame>,
+    /// Sensor time of the last stamped scan, ns.
+    last_time_ns: Option<u64>,
     counters: SegmenterCounters,
     // Scratch reused between frames so steady-state segmentation does not allocate more.
     ground: Vec<[f64; 3]>,
@@ -105,6 +133,7 @@ impl Segmenter {
         let height = HeightFilter::new(cfg.height_filter.clone(), zones.first_zone_segments());
         Ok(Self {
             history: VecDeque::with_capacity(cfg.history.frames as usize),
+            last_time_ns: None,
             cfg,
             binner: LaneBinner::new(&zones),
             zones,
@@ -151,10 +180,39 @@ impl Segmenter {
             .sum()
     }
 
-    /// Forgets the history and the height filter (e.g. on a new sequence).
+    /// Forgets the history and the height filter (e.g. on a new sequence); counted as a
+    /// requested history reset if there was a history.
     pub fn reset(&mut self) {
-        self.history.clear();
+        self.reset_history();
         self.height.reset();
+    }
+
+    /// Forgets the multi-frame history (a new producer run, a new sequence); counted as a
+    /// requested reset if there was one. Returns whether frames were dropped.
+    pub fn reset_history(&mut self) -> bool {
+        self.last_time_ns = None;
+        self.clear_history(HistoryReset::Requested)
+    }
+
+    /// Whether a scan at `pose` would be queried against the stored history: there is one,
+    /// and the pose is within the jump limits of its newest frame.
+    pub fn continues_history(&self, pose: &Pose) -> bool {
+        !self.history.is_empty() && self.pose_jump(pose).is_none()
+    }
+
+    fn clear_history(&mut self, why: HistoryReset) -> bool {
+        if self.history.is_empty() {
+            return false;
+        }
+        self.history.clear();
+        let c = &mut self.counters;
+        c.history_resets += 1;
+        match why {
+            HistoryReset::PoseJump => c.resets_pose_jump += 1,
+            HistoryReset::TimeGap => c.resets_time_gap += 1,
+            HistoryReset::Requested => c.resets_requested += 1,
+        }
+        true
     }
 
     /// Forgets only the zone-1 height filter.
@@ -265,6 +323,19 @@ impl Segmenter {
         pose: Option<&Pose>,
         out: &mut [f32],
     ) -> Result<FrameReport, SegmentError> {
+        self.segment_stamped(points, pose, None, out)
+    }
+
+    /// [`Segmenter::segment`] with the scan's sensor time (ns, any epoch, monotonic per
+    /// sensor): a gap to the previous stamped scan beyond `history.max_time_gap`, or time
+    /// running backwards, clears the history before this scan is queried.
+    pub fn segment_stamped<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        pose: Option<&Pose>,
+        sensor_time_ns: Option<u64>,
+        out: &mut [f32],
+    ) -> Result<FrameReport, SegmentError> {
         let checked = self.check(points, pose, out);
         if let Err(e) = checked {
             self.counters.rejected += 1;
@@ -276,7 +347,15 @@ impl Segmenter {
             posed: pose.is_some(),
             ..Default::default()
         };
-        self.bin_points(points);
+        let out_of_bounds = self.bin_points(points);
+        report.out_of_bounds_points = out_of_bounds;
+        self.counters.out_of_bounds_points += out_of_bounds as u64;
+        if out_of_bounds > 0 {
+            debug!(points = out_of_bounds, "points beyond the coordinate bound");
+        }
+        if let Some(t) = sensor_time_ns {
+            report.history_cleared |= self.check_time_gap(t);
+        }
         self.group_by_segment();
         let (model, stats) = self.fit_grouped();
         self.update_height_filter(&model);
@@ -289,7 +368,7 @@ impl Segmenter {
         }
         report.fitted_segments = model.fitted_segments();
         report.components = model.components().len();
-        report.near_points = self.bins.iter().filter(|&&b| b == NEAR).count();
+        report.near_points = self.bins.iter().filter(|&&b| b == NEAR).count() - out_of_bounds;
         report.beyond_points = self
             .bins
             .iter()
@@ -299,7 +378,7 @@ impl Segmenter {
         let t1 = Instant::now();
         match pose {
             Some(pose) => {
-                report.history_cleared = self.check_pose_jump(pose);
+                report.history_cleared |= self.check_pose_jump(pose);
                 report.frames_queried = self.query_frames(&model, Some(pose), out);
                 let keep = self.cfg.history.frames as usize - 1;
                 if keep > 0 {
@@ -316,7 +395,23 @@ impl Segmenter {
         }
         report.query_time = t1.elapsed();
         let thr = self.cfg.ground.ground_threshold;
-        report.ground_points = out.iter().filter(|&&p| p >= thr).count();
+        // No NaN ever leaves the segmenter: a non-finite value would be a defect (none is
+        // known), and it would poison every consumer's arithmetic. Written as 0, counted.
+        let mut non_finite = 0u64;
+        for p in out.iter_mut() {
+            if !p.is_finite() {
+                *p = 0.0;
+                non_finite += 1;
+            }
+            report.ground_points += usize::from(*p >= thr);
+        }
+        if non_finite > 0 {
+            self.counters.non_finite_outputs += non_finite;
+            tracing::error!(
+                points = non_finite,
+                "non-finite ground probabilities written as 0 (a defect: please report)"
+            );
+        }
         self.counters.scans += 1;
         debug!(
             points = report.points,
@@ -366,8 +461,10 @@ impl Segmenter {
         Ok(())
     }
 
-    /// Mount transform and zone binning of every point, in input order.
-    fn bin_points<P: PointXyz + Sync>(&mut self, points: &[P]) {
+    /// Mount transform and zone binning of every point, in input order. Points beyond the
+    /// coordinate bound are binned `NEAR` (probability 0, never fitted) at the origin, so
+    /// that no arithmetic ever sees them; returns how many there were.
+    fn bin_points<P: PointXyz + Sync>(&mut self, points: &[P]) -> usize {
         let n = points.len();
         self.ground.resize(n, [0.0; 3]);
         self.bins.resize(n, 0);
@@ -375,13 +472,16 @@ impl Segmenter {
         let r = self.mount.rotation.to_rotation_matrix().into_inner();
         let t = self.mount.translation.vector;
         let binner = &self.binner;
+        let bound = self.cfg.max_coordinate() as f32;
+        let outside = |p: &P| p.xyz().iter().any(|v| v.abs() > bound);
         // Chunks of whole vectors: each is transformed, then binned 16 points at a time.
         const CHUNK: usize = 256 * LANES;
         self.ground
             .par_chunks_mut(CHUNK)
             .zip(self.bins.par_chunks_mut(CHUNK))
             .zip(points.par_chunks(CHUNK))
-            .for_each(|((ground, bins), points)| {
+            .map(|((ground, bins), points)| {
+                let mut out_of_bounds = 0;
                 for (g, p) in ground.iter_mut().zip(points) {
                     let [x, y, z] = p.xyz().map(f64::from);
                     *g = [
@@ -389,9 +489,22 @@ impl Segmenter {
                         r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
                         r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
                     ];
+                    if outside(p) {
+                        *g = [0.0; 3];
+                        out_of_bounds += 1;
+                    }
                 }
                 binner.bin_all(ground, bins);
-            });
+                if out_of_bounds > 0 {
+                    for (b, p) in bins.iter_mut().zip(points) {
+                        if outside(p) {
+                            *b = NEAR;
+                        }
+                    }
+                }
+                out_of_bounds
+            })
+            .sum()
     }
 
     /// Counting sort of the in-range points into contiguous per-segment runs.
@@ -456,9 +569,30 @@ impl Segmenter {
             dropped_frames = self.history.len(),
             "pose jump beyond the configured limit: multi-frame history cleared"
         );
-        self.history.clear();
-        self.counters.history_resets += 1;
-        true
+        self.clear_history(HistoryReset::PoseJump)
+    }
+
+    /// Clears the history if the sensor time jumped beyond the configured gap or ran
+    /// backwards since the last stamped scan.
+    fn check_time_gap(&mut self, t: u64) -> bool {
+        let last = self.last_time_ns.replace(t);
+        let Some(last) = last else {
+            return false;
+        };
+        let gap_s = (t as f64 - last as f64) / 1e9;
+        if gap_s >= 0.0 && gap_s <= self.cfg.history.max_time_gap {
+            return false;
+        }
+        let frames = self.history.len();
+        let cleared = self.clear_history(HistoryReset::TimeGap);
+        if cleared {
+            warn!(
+                gap_s,
+                dropped_frames = frames,
+                "sensor time jumped (or ran backwards): multi-frame history cleared"
+            );
+        }
+        cleared
     }
 
     /// Logs the height filter state (for long runs: call now and then).
@@ -473,6 +607,7 @@ impl Segmenter {
             rejected = self.counters.rejected,
             without_pose = self.counters.without_pose,
             history_resets = self.counters.history_resets,
+            out_of_bounds_points = self.counters.out_of_bounds_points,
             "segmenter state"
         );
     }

@@ -170,3 +170,87 @@ fn posed_query_matches_segment_and_leaves_the_history_alone() {
         .unwrap();
     assert_eq!(frames, 1);
 }
+
+#[test]
+fn sensor_time_gaps_and_requests_reset_the_history_and_are_counted() {
+    let mut cfg = SegmenterConfig::default();
+    cfg.history.frames = 3;
+    cfg.history.max_time_gap = 0.5;
+    let mut seg = Segmenter::new(cfg).unwrap();
+    let pts = street(0.0);
+    let mut out = vec![0.0; pts.len()];
+    let mut frame = |seg: &mut Segmenter, x: f64, t_ms: u64| {
+        seg.segment_stamped(&pts, Some(&pose_at(x)), Some(t_ms * 1_000_000), &mut out)
+            .unwrap()
+    };
+    // 10 Hz: the history fills up.
+    for i in 0..4u64 {
+        frame(&mut seg, i as f64 * 0.1, i * 100);
+    }
+    assert_eq!(seg.history_len(), 2);
+    // A 2 s pause of the sensor: the stored models are stale, the history is cleared
+    // before this scan is queried (continuous pose or not).
+    let r = frame(&mut seg, 0.4, 2300);
+    assert!(r.history_cleared);
+    assert_eq!(r.frames_queried, 1);
+    assert_eq!(seg.counters().resets_time_gap, 1);
+    frame(&mut seg, 0.5, 2400);
+    assert_eq!(seg.history_len(), 2);
+    // Time running backwards (a replay restarted, a clock reset) clears it too.
+    let r = frame(&mut seg, 0.6, 100);
+    assert!(r.history_cleared && r.frames_queried == 1);
+    assert_eq!(seg.counters().resets_time_gap, 2);
+    // Within the gap: kept.
+    let r = frame(&mut seg, 0.7, 550);
+    assert!(!r.history_cleared && r.frames_queried == 2);
+    // A requested reset (a new sequence, a new producer run) is counted apart.
+    assert!(seg.continues_history(&pose_at(0.8)));
+    assert!(!seg.continues_history(&pose_at(80.0)));
+    assert!(seg.reset_history());
+    assert!(!seg.reset_history(), "nothing left to clear");
+    let c = seg.counters();
+    assert_eq!(
+        (c.resets_requested, c.resets_pose_jump, c.history_resets),
+        (1, 0, 3)
+    );
+    assert_eq!(seg.history_len(), 0);
+}
+
+#[test]
+fn absurd_finite_points_never_reach_the_fit_or_the_history() {
+    let mut cfg = SegmenterConfig::default();
+    cfg.history.frames = 3;
+    let mut seg = Segmenter::new(cfg).unwrap();
+    let clean = street(0.0);
+    let mut poisoned = clean.clone();
+    // A corrupted return right inside a well-populated road segment.
+    let i = poisoned
+        .iter()
+        .position(|p| (p.x - 10.0).abs() < 0.2 && p.y.abs() < 0.2)
+        .unwrap();
+    poisoned[i] = Point::new(10.0, 0.0, 1e20);
+    let mut out = vec![0.0; clean.len()];
+    let mut reference = vec![0.0; clean.len()];
+    // The reference: the same scan with that return replaced by one in the near disc.
+    let mut near = clean.clone();
+    near[i] = Point::new(0.0, 0.0, 0.0);
+    let mut ref_seg = Segmenter::new(seg.config().clone()).unwrap();
+    for step in 0..3 {
+        let r = seg
+            .segment(&poisoned, Some(&pose_at(step as f64 * 0.1)), &mut out)
+            .unwrap();
+        ref_seg
+            .segment(&near, Some(&pose_at(step as f64 * 0.1)), &mut reference)
+            .unwrap();
+        assert_eq!(r.out_of_bounds_points, 1);
+        assert_eq!(out[i], 0.0);
+        assert!(out.iter().all(|p| p.is_finite()));
+        assert_eq!(
+            out.iter().map(|p| p.to_bits()).collect::<Vec<_>>(),
+            reference.iter().map(|p| p.to_bits()).collect::<Vec<_>>(),
+            "one absurd return changes nothing but its own probability"
+        );
+    }
+    assert_eq!(seg.counters().out_of_bounds_points, 3);
+    assert_eq!(seg.counters().non_finite_outputs, 0);
+}

@@ -5,13 +5,33 @@
 use groundwork_core::{Point, Pose, SegmentError, Segmenter, SegmenterConfig};
 use proptest::prelude::*;
 
+/// A finite coordinate a corrupted packet might carry: huge, tiny, or just either side of
+/// the default coordinate bound (4 × 80 m).
+fn extreme() -> impl Strategy<Value = f32> {
+    prop_oneof![
+        Just(f32::MAX),
+        Just(-f32::MAX),
+        Just(1e20f32),
+        Just(-1e20f32),
+        Just(1e6f32),
+        Just(f32::MIN_POSITIVE),
+        Just(319.9f32),
+        Just(-320.1f32),
+        -1e30f32..1e30,
+    ]
+}
+
 fn point() -> impl Strategy<Value = Point> {
     // Ranges cover the near disc, every zone and beyond max range, and heights from well
     // below the ground to well above the sensor; duplicates are likely with small ranges.
+    // Every so often one coordinate is absurd but finite.
     prop_oneof![
-        (-100.0f32..100.0, -100.0f32..100.0, -5.0f32..5.0),
-        (-6.0f32..6.0, -6.0f32..6.0, -2.0f32..0.5),
-        (Just(5.0f32), Just(5.0f32), -1.8f32..-1.6),
+        10 => (-100.0f32..100.0, -100.0f32..100.0, -5.0f32..5.0),
+        10 => (-6.0f32..6.0, -6.0f32..6.0, -2.0f32..0.5),
+        10 => (Just(5.0f32), Just(5.0f32), -1.8f32..-1.6),
+        1 => (5.0f32..20.0, -5.0f32..5.0, extreme()),
+        1 => (extreme(), -5.0f32..5.0, -1.8f32..-1.6),
+        1 => (extreme(), extreme(), extreme()),
     ]
     .prop_map(|(x, y, z)| Point::new(x, y, z))
 }
@@ -30,6 +50,11 @@ proptest! {
         for &p in &out {
             prop_assert!((0.0..=1.0).contains(&p), "probability {}", p);
         }
+        // No NaN was produced at all (the last-resort guard that writes them as 0 counts).
+        prop_assert_eq!(seg.counters().non_finite_outputs, 0);
+        let bound = 320.0f32;
+        let outside = pts.iter().filter(|p| [p.x, p.y, p.z].iter().any(|v| v.abs() > bound)).count();
+        prop_assert_eq!(report.out_of_bounds_points, outside);
         // Reversing the scan reverses the output exactly: each segment is fitted in a
         // canonical order of its points, so not even float rounding depends on input order.
         let rev: Vec<Point> = pts.iter().rev().copied().collect();
@@ -56,6 +81,7 @@ proptest! {
             seg.segment(pts, Some(&pose), &mut out).unwrap();
             prop_assert!(out.iter().all(|p| (0.0..=1.0).contains(p)));
             prop_assert!(seg.history_len() <= 3);
+            prop_assert_eq!(seg.counters().non_finite_outputs, 0);
         }
     }
 }

@@ -162,8 +162,8 @@ pub struct MaskHeader {
     pub fit_us: u32,
     /// Query time, µs.
     pub query_us: u32,
-    /// Reserved (alignment).
-    pub reserved: u32,
+    /// Points beyond the segmenter's coordinate bound (corrupted returns): probability 0.
+    pub out_of_bounds_points: u32,
     /// Identifies the segmenter run (changes when a segmenter restarts).
     pub segmenter_epoch: u64,
 }
@@ -183,7 +183,7 @@ impl Default for MaskHeader {
             frames_queried: 0,
             fit_us: 0,
             query_us: 0,
-            reserved: 0,
+            out_of_bounds_points: 0,
             segmenter_epoch: 0,
         }
     }

@@ -1,20 +1,25 @@
-//! The consumer: reads scans and masks in place, pairs them by sequence number, and
+//! The consumer stage: reads scans and masks in place, pairs them by sequence number, and
 //! reports latency per stage and end to end, live accuracy when labels are available, and
-//! counters of dropped, unmatched and rejected messages.
+//! where every scan it saw ended.
+//!
+//! [`ConsumerStage`] does the pairing, accounting, scoring and output with no IPC; [`run`]
+//! is the thin iceoryx2 loop around it.
 
-use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::io::Write;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use groundwork_eval::{Confusion, Metrics, Protocol};
-use groundwork_msg::{MaskStatus, monotonic_ns};
+use groundwork_msg::{MaskHeader, MaskStatus, ScanHeader, monotonic_ns};
 use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::{ServiceConfig, check_shared_memory};
+use crate::segmenter::sequence_gap;
 use crate::stats::{LatencyStats, Percentiles};
-use crate::transport;
+use crate::{signals, transport};
 
 /// Consumer options beyond the shared configuration.
 #[derive(Debug, Clone, Default)]
@@ -37,6 +42,30 @@ pub struct ConsumerOptions {
     pub warmup: u64,
 }
 
+/// Where each scan the producer published to this consumer ended: exactly one bucket per
+/// scan, so the four add up to what the producer published while the consumer listened.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct ScanFate {
+    /// Read, and its mask (segmented) arrived.
+    pub masked: u64,
+    /// Read, and its mask arrived saying the segmenter rejected it.
+    pub rejected: u64,
+    /// Read, but no mask arrived for it: no segmenter was running, it died with the scan
+    /// in its queue, its queue overflowed, or the mask was lost in this consumer's queue
+    /// (`dropped_masks` counts those). Decided at exit, or when the scan falls out of the
+    /// pairing window.
+    pub unanswered: u64,
+    /// Never read: lost in this consumer's full scan queue (a gap in sequence numbers).
+    pub dropped: u64,
+}
+
+impl ScanFate {
+    /// Scans accounted for.
+    pub fn total(&self) -> u64 {
+        self.masked + self.rejected + self.unanswered + self.dropped
+    }
+}
+
 /// The consumer's final report.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct ConsumerReport {
@@ -48,131 +77,296 @@ pub struct ConsumerReport {
     pub segmented: u64,
     /// Masks that reported a rejected scan, by reason.
     pub rejected: BTreeMap<String, u64>,
-    /// Scans lost before this consumer read them (sequence gaps).
+    /// Where every scan ended (the four buckets add up).
+    pub scan_fate: ScanFate,
+    /// Scans lost before this consumer read them (sequence gaps) = `scan_fate.dropped`.
     pub dropped_scans: u64,
-    /// Masks lost before this consumer read them (sequence gaps).
+    /// Masks lost before this consumer read them (gaps in one segmenter run's answers to
+    /// one producer run).
     pub dropped_masks: u64,
-    /// Masks whose scan this consumer never saw.
+    /// Masks whose scan this consumer never saw (dropped, or outside the pairing window).
     pub unmatched_masks: u64,
-    /// Scans for which no mask arrived while they were remembered.
-    pub unmatched_scans: u64,
     /// Distinct segmenter runs seen (a restarted segmenter is a new run).
     pub segmenter_runs: u64,
+    /// Points the segmenter found beyond its coordinate bound (corrupted returns).
+    pub out_of_bounds_points: u64,
     /// Latency percentiles per stage, µs.
     pub latency_us: Vec<Percentiles>,
     /// Pooled live accuracy over labeled scans.
     pub accuracy: Option<Metrics>,
+    /// Output files that could not be written.
+    pub write_failures: u64,
     /// Wall time from first to last mask, s.
     pub seconds: f64,
 }
 
-/// Scans remembered for pairing; older ones count as unmatched.
-const PAIRING_WINDOW: usize = 256;
+/// Scans remembered for pairing; older ones count as unanswered.
+pub const PAIRING_WINDOW: usize = 256;
+/// Label files kept in memory (a replay loops over a few; a long drive never repeats).
+const LABEL_CACHE: usize = 32;
+
+/// The consumer stage: pairing, accounting, latency, accuracy, outputs. No IPC.
+#[derive(Debug, Default)]
+pub struct ConsumerStage {
+    labels_dir: Option<PathBuf>,
+    out: Option<PathBuf>,
+    warmup: u64,
+    /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
+    pending: BTreeMap<(u64, u64), u64>,
+    last_scan: Option<(u64, u64)>,
+    last_mask: Option<(u64, u64, u64)>,
+    segmenter_epochs: HashSet<u64>,
+    labels: HashMap<u64, Option<Vec<u16>>>,
+    label_order: VecDeque<u64>,
+    confusion: Option<Confusion>,
+    stats: LatencyStats,
+    report: ConsumerReport,
+}
+
+impl ConsumerStage {
+    /// A stage scoring against `labels` (a sequence folder) and writing into `out`.
+    pub fn new(labels: Option<PathBuf>, out: Option<PathBuf>, warmup: u64) -> Self {
+        Self {
+            labels_dir: labels,
+            out,
+            warmup,
+            ..Default::default()
+        }
+    }
+
+    /// A scan was read.
+    pub fn on_scan(&mut self, h: &ScanHeader) {
+        let r = &mut self.report;
+        r.scans += 1;
+        if let Some((e, s)) = self.last_scan {
+            if e == h.producer_epoch {
+                r.scan_fate.dropped += sequence_gap(s, h.sequence);
+            }
+        }
+        self.last_scan = Some((h.producer_epoch, h.sequence));
+        let key = (h.producer_epoch, h.sequence);
+        if self.pending.insert(key, h.source_index).is_some() {
+            // The same scan twice (a misbehaving producer): the earlier copy is unanswered.
+            r.scan_fate.unanswered += 1;
+        }
+        if self.pending.len() > PAIRING_WINDOW {
+            self.pending.pop_first();
+            r.scan_fate.unanswered += 1;
+        }
+    }
+
+    /// A mask was read at `received_ns` (monotonic).
+    pub fn on_mask(&mut self, h: &MaskHeader, probs: &[f32], received_ns: u64) {
+        let r = &mut self.report;
+        r.masks += 1;
+        let key = (h.segmenter_epoch, h.producer_epoch);
+        if let Some((g, e, s)) = self.last_mask {
+            if (g, e) == key {
+                r.dropped_masks += sequence_gap(s, h.scan_sequence);
+            }
+        }
+        self.last_mask = Some((h.segmenter_epoch, h.producer_epoch, h.scan_sequence));
+        if self.segmenter_epochs.insert(h.segmenter_epoch) {
+            r.segmenter_runs += 1;
+        }
+        let ok = h.status == MaskStatus::OK;
+        match self.pending.remove(&(h.producer_epoch, h.scan_sequence)) {
+            Some(_) if ok => r.scan_fate.masked += 1,
+            Some(_) => r.scan_fate.rejected += 1,
+            None => r.unmatched_masks += 1,
+        }
+        if !ok {
+            *r.rejected.entry(h.status.name().to_string()).or_default() += 1;
+            return;
+        }
+        r.segmented += 1;
+        r.out_of_bounds_points += u64::from(h.out_of_bounds_points);
+        if r.segmented > self.warmup {
+            let s = h.stamps;
+            self.stats.record(
+                s.produced_ns,
+                s.published_ns,
+                s.segmenter_received_ns,
+                s.segmenter_published_ns,
+                received_ns,
+            );
+        }
+        if probs.len() != h.point_count as usize {
+            warn!(
+                sequence = h.scan_sequence,
+                "mask header says {} points, payload has {}",
+                h.point_count,
+                probs.len()
+            );
+            return;
+        }
+        if self.labels_dir.is_some() {
+            self.score(h.source_index, probs);
+        }
+        if let Some(out) = &self.out {
+            let stem = format!("{:06}", h.source_index);
+            if let Err(e) = groundwork_io::write_outputs(out, &stem, probs, 0.5) {
+                self.report.write_failures += 1;
+                warn!("{e}");
+            }
+        }
+    }
+
+    fn score(&mut self, index: u64, probs: &[f32]) {
+        let Some(dir) = &self.labels_dir else {
+            return;
+        };
+        if let std::collections::hash_map::Entry::Vacant(slot) = self.labels.entry(index) {
+            let p = dir.join(format!("labels/{index:06}.label"));
+            let l = p
+                .is_file()
+                .then(|| groundwork_io::read_labels(&p, probs.len()))
+                .transpose()
+                .unwrap_or_else(|e| {
+                    warn!("{e}");
+                    None
+                });
+            slot.insert(l);
+            self.label_order.push_back(index);
+            if self.label_order.len() > LABEL_CACHE {
+                if let Some(old) = self.label_order.pop_front() {
+                    self.labels.remove(&old);
+                }
+            }
+        }
+        if let Some(Some(l)) = self.labels.get(&index) {
+            if l.len() == probs.len() {
+                let c = Confusion::from_predictions(probs, l, Protocol::Gmm, 0.5);
+                self.confusion
+                    .get_or_insert_with(Confusion::default)
+                    .merge(&c);
+            }
+        }
+    }
+
+    /// Label files held in memory (bounded).
+    pub fn cached_labels(&self) -> usize {
+        self.labels.len()
+    }
+
+    /// The counters so far (scans still pending are not yet in a bucket).
+    pub fn report(&self) -> &ConsumerReport {
+        &self.report
+    }
+
+    /// Latency percentiles so far.
+    pub fn stats(&self) -> &LatencyStats {
+        &self.stats
+    }
+
+    /// Ends the run: scans still waiting for a mask are unanswered.
+    pub fn finish(mut self, seconds: f64) -> ConsumerReport {
+        self.report.scan_fate.unanswered += self.pending.len() as u64;
+        self.report.dropped_scans = self.report.scan_fate.dropped;
+        self.report.latency_us = self.stats.percentiles();
+        self.report.accuracy = self.confusion.map(|c| c.metrics());
+        self.report.seconds = seconds;
+        self.report
+    }
+
+    fn log_state(&self) {
+        let r = &self.report;
+        let p = self.stats.percentiles();
+        info!(
+            masks = r.masks,
+            segmented = r.segmented,
+            dropped_scans = r.scan_fate.dropped,
+            dropped_masks = r.dropped_masks,
+            rejected = r.rejected.values().sum::<u64>(),
+            pending = self.pending.len(),
+            e2e_p50_us = p.last().map(|p| p.p50).unwrap_or(0.0),
+            iou = self.confusion.map(|c| c.metrics().iou_ground),
+            "consumer state"
+        );
+    }
+}
+
+/// The report as a person reads it.
+pub fn summary(r: &ConsumerReport, stats: &str) -> String {
+    let f = r.scan_fate;
+    let mut s = format!(
+        "consumer: {} masks ({} segmented, {} rejected {:?}), {} scans; scan fate: {} masked + {} rejected + {} unanswered + {} dropped = {}; dropped masks {}, unmatched masks {}; {} segmenter run(s)\n",
+        r.masks,
+        r.segmented,
+        r.rejected.values().sum::<u64>(),
+        r.rejected,
+        r.scans,
+        f.masked,
+        f.rejected,
+        f.unanswered,
+        f.dropped,
+        f.total(),
+        r.dropped_masks,
+        r.unmatched_masks,
+        r.segmenter_runs
+    );
+    s.push_str(stats);
+    if let Some(m) = r.accuracy {
+        s.push_str(&format!(
+            "live accuracy (gmm protocol, labeled scans): precision {:.2} recall {:.2} F1 {:.2} ground IoU {:.2}\n",
+            m.precision, m.recall, m.f1, m.iou_ground
+        ));
+    }
+    s
+}
+
+fn write_report(path: &Path, r: &ConsumerReport) -> anyhow::Result<()> {
+    std::fs::write(path, serde_json::to_string_pretty(r)?)
+        .with_context(|| format!("{}: cannot write report", path.display()))
+}
 
 /// Runs the consumer until `count` masks, the idle timeout, or a termination signal.
 pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
+    signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
+    if let Some(out) = &opts.out {
+        std::fs::create_dir_all(out)
+            .with_context(|| format!("{}: cannot create", out.display()))?;
+    }
     let node = transport::node(cfg, "consumer")?;
+    signals::install(&node)?;
     let scans = transport::scan_service(&node, cfg)?;
     let masks = transport::mask_service(&node, cfg)?;
     let scan_sub = transport::scan_subscriber(&scans, cfg)?;
     let mask_sub = transport::mask_subscriber(&masks, cfg)?;
-    let mask_listener = transport::event_listener(&node, cfg, "masks")?;
     // Only masks wake the consumer: it reads the scans it pairs them with from its queue at
     // that moment. Waking on scans as well would put a third process on the CPU exactly
     // when the segmenter needs it, and cost the pipeline latency. It blocks on the mask
     // listener itself (in one comparison here a WaitSet with an interval timer made the
     // mask hop some 10 µs slower at the median and 50 µs at p99).
+    let mask_listener = transport::event_listener(&node, cfg, "masks")?;
     let interval = Duration::from_secs_f64(cfg.report_interval_s);
     let mut last_report = Instant::now();
-    if let Some(out) = &opts.out {
-        std::fs::create_dir_all(out)
-            .with_context(|| format!("{}: cannot create", out.display()))?;
-    }
     info!(prefix = %cfg.prefix, "consumer started");
 
-    let mut st = State::default();
-    let mut stats = LatencyStats::default();
-    let mut report = ConsumerReport::default();
+    let mut stage = ConsumerStage::new(opts.labels.clone(), opts.out.clone(), opts.warmup);
     let mut first: Option<Instant> = None;
     let mut last_mask = Instant::now();
     let mut stalled = false;
 
-    let drain_all = |report: &mut ConsumerReport,
-                     stats: &mut LatencyStats,
-                     st: &mut State|
-     -> anyhow::Result<()> {
-        let drain_scans = |report: &mut ConsumerReport, st: &mut State| -> anyhow::Result<()> {
-            while let Some(scan) = scan_sub.receive().context("receive scan")? {
-                let h = *scan.user_header();
-                report.scans += 1;
-                report.dropped_scans += st.scan_gap(h.producer_epoch, h.sequence);
-                st.pending
-                    .insert((h.producer_epoch, h.sequence), h.source_index);
-                if st.pending.len() > PAIRING_WINDOW {
-                    st.pending.pop_first();
-                    report.unmatched_scans += 1;
-                }
-            }
-            Ok(())
-        };
+    let drain = |stage: &mut ConsumerStage| -> anyhow::Result<()> {
         // A mask is stamped the moment it is taken, before the scans it answers are read
         // (they are published earlier, so they are queued by now).
         loop {
             let next = mask_sub.receive().context("receive mask")?;
             let now = monotonic_ns();
-            drain_scans(report, st)?;
+            while let Some(scan) = scan_sub.receive().context("receive scan")? {
+                stage.on_scan(scan.user_header());
+            }
             let Some(mask) = next else {
-                break;
+                return Ok(());
             };
-            let h = *mask.user_header();
-            report.masks += 1;
-            report.dropped_masks +=
-                st.mask_gap(h.segmenter_epoch, h.producer_epoch, h.scan_sequence);
-            if st.segmenter_epochs.insert(h.segmenter_epoch, ()).is_none() {
-                report.segmenter_runs += 1;
-            }
-            if st
-                .pending
-                .remove(&(h.producer_epoch, h.scan_sequence))
-                .is_none()
-            {
-                report.unmatched_masks += 1;
-            }
-            if h.status != MaskStatus::OK {
-                *report
-                    .rejected
-                    .entry(h.status.name().to_string())
-                    .or_default() += 1;
-                continue;
-            }
-            report.segmented += 1;
-            if report.segmented > opts.warmup {
-                let s = h.stamps;
-                stats.record(
-                    s.produced_ns,
-                    s.published_ns,
-                    s.segmenter_received_ns,
-                    s.segmenter_published_ns,
-                    now,
-                );
-            }
-            let probs: &[f32] = mask.payload();
-            if let Some(dir) = &opts.labels {
-                st.score(dir, h.source_index, probs);
-            }
-            if let Some(out) = &opts.out {
-                let stem = format!("{:06}", h.source_index);
-                if let Err(e) = groundwork_io::write_outputs(out, &stem, probs, 0.5) {
-                    warn!("{e}");
-                }
-            }
+            stage.on_mask(mask.user_header(), mask.payload(), now);
         }
-        Ok(())
     };
 
     loop {
-        if opts.count.is_some_and(|c| report.masks >= c) {
+        if opts.count.is_some_and(|c| stage.report().masks >= c) {
             break;
         }
         if let (Some(t), Some(_)) = (opts.idle_timeout, first) {
@@ -182,120 +376,140 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
             }
         }
         if let Some(after) = opts.stall_after {
-            if !stalled && report.masks >= after {
+            if !stalled && stage.report().masks >= after {
                 stalled = true;
                 info!(seconds = opts.stall.as_secs_f64(), "stalling: not reading");
-                // A sleep that still honours Ctrl-C.
-                if node.wait(opts.stall).is_err() {
+                if !signals::sleep(opts.stall) {
                     break;
                 }
                 info!("resuming");
             }
         }
-        let before = report.masks;
-        if !transport::wait_or_stop(&node, &mask_listener, Duration::from_millis(200))? {
+        let before = stage.report().masks;
+        if !transport::wait_or_stop(&mask_listener, Duration::from_millis(200))? {
             break;
         }
-        drain_all(&mut report, &mut stats, &mut st)?;
-        if report.masks > before {
+        drain(&mut stage)?;
+        if stage.report().masks > before {
             last_mask = Instant::now();
             first.get_or_insert_with(Instant::now);
         }
         if last_report.elapsed() >= interval {
             last_report = Instant::now();
-            let p = stats.percentiles();
-            let e2e = p.last().map(|p| p.p50).unwrap_or(0.0);
-            info!(
-                masks = report.masks,
-                segmented = report.segmented,
-                dropped_scans = report.dropped_scans,
-                dropped_masks = report.dropped_masks,
-                rejected = report.rejected.values().sum::<u64>(),
-                e2e_p50_us = e2e,
-                iou = st.confusion.map(|c| c.metrics().iou_ground),
-                "consumer state"
-            );
+            stage.log_state();
             transport::cleanup_dead(&node);
         }
     }
-    report.latency_us = stats.percentiles();
-    report.accuracy = st.confusion.map(|c| c.metrics());
-    report.seconds = first.map_or(0.0, |f| f.elapsed().as_secs_f64());
-    let rejected: u64 = report.rejected.values().sum();
-    println!(
-        "consumer: {} masks ({} segmented, {rejected} rejected {:?}), {} scans; dropped {} scans / {} masks; unmatched {} masks / {} scans; {} segmenter run(s)",
-        report.masks,
-        report.segmented,
-        report.rejected,
-        report.scans,
-        report.dropped_scans,
-        report.dropped_masks,
-        report.unmatched_masks,
-        report.unmatched_scans,
-        report.segmenter_runs
-    );
-    print!("{}", stats.table());
-    if let Some(m) = report.accuracy {
-        println!(
-            "live accuracy (gmm protocol, labeled scans): precision {:.2} recall {:.2} F1 {:.2} ground IoU {:.2}",
-            m.precision, m.recall, m.f1, m.iou_ground
-        );
+    // Scans already queued are seen, so that they count (as unanswered if no mask came).
+    while let Some(scan) = scan_sub.receive().context("receive scan")? {
+        stage.on_scan(scan.user_header());
     }
+    let table = stage.stats().table();
+    let report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));
+    // The machine-readable report first: stdout may be a terminal that is gone (SIGHUP).
     if let Some(p) = &opts.report_json {
-        std::fs::write(p, serde_json::to_string_pretty(&report)?)
-            .with_context(|| format!("{}: cannot write report", p.display()))?;
+        write_report(p, &report)?;
     }
+    let _ = std::io::stdout().write_all(summary(&report, &table).as_bytes());
+    info!(
+        masks = report.masks,
+        masked = report.scan_fate.masked,
+        rejected = report.scan_fate.rejected,
+        unanswered = report.scan_fate.unanswered,
+        dropped = report.scan_fate.dropped,
+        "consumer stopped"
+    );
     Ok(report)
 }
 
-#[derive(Default)]
-struct State {
-    /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
-    pending: BTreeMap<(u64, u64), u64>,
-    last_scan: Option<(u64, u64)>,
-    last_mask: Option<(u64, u64, u64)>,
-    segmenter_epochs: HashMap<u64, ()>,
-    labels: HashMap<u64, Option<Vec<u16>>>,
-    confusion: Option<Confusion>,
-}
+#[cfg(test)]
+mod tests {
+    use super::*;
 
-impl State {
-    fn scan_gap(&mut self, epoch: u64, seq: u64) -> u64 {
-        let gap = match self.last_scan {
-            Some((e, s)) if e == epoch && seq > s + 1 => seq - s - 1,
-            _ => 0,
-        };
-        self.last_scan = Some((epoch, seq));
-        gap
-    }
-
-    fn mask_gap(&mut self, seg_epoch: u64, epoch: u64, seq: u64) -> u64 {
-        let gap = match self.last_mask {
-            Some((g, e, s)) if g == seg_epoch && e == epoch && seq > s + 1 => seq - s - 1,
-            _ => 0,
-        };
-        self.last_mask = Some((seg_epoch, epoch, seq));
-        gap
-    }
-
-    fn score(&mut self, dir: &std::path::Path, index: u64, probs: &[f32]) {
-        let labels = self.labels.entry(index).or_insert_with(|| {
-            let p = dir.join(format!("labels/{index:06}.label"));
-            p.is_file()
-                .then(|| groundwork_io::read_labels(&p, probs.len()))
-                .transpose()
-                .unwrap_or_else(|e| {
-                    warn!("{e}");
-                    None
-                })
-        });
-        if let Some(l) = labels {
-            if l.len() == probs.len() {
-                let c = Confusion::from_predictions(probs, l, Protocol::Gmm, 0.5);
-                self.confusion
-                    .get_or_insert_with(Confusion::default)
-                    .merge(&c);
-            }
+    fn scan(epoch: u64, seq: u64) -> ScanHeader {
+        ScanHeader {
+            producer_epoch: epoch,
+            sequence: seq,
+            source_index: seq,
+            ..ScanHeader::default()
         }
+    }
+
+    fn mask(seg: u64, epoch: u64, seq: u64, status: MaskStatus) -> MaskHeader {
+        MaskHeader {
+            segmenter_epoch: seg,
+            producer_epoch: epoch,
+            scan_sequence: seq,
+            status,
+            point_count: 0,
+            ..MaskHeader::default()
+        }
+    }
+
+    #[test]
+    fn every_scan_ends_in_exactly_one_bucket() {
+        let mut c = ConsumerStage::new(None, None, 0);
+        // Producer run 1: scans 0..10; scans 3 and 4 never reach us (queue overflow).
+        for s in (0..10).filter(|s| ![3, 4].contains(s)) {
+            c.on_scan(&scan(1, s));
+        }
+        // Segmenter A answers 0..=5 (5 rejected), then dies with 6 and 7 in its queue; B
+        // answers 8, and a mask for the dropped scan 3 arrives (unmatched).
+        for s in [0, 1, 2, 5] {
+            let st = if s == 5 {
+                MaskStatus::EMPTY
+            } else {
+                MaskStatus::OK
+            };
+            c.on_mask(&mask(100, 1, s, st), &[], 1);
+        }
+        c.on_mask(&mask(100, 1, 3, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(200, 1, 8, MaskStatus::OK), &[], 1);
+        // Producer run 2 starts over at sequence 0: not a gap.
+        c.on_scan(&scan(2, 0));
+        c.on_mask(&mask(200, 2, 0, MaskStatus::OK), &[], 1);
+        let r = c.finish(1.0);
+        let f = r.scan_fate;
+        assert_eq!((f.masked, f.rejected, f.dropped), (5, 1, 2), "{r:?}");
+        // 6, 7 and 9 got no mask.
+        assert_eq!(f.unanswered, 3, "{r:?}");
+        assert_eq!(f.total(), 11, "10 + 1 scans published");
+        assert_eq!(f.total() - f.dropped, r.scans);
+        assert_eq!((r.unmatched_masks, r.segmenter_runs), (1, 2));
+    }
+
+    #[test]
+    fn sequence_arithmetic_never_overflows() {
+        assert_eq!(sequence_gap(u64::MAX, 0), 0);
+        assert_eq!(sequence_gap(0, u64::MAX), u64::MAX - 1);
+        assert_eq!(sequence_gap(u64::MAX - 1, u64::MAX), 0);
+        let mut c = ConsumerStage::new(None, None, 0);
+        c.on_scan(&scan(1, u64::MAX));
+        c.on_scan(&scan(1, 0));
+        c.on_mask(&mask(1, 1, u64::MAX, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(1, 1, 0, MaskStatus::OK), &[], 1);
+        let r = c.finish(0.0);
+        assert_eq!(
+            (r.scan_fate.masked, r.dropped_scans, r.dropped_masks),
+            (2, 0, 0)
+        );
+    }
+
+    #[test]
+    fn the_pairing_window_and_the_label_cache_are_bounded() {
+        let tmp = tempfile::tempdir().unwrap();
+        std::fs::create_dir(tmp.path().join("labels")).unwrap();
+        let mut c = ConsumerStage::new(Some(tmp.path().to_path_buf()), None, 0);
+        for s in 0..(PAIRING_WINDOW as u64 + 50) {
+            c.on_scan(&scan(1, s));
+        }
+        assert_eq!(c.report().scan_fate.unanswered, 50);
+        for s in 0..1000u64 {
+            let mut m = mask(1, 1, s, MaskStatus::OK);
+            m.point_count = 1;
+            m.source_index = s;
+            c.on_mask(&m, &[0.5], 1);
+        }
+        assert!(c.cached_labels() <= LABEL_CACHE, "{}", c.cached_labels());
     }
 }

@@ -1,11 +1,23 @@
-//! Starts the three stages as separate processes and stops them cleanly.
+//! Starts the stages as separate processes, supervises them, and stops them cleanly.
+//!
+//! - Each stage dies with the launcher: it gets SIGTERM from the kernel if the launcher dies,
+//!   even of kill -9 (see [`crate::signals::die_with_launcher`]).
+//! - SIGINT, SIGTERM and SIGHUP stop the pipeline cleanly: every stage gets SIGTERM and a
+//!   grace period, writes its report and removes its shared memory.
+//! - A stage that dies (killed by a signal, or exit code 2 and above) fails the pipeline —
+//!   or, with `max_restarts`, is started again up to that many times (counted and logged),
+//!   since every stage is built to rejoin a running pipeline.
+//! - Exit codes of stages: 0 done, 1 done but some input was bad (counted, reported),
+//!   2 and above: error.
 
 use std::process::{Child, Command, ExitStatus};
 use std::time::{Duration, Instant};
 
-use iceoryx2::prelude::*;
 use rustix::process::{Pid, Signal, kill_process};
-use tracing::{info, warn};
+use tracing::{error, info, warn};
+
+use crate::config::ServiceConfig;
+use crate::{signals, transport};
 
 /// One stage to start.
 #[derive(Debug)]
@@ -16,81 +28,192 @@ pub struct Stage {
     pub command: Command,
 }
 
-/// Exit status of each stage, in start order.
-pub type Outcome = Vec<(&'static str, Option<ExitStatus>)>;
+/// How one stage ended.
+#[derive(Debug)]
+pub struct StageOutcome {
+    /// The stage.
+    pub name: &'static str,
+    /// Its last process's exit status (None: could not be collected).
+    pub status: Option<ExitStatus>,
+    /// Times it was started again after dying.
+    pub restarts: u32,
+    /// Why it failed the pipeline, if it did.
+    pub failure: Option<String>,
+}
 
-fn terminate(children: &mut [(&'static str, Child)], grace: Duration) {
-    for (name, c) in children.iter_mut() {
-        if matches!(c.try_wait(), Ok(None)) {
-            info!(stage = *name, "sending SIGTERM");
-            let _ = kill_process(Pid::from_child(c), Signal::TERM);
+/// How the pipeline ended.
+#[derive(Debug)]
+pub struct Outcome {
+    /// Per stage, in start order.
+    pub stages: Vec<StageOutcome>,
+    /// Stopped by SIGINT, SIGTERM or SIGHUP.
+    pub interrupted: bool,
+}
+
+impl Outcome {
+    /// Whether the run succeeded: no stage failed and every stage ended with exit code 0.
+    pub fn success(&self) -> bool {
+        self.stages
+            .iter()
+            .all(|s| s.failure.is_none() && s.status.is_some_and(|st| st.success()))
+    }
+}
+
+/// Whether an exit status means the stage finished its work (0, or 1: finished with bad
+/// input counted), as opposed to dying.
+fn finished(status: &ExitStatus) -> bool {
+    matches!(status.code(), Some(0 | 1))
+}
+
+fn describe(status: &ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match (status.code(), status.signal()) {
+        (_, Some(sig)) => format!("killed by signal {sig}"),
+        (Some(c), _) => format!("exited with code {c}"),
+        _ => status.to_string(),
+    }
+}
+
+struct Running {
+    name: &'static str,
+    command: Command,
+    child: Child,
+    restarts: u32,
+    status: Option<ExitStatus>,
+    failure: Option<String>,
+}
+
+fn terminate(stages: &mut [Running], grace: Duration) {
+    for s in stages.iter_mut() {
+        if s.status.is_none() && matches!(s.child.try_wait(), Ok(None)) {
+            info!(stage = s.name, "sending SIGTERM");
+            let _ = kill_process(Pid::from_child(&s.child), Signal::TERM);
         }
     }
     let t = Instant::now();
     while t.elapsed() < grace {
-        if children
+        if stages
             .iter_mut()
-            .all(|(_, c)| !matches!(c.try_wait(), Ok(None)))
+            .all(|s| s.status.is_some() || !matches!(s.child.try_wait(), Ok(None)))
         {
-            return;
+            break;
         }
         std::thread::sleep(Duration::from_millis(20));
     }
-    for (name, c) in children.iter_mut() {
-        if matches!(c.try_wait(), Ok(None)) {
-            warn!(stage = *name, "did not stop within {grace:?}: killing");
-            let _ = c.kill();
+    for s in stages.iter_mut() {
+        if s.status.is_none() && matches!(s.child.try_wait(), Ok(None)) {
+            warn!(stage = s.name, "did not stop within {grace:?}: killing");
+            s.failure = Some(format!("did not stop within {grace:?}"));
+            let _ = s.child.kill();
+        }
+        if s.status.is_none() {
+            s.status = s.child.wait().ok();
         }
     }
 }
 
-/// Starts `stages` in order (readers first, so the first scans are not lost), then waits:
-/// when the stage named `finisher` exits, or on Ctrl-C / SIGTERM, the others get SIGTERM
-/// and a grace period to leave cleanly (iceoryx2 removes their shared memory on exit).
-pub fn run(stages: Vec<Stage>, finisher: &str) -> anyhow::Result<Outcome> {
-    // A node only to learn about Ctrl-C: iceoryx2 catches SIGINT/SIGTERM and reports them
-    // through `Node::wait`.
-    let node = NodeBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(|e| anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"))?;
-    let mut children: Vec<(&'static str, Child)> = Vec::new();
+fn spawn(name: &str, command: &mut Command) -> anyhow::Result<Child> {
+    command
+        .env(signals::PARENT_ENV, std::process::id().to_string())
+        .spawn()
+        .map_err(|e| anyhow::anyhow!("cannot start {name}: {e}"))
+}
+
+/// Starts `stages` in order (readers first, so the first scans are not lost), then
+/// supervises them until the stage named `finisher` finishes, a stage fails (after
+/// `max_restarts` restarts), or SIGINT / SIGTERM / SIGHUP arrives; then the others get
+/// SIGTERM and a grace period to leave cleanly.
+pub fn run(
+    cfg: &ServiceConfig,
+    stages: Vec<Stage>,
+    finisher: &str,
+    max_restarts: u32,
+) -> anyhow::Result<Outcome> {
+    // A node of its own to learn about signals the iceoryx2 way too (and to sweep up
+    // after a stage that died).
+    let node = transport::node(cfg, "launcher")?;
+    signals::install(&node)?;
+    let mut running: Vec<Running> = Vec::new();
     for mut s in stages {
-        match s.command.spawn() {
-            Ok(c) => {
-                info!(stage = s.name, pid = c.id(), "started");
-                children.push((s.name, c));
+        match spawn(s.name, &mut s.command) {
+            Ok(child) => {
+                info!(stage = s.name, pid = child.id(), "started");
+                running.push(Running {
+                    name: s.name,
+                    command: s.command,
+                    child,
+                    restarts: 0,
+                    status: None,
+                    failure: None,
+                });
                 // Give each reader time to attach before the next stage starts.
-                std::thread::sleep(Duration::from_millis(300));
+                signals::sleep(Duration::from_millis(300));
             }
             Err(e) => {
-                terminate(&mut children, Duration::from_secs(3));
-                anyhow::bail!("cannot start {}: {e}", s.name);
+                terminate(&mut running, Duration::from_secs(3));
+                return Err(e);
             }
         }
     }
-    loop {
-        if node.wait(Duration::from_millis(100)).is_err() {
-            info!("Ctrl-C: stopping the pipeline");
+    let mut interrupted = false;
+    'supervise: loop {
+        if !signals::sleep(Duration::from_millis(100)) {
+            info!("stop requested: stopping the pipeline");
+            interrupted = true;
             break;
         }
-        let mut finished = false;
-        for (name, c) in children.iter_mut() {
-            if let Ok(Some(status)) = c.try_wait() {
-                if *name == finisher || !status.success() {
-                    if !status.success() {
-                        warn!(stage = *name, %status, "stage exited");
-                    }
-                    finished = true;
+        for s in running.iter_mut().filter(|s| s.status.is_none()) {
+            let Ok(Some(status)) = s.child.try_wait() else {
+                continue;
+            };
+            if finished(&status) {
+                if status.code() == Some(1) {
+                    warn!(stage = s.name, "finished with bad input (see its log)");
                 }
+                s.status = Some(status);
+                if s.name == finisher {
+                    break 'supervise;
+                }
+                continue;
+            }
+            let why = describe(&status);
+            if s.restarts < max_restarts {
+                s.restarts += 1;
+                warn!(
+                    stage = s.name,
+                    restart = s.restarts,
+                    of = max_restarts,
+                    "{why}: restarting"
+                );
+                transport::cleanup_dead(&node);
+                match spawn(s.name, &mut s.command) {
+                    Ok(c) => s.child = c,
+                    Err(e) => {
+                        error!("{e}");
+                        s.status = Some(status);
+                        s.failure = Some(format!("{why}; restart failed: {e}"));
+                        break 'supervise;
+                    }
+                }
+            } else {
+                error!(stage = s.name, "{why}: stopping the pipeline");
+                s.status = Some(status);
+                s.failure = Some(why);
+                break 'supervise;
             }
         }
-        if finished {
-            break;
-        }
     }
-    terminate(&mut children, Duration::from_secs(5));
-    Ok(children
-        .into_iter()
-        .map(|(n, mut c)| (n, c.try_wait().ok().flatten()))
-        .collect())
+    terminate(&mut running, Duration::from_secs(5));
+    Ok(Outcome {
+        stages: running
+            .into_iter()
+            .map(|s| StageOutcome {
+                name: s.name,
+                status: s.status,
+                restarts: s.restarts,
+                failure: s.failure,
+            })
+            .collect(),
+        interrupted,
+    })
 }

@@ -7,6 +7,7 @@ pub mod consumer;
 pub mod launcher;
 pub mod producer;
 pub mod segmenter;
+pub mod signals;
 pub mod stats;
 pub mod synthetic;
 pub mod transport;

@@ -1,5 +1,8 @@
-//! The producer: replays a folder of scans (with poses) or generates scans of a chosen
-//! size, writing each straight into loaned shared memory.
+//! The producer stage: replays a folder of scans (with poses) or generates scans of a
+//! chosen size, writing each straight into loaned shared memory.
+//!
+//! [`ProducerStage`] holds the frames and builds each message's header (sequence, run,
+//! pose, stamps, injected faults) with no IPC; [`run`] is the thin iceoryx2 loop around it.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -8,10 +11,11 @@ use anyhow::Context;
 use groundwork_core::{Point, Pose};
 use groundwork_eval::Sequence;
 use groundwork_msg::{SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch};
+use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::{ServiceConfig, check_shared_memory};
-use crate::transport;
+use crate::{signals, transport};
 
 /// Where scans come from.
 #[derive(Debug, Clone)]
@@ -35,6 +39,13 @@ pub enum Malformed {
     CountMismatch,
 }
 
+const MALFORMED_KINDS: [Malformed; 4] = [
+    Malformed::NonFinite,
+    Malformed::Empty,
+    Malformed::BadSchema,
+    Malformed::CountMismatch,
+];
+
 /// Producer options beyond the shared configuration.
 #[derive(Debug, Clone)]
 pub struct ProducerOptions {
@@ -49,7 +60,7 @@ pub struct ProducerOptions {
 }
 
 /// What the producer did.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct ProducerReport {
     /// Scans published.
     pub published: u64,
@@ -57,30 +68,40 @@ pub struct ProducerReport {
     pub unreceived: u64,
     /// Malformed scans injected.
     pub malformed: u64,
+    /// Input files that could not be read (skipped), with the reason.
+    pub skipped_files: Vec<String>,
 }
 
-struct Frame {
-    points: Vec<Point>,
-    pose: Option<Pose>,
-    index: u64,
+/// One scan ready to publish.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// Its points (sensor frame).
+    pub points: Vec<Point>,
+    /// World from sensor, if known.
+    pub pose: Option<Pose>,
+    /// Index in its source (file index), for label lookup.
+    pub index: u64,
 }
 
-fn load(source: &Source, max_points: usize) -> anyhow::Result<Vec<Frame>> {
+/// Reads the source's frames; a file that cannot be read is skipped and reported (the
+/// second value), never fatal unless nothing is left.
+pub fn load(source: &Source, max_points: usize) -> anyhow::Result<(Vec<Frame>, Vec<String>)> {
     match source {
         Source::Synthetic(n) => {
             anyhow::ensure!(
                 *n <= max_points,
                 "--synthetic {n} exceeds max_points {max_points}"
             );
-            Ok(vec![Frame {
+            let frame = Frame {
                 points: crate::synthetic::scan(*n),
                 pose: None,
                 index: 0,
-            }])
+            };
+            Ok((vec![frame], Vec::new()))
         }
         Source::Sequence(dir) => {
             let seq = Sequence::open(dir, None, None)?;
-            let mut frames = Vec::new();
+            let (mut frames, mut skipped) = (Vec::new(), Vec::new());
             for (i, path) in seq.scans.iter().enumerate() {
                 // A bad file is reported and skipped; the replay goes on with the others.
                 match groundwork_io::read_scan(path, max_points) {
@@ -89,11 +110,19 @@ fn load(source: &Source, max_points: usize) -> anyhow::Result<Vec<Frame>> {
                         pose: seq.poses.as_ref().and_then(|p| p.get(i).copied()),
                         index: i as u64,
                     }),
-                    Err(e) => warn!("skipped: {e}"),
+                    Err(e) => {
+                        warn!("skipped: {e}");
+                        skipped.push(e.to_string());
+                    }
                 }
             }
-            anyhow::ensure!(!frames.is_empty(), "{}: no readable scans", dir.display());
-            Ok(frames)
+            anyhow::ensure!(
+                !frames.is_empty(),
+                "{}: no readable scans ({} skipped)",
+                dir.display(),
+                skipped.len()
+            );
+            Ok((frames, skipped))
         }
     }
 }
@@ -103,80 +132,78 @@ fn pose_matrix(p: &Pose) -> [f64; 16] {
     std::array::from_fn(|i| m[(i / 4, i % 4)])
 }
 
-/// Runs the producer until `count` scans are out or a termination signal arrives.
-pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<ProducerReport> {
-    check_shared_memory(cfg)?;
-    let frames = load(&opts.source, cfg.max_points)?;
-    let node = transport::node(cfg, "producer")?;
-    let svc = transport::scan_service(&node, cfg)?;
-    let publisher = transport::scan_publisher(&svc, cfg)?;
-    let notifier = transport::event_notifier(&node, cfg, "scans")?;
-    let epoch = new_epoch();
-    let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
-    let period = (rate > 0.0).then(|| Duration::from_secs_f64(1.0 / rate));
-    info!(
-        scans = frames.len(),
-        rate_hz = rate,
-        prefix = %cfg.prefix,
-        "producer started"
-    );
-    let mut report = ProducerReport::default();
-    let mut seq: u64 = 0;
-    let kinds = [
-        Malformed::NonFinite,
-        Malformed::Empty,
-        Malformed::BadSchema,
-        Malformed::CountMismatch,
-    ];
-    loop {
-        if opts.count.is_some_and(|c| seq >= c) {
-            break;
+/// The producer stage: frames, run identity, sequence, counters. No IPC.
+#[derive(Debug)]
+pub struct ProducerStage {
+    frames: Vec<Frame>,
+    epoch: u64,
+    sequence: u64,
+    malformed_every: Option<u64>,
+    report: ProducerReport,
+}
+
+/// The next message: which frame, its header, and the fault to inject (if any).
+#[derive(Debug, Clone)]
+pub struct Outgoing {
+    /// Index into the stage's frames.
+    pub frame: usize,
+    /// Points the payload carries.
+    pub len: usize,
+    /// The header (stamps `produced_ns` set; `published_ns` is set just before sending).
+    pub header: ScanHeader,
+    /// A fault to inject into the payload.
+    pub malformed: Option<Malformed>,
+}
+
+impl ProducerStage {
+    /// A stage over loaded frames (at least one), a new producer run.
+    pub fn new(frames: Vec<Frame>, skipped: Vec<String>, malformed_every: Option<u64>) -> Self {
+        Self {
+            frames,
+            epoch: new_epoch(),
+            sequence: 0,
+            malformed_every,
+            report: ProducerReport {
+                skipped_files: skipped,
+                ..Default::default()
+            },
         }
-        let t0 = Instant::now();
-        let frame = &frames[(seq % frames.len() as u64) as usize];
-        let bad = opts
+    }
+
+    /// The frames replayed.
+    pub fn frames(&self) -> &[Frame] {
+        &self.frames
+    }
+
+    /// Builds the next message's header; `now_ns` is its production stamp (and, for
+    /// replays, its sensor time).
+    pub fn process(&mut self, now_ns: u64) -> Outgoing {
+        let seq = self.sequence;
+        let fi = (seq % self.frames.len() as u64) as usize;
+        let frame = &self.frames[fi];
+        let bad = self
             .malformed_every
             .filter(|&k| k > 0 && seq % k == k - 1)
-            .map(|_| kinds[(report.malformed % kinds.len() as u64) as usize]);
-        let n = if bad == Some(Malformed::Empty) {
+            .map(|_| MALFORMED_KINDS[(self.report.malformed % 4) as usize]);
+        let len = if bad == Some(Malformed::Empty) {
             0
         } else {
             frame.points.len()
         };
-        let produced = monotonic_ns();
-        let sample = publisher
-            .loan_slice_uninit(n)
-            .map_err(|e| anyhow::anyhow!("loan of {n} points: {e:?}"))?;
-        // The only copy of the scan on the hot path: from the "driver" into shared memory.
-        let pts = &frame.points;
-        let mut sample = sample.write_from_fn(|i| {
-            let p = pts[i];
-            ScanPoint {
-                x: if bad == Some(Malformed::NonFinite) && i == n / 2 {
-                    f32::NAN
-                } else {
-                    p.x
-                },
-                y: p.y,
-                z: p.z,
-                intensity: p.intensity,
-            }
-        });
-        let h = sample.user_header_mut();
-        *h = ScanHeader {
+        let mut header = ScanHeader {
             schema_version: if bad == Some(Malformed::BadSchema) {
                 SCHEMA_VERSION + 100
             } else {
                 SCHEMA_VERSION
             },
             point_count: if bad == Some(Malformed::CountMismatch) {
-                n as u32 + 7
+                len as u32 + 7
             } else {
-                n as u32
+                len as u32
             },
             sequence: seq,
-            producer_epoch: epoch,
-            sensor_timestamp_ns: produced,
+            producer_epoch: self.epoch,
+            sensor_timestamp_ns: now_ns,
             source_index: frame.index,
             has_pose: u32::from(frame.pose.is_some()),
             pose: frame
@@ -186,30 +213,91 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
                 .unwrap_or(ScanHeader::default().pose),
             ..ScanHeader::default()
         };
-        h.stamps.produced_ns = produced;
-        h.stamps.published_ns = monotonic_ns();
+        header.stamps.produced_ns = now_ns;
+        self.sequence += 1;
+        self.report.published += 1;
+        if bad.is_some() {
+            self.report.malformed += 1;
+        }
+        Outgoing {
+            frame: fi,
+            len,
+            header,
+            malformed: bad,
+        }
+    }
+
+    /// The payload's i-th point of a message.
+    pub fn point(&self, out: &Outgoing, i: usize) -> ScanPoint {
+        let p = self.frames[out.frame].points[i];
+        let nan = out.malformed == Some(Malformed::NonFinite) && i == out.len / 2;
+        ScanPoint {
+            x: if nan { f32::NAN } else { p.x },
+            y: p.y,
+            z: p.z,
+            intensity: p.intensity,
+        }
+    }
+
+    /// Counts a send that reached no subscriber.
+    pub fn count_unreceived(&mut self) {
+        self.report.unreceived += 1;
+    }
+
+    /// The counters so far.
+    pub fn report(&self) -> &ProducerReport {
+        &self.report
+    }
+}
+
+/// Runs the producer until `count` scans are out or a termination signal arrives.
+pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<ProducerReport> {
+    signals::die_with_launcher()?;
+    check_shared_memory(cfg)?;
+    let (frames, skipped) = load(&opts.source, cfg.max_points)?;
+    let mut stage = ProducerStage::new(frames, skipped, opts.malformed_every);
+    let node = transport::node(cfg, "producer")?;
+    signals::install(&node)?;
+    let svc = transport::scan_service(&node, cfg)?;
+    let publisher = transport::scan_publisher(&svc, cfg)?;
+    let notifier = transport::event_notifier(&node, cfg, "scans")?;
+    let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
+    let period = (rate > 0.0).then(|| Duration::from_secs_f64(1.0 / rate));
+    info!(
+        scans = stage.frames().len(),
+        skipped_files = stage.report().skipped_files.len(),
+        rate_hz = rate,
+        prefix = %cfg.prefix,
+        "producer started"
+    );
+    while opts.count.is_none_or(|c| stage.report().published < c) {
+        let t0 = Instant::now();
+        let out = stage.process(monotonic_ns());
+        let sample = publisher
+            .loan_slice_uninit(out.len)
+            .map_err(|e| anyhow::anyhow!("loan of {} points: {e:?}", out.len))?;
+        // The only copy of the scan on the hot path: from the "driver" into shared memory.
+        let mut sample = sample.write_from_fn(|i| stage.point(&out, i));
+        *sample.user_header_mut() = out.header;
+        sample.user_header_mut().stamps.published_ns = monotonic_ns();
         let reached = sample.send().context("send scan")?;
         let _ = notifier.notify();
         if reached == 0 {
-            report.unreceived += 1;
+            stage.count_unreceived();
         }
-        if bad.is_some() {
-            report.malformed += 1;
-        }
-        report.published += 1;
-        seq += 1;
         let wait = period.map_or(Duration::ZERO, |p| p.saturating_sub(t0.elapsed()));
-        // `Node::wait` sleeps and returns an error on SIGINT/SIGTERM.
-        if node.wait(wait).is_err() {
+        if !signals::sleep(wait) {
             info!("termination requested");
             break;
         }
     }
+    let r = stage.report().clone();
     info!(
-        published = report.published,
-        unreceived = report.unreceived,
-        malformed = report.malformed,
+        published = r.published,
+        unreceived = r.unreceived,
+        malformed = r.malformed,
+        skipped_files = r.skipped_files.len(),
         "producer stopped"
     );
-    Ok(report)
+    Ok(r)
 }

@@ -1,19 +1,24 @@
-//! The segmenter process: scans in, masks out, multi-frame history kept between frames.
-//! Blocks on the scan topic's iceoryx2 event while idle; a malformed scan is rejected with a counted,
-//! logged reason (and an empty mask naming it), and the next scan is served as usual.
+//! The segmenter stage: scans in, masks out, multi-frame history kept between frames.
+//!
+//! [`SegmenterStage::process`] is the whole per-scan step (validation, sequence and
+//! producer-run bookkeeping, pose decoding, segmentation, the mask header) with no IPC, so
+//! unit tests and the offline CLI run exactly what the process runs; [`run`] is the thin
+//! iceoryx2 loop around it. A malformed scan is rejected with a counted, logged reason (and
+//! an empty mask naming it), and the next scan is served as usual.
 
 use std::collections::BTreeMap;
 use std::time::Duration;
 
 use anyhow::Context;
-use groundwork_core::{SegmentError, Segmenter, SegmenterConfig, pose_from_matrix};
+use groundwork_core::{PointXyz, Pose, SegmentError, Segmenter, SegmenterConfig, pose_from_matrix};
 use groundwork_msg::{
     MaskHeader, MaskStatus, SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch,
 };
+use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::{ServiceConfig, check_shared_memory};
-use crate::transport;
+use crate::{signals, transport};
 
 /// Segmenter options beyond the shared configuration.
 #[derive(Debug, Clone)]
@@ -28,7 +33,7 @@ pub struct SegmenterOptions {
 }
 
 /// What the segmenter did.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct SegmenterReport {
     /// Scans received.
     pub received: u64,
@@ -38,12 +43,20 @@ pub struct SegmenterReport {
     pub rejected: BTreeMap<&'static str, u64>,
     /// Scans lost between producer and segmenter (gaps in sequence numbers).
     pub dropped: u64,
+    /// Masks that reached no subscriber (no consumer attached).
+    pub unreceived_masks: u64,
+    /// Producer runs seen (a restarted producer is a new run).
+    pub producer_runs: u64,
+    /// History resets because a new producer run's pose did not continue the history.
+    pub history_resets_new_run: u64,
+    /// Points beyond the coordinate bound, over all scans (probability 0).
+    pub out_of_bounds_points: u64,
 }
 
-/// Validates one received scan; `Err` carries the rejection status and a reason.
-fn validate(
+/// Validates a scan's header and size; `Err` carries the rejection status and a reason.
+pub fn validate<P>(
     h: &ScanHeader,
-    points: &[ScanPoint],
+    points: &[P],
     max_points: usize,
 ) -> Result<(), (MaskStatus, String)> {
     if h.schema_version != SCHEMA_VERSION {
@@ -80,6 +93,23 @@ fn validate(
     Ok(())
 }
 
+/// The pose a scan header carries, if any (an invalid one is an error).
+pub fn decode_pose(h: &ScanHeader) -> Result<Option<Pose>, SegmentError> {
+    (h.has_pose == 1)
+        .then(|| {
+            pose_from_matrix(&std::array::from_fn(|r| {
+                std::array::from_fn(|c| h.pose[4 * r + c])
+            }))
+        })
+        .transpose()
+}
+
+/// Scans missing between sequence numbers `last` and `next` of one producer run (0 if
+/// `next` does not come after `last`). No overflow for any pair.
+pub fn sequence_gap(last: u64, next: u64) -> u64 {
+    next.saturating_sub(last).saturating_sub(1)
+}
+
 fn status_of(e: &SegmentError) -> MaskStatus {
     match e {
         SegmentError::NonFinitePoint { .. } => MaskStatus::NON_FINITE,
@@ -88,103 +118,226 @@ fn status_of(e: &SegmentError) -> MaskStatus {
     }
 }
 
+/// The segmenter stage: its algorithm state and counters, no IPC.
+#[derive(Debug)]
+pub struct SegmenterStage {
+    seg: Segmenter,
+    echo: bool,
+    max_points: usize,
+    epoch: u64,
+    /// (producer epoch, sequence) of the last scan.
+    last: Option<(u64, u64)>,
+    /// Why the last scan was rejected.
+    rejection: Option<String>,
+    report: SegmenterReport,
+}
+
+impl SegmenterStage {
+    /// A stage with an empty history; `max_points` is the service's limit (the sensor
+    /// configuration's applies too).
+    pub fn new(opts: &SegmenterOptions, max_points: usize) -> anyhow::Result<Self> {
+        Ok(Self {
+            max_points: max_points.min(opts.segmenter.sensor.max_points),
+            seg: Segmenter::new(opts.segmenter.clone())?,
+            echo: opts.echo,
+            epoch: new_epoch(),
+            last: None,
+            rejection: None,
+            report: SegmenterReport::default(),
+        })
+    }
+
+    /// Length of the mask that answers this scan: its point count if it passes the header
+    /// checks, 0 if it will be rejected.
+    pub fn mask_len<P>(&self, h: &ScanHeader, points: &[P]) -> usize {
+        match validate(h, points, self.max_points) {
+            Ok(()) => points.len(),
+            Err(_) => 0,
+        }
+    }
+
+    /// Handles one scan: writes its probabilities into `out` (which must hold
+    /// [`SegmenterStage::mask_len`] values) and returns the mask header. Never fails: a bad
+    /// scan becomes a rejection status, counted and logged.
+    pub fn process<P: PointXyz + Sync>(
+        &mut self,
+        h: &ScanHeader,
+        points: &[P],
+        received_ns: u64,
+        out: &mut [f32],
+    ) -> MaskHeader {
+        self.rejection = None;
+        let r = &mut self.report;
+        r.received += 1;
+        let new_run = match self.last {
+            Some((e, s)) if e == h.producer_epoch => {
+                r.dropped += sequence_gap(s, h.sequence);
+                false
+            }
+            Some(_) => true,
+            None => {
+                r.producer_runs += 1;
+                false
+            }
+        };
+        self.last = Some((h.producer_epoch, h.sequence));
+        let mut header = MaskHeader {
+            scan_sequence: h.sequence,
+            producer_epoch: h.producer_epoch,
+            sensor_timestamp_ns: h.sensor_timestamp_ns,
+            source_index: h.source_index,
+            stamps: h.stamps,
+            segmenter_epoch: self.epoch,
+            ..MaskHeader::default()
+        };
+        header.stamps.segmenter_received_ns = received_ns;
+        let pose = decode_pose(h);
+        if new_run {
+            // A new producer run: its history is only ours to keep if its pose continues
+            // it (a driver restart on a moving car); otherwise the frames are of another
+            // recording, another place or another clock.
+            self.report.producer_runs += 1;
+            let continues = matches!(&pose, Ok(Some(p)) if self.seg.continues_history(p));
+            if !continues && self.seg.reset_history() {
+                self.report.history_resets_new_run += 1;
+                info!(
+                    producer_epoch = h.producer_epoch,
+                    "new producer run: multi-frame history cleared"
+                );
+            }
+        }
+        let outcome = validate(h, points, self.max_points).and_then(|()| {
+            if out.len() != points.len() {
+                return Err((
+                    MaskStatus::OTHER,
+                    format!(
+                        "mask holds {} values for {} points",
+                        out.len(),
+                        points.len()
+                    ),
+                ));
+            }
+            if self.echo {
+                return Ok(None);
+            }
+            let pose = pose.map_err(|e| (MaskStatus::OTHER, e.to_string()))?;
+            let time = (h.sensor_timestamp_ns != 0).then_some(h.sensor_timestamp_ns);
+            // The segmenter reads the scan in shared memory and writes the probabilities
+            // straight into the loaned mask: no copies.
+            self.seg
+                .segment_stamped(points, pose.as_ref(), time, out)
+                .map(Some)
+                .map_err(|e| (status_of(&e), e.to_string()))
+        });
+        match outcome {
+            Ok(r) => {
+                self.report.segmented += 1;
+                header.point_count = points.len() as u32;
+                if let Some(r) = r {
+                    header.ground_points = r.ground_points as u32;
+                    header.frames_queried = r.frames_queried as u32;
+                    header.fit_us = r.fit_time.as_micros() as u32;
+                    header.query_us = r.query_time.as_micros() as u32;
+                    header.out_of_bounds_points = r.out_of_bounds_points as u32;
+                    self.report.out_of_bounds_points += r.out_of_bounds_points as u64;
+                }
+            }
+            Err((status, reason)) => {
+                *self.report.rejected.entry(status.name()).or_default() += 1;
+                self.rejection = Some(reason);
+                header.status = status;
+                header.point_count = 0;
+            }
+        }
+        header
+    }
+
+    /// Why the last processed scan was rejected (None if it was segmented).
+    pub fn last_rejection(&self) -> Option<&str> {
+        self.rejection.as_deref()
+    }
+
+    /// A new input sequence (offline: the next folder): the history and the height filter
+    /// start afresh, counted as a requested reset; whether frames were dropped.
+    pub fn new_sequence(&mut self) -> bool {
+        self.last = None;
+        let dropped = self.seg.history_len() > 0;
+        self.seg.reset();
+        dropped
+    }
+
+    /// Counts a mask that reached no subscriber.
+    pub fn count_unreceived(&mut self) {
+        self.report.unreceived_masks += 1;
+    }
+
+    /// The counters so far.
+    pub fn report(&self) -> &SegmenterReport {
+        &self.report
+    }
+
+    /// The segmenter (history, height filter, counters).
+    pub fn segmenter(&self) -> &Segmenter {
+        &self.seg
+    }
+
+    /// Logs the counters and the segmenter's state.
+    pub fn log_state(&self) {
+        let r = &self.report;
+        info!(
+            received = r.received,
+            segmented = r.segmented,
+            rejected = r.rejected.values().sum::<u64>(),
+            dropped = r.dropped,
+            unreceived_masks = r.unreceived_masks,
+            history = self.seg.history_len(),
+            "segmenter state"
+        );
+        self.seg.log_state();
+    }
+}
+
 /// Runs the segmenter until `count` scans were handled or a termination signal arrives.
 pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<SegmenterReport> {
+    signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
-    let max_points = cfg.max_points.min(opts.segmenter.sensor.max_points);
-    let mut seg = Segmenter::new(opts.segmenter.clone())?;
+    let mut stage = SegmenterStage::new(opts, cfg.max_points)?;
     let node = transport::node(cfg, "segmenter")?;
+    signals::install(&node)?;
     let scans = transport::scan_service(&node, cfg)?;
     let masks = transport::mask_service(&node, cfg)?;
     let subscriber = transport::scan_subscriber(&scans, cfg)?;
     let publisher = transport::mask_publisher(&masks, cfg)?;
     let scan_listener = transport::event_listener(&node, cfg, "scans")?;
     let mask_notifier = transport::event_notifier(&node, cfg, "masks")?;
-    let epoch = new_epoch();
     info!(prefix = %cfg.prefix, frames = opts.segmenter.history.frames, echo = opts.echo, "segmenter started");
 
-    let mut report = SegmenterReport::default();
-    let mut last: Option<(u64, u64)> = None; // (producer epoch, sequence)
-
-    let mut handle_scans = |report: &mut SegmenterReport,
-                            seg: &mut Segmenter|
-     -> anyhow::Result<()> {
+    let done = |stage: &SegmenterStage| opts.count.is_some_and(|c| stage.report().received >= c);
+    let handle_scans = |stage: &mut SegmenterStage| -> anyhow::Result<()> {
         while let Some(scan) = subscriber.receive().context("receive scan")? {
             let received_ns = monotonic_ns();
-            report.received += 1;
             let h = *scan.user_header();
-            if let Some((e, s)) = last {
-                if e == h.producer_epoch && h.sequence > s + 1 {
-                    report.dropped += h.sequence - s - 1;
-                }
-            }
-            last = Some((h.producer_epoch, h.sequence));
             let points: &[ScanPoint] = scan.payload();
-            let mut header = MaskHeader {
-                scan_sequence: h.sequence,
-                producer_epoch: h.producer_epoch,
-                sensor_timestamp_ns: h.sensor_timestamp_ns,
-                source_index: h.source_index,
-                stamps: h.stamps,
-                segmenter_epoch: epoch,
-                ..MaskHeader::default()
-            };
-            header.stamps.segmenter_received_ns = received_ns;
-            let verdict = validate(&h, points, max_points);
-            let n = if verdict.is_ok() { points.len() } else { 0 };
+            let n = stage.mask_len(&h, points);
             let mut mask = publisher
                 .loan_slice(n)
                 .map_err(|e| anyhow::anyhow!("loan mask of {n}: {e:?}"))?;
-            let outcome = match verdict {
-                Err(e) => Err(e),
-                Ok(()) if opts.echo => Ok(None),
-                Ok(()) => {
-                    let pose = (h.has_pose == 1)
-                        .then(|| {
-                            pose_from_matrix(&std::array::from_fn(|r| {
-                                std::array::from_fn(|c| h.pose[4 * r + c])
-                            }))
-                        })
-                        .transpose();
-                    match pose {
-                        Err(e) => Err((MaskStatus::OTHER, e.to_string())),
-                        // The segmenter reads the scan in shared memory and writes the
-                        // probabilities straight into the loaned mask: no copies.
-                        Ok(pose) => match seg.segment(points, pose.as_ref(), mask.payload_mut()) {
-                            Ok(r) => Ok(Some(r)),
-                            Err(e) => Err((status_of(&e), e.to_string())),
-                        },
-                    }
-                }
-            };
-            match outcome {
-                Ok(r) => {
-                    report.segmented += 1;
-                    header.point_count = n as u32;
-                    if let Some(r) = r {
-                        header.ground_points = r.ground_points as u32;
-                        header.frames_queried = r.frames_queried as u32;
-                        header.fit_us = r.fit_time.as_micros() as u32;
-                        header.query_us = r.query_time.as_micros() as u32;
-                    }
-                }
-                Err((status, reason)) => {
-                    *report.rejected.entry(status.name()).or_default() += 1;
-                    warn!(
-                        sequence = h.sequence,
-                        reason = status.name(),
-                        "rejected scan: {reason}"
-                    );
-                    header.status = status;
-                    header.point_count = 0;
-                }
-            }
+            let mut header = stage.process(&h, points, received_ns, mask.payload_mut());
             drop(scan);
+            if let Some(reason) = stage.last_rejection() {
+                warn!(
+                    sequence = h.sequence,
+                    reason = header.status.name(),
+                    "rejected scan: {reason}"
+                );
+            }
             header.stamps.segmenter_published_ns = monotonic_ns();
             *mask.user_header_mut() = header;
-            mask.send().context("send mask")?;
+            if mask.send().context("send mask")? == 0 {
+                stage.count_unreceived();
+            }
             let _ = mask_notifier.notify();
-            if opts.count.is_some_and(|c| report.received >= c) {
+            if done(stage) {
                 break;
             }
         }
@@ -192,41 +345,34 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
     };
 
     // Scans published before our listener existed wake nobody: look once at start.
-    handle_scans(&mut report, &mut seg)?;
+    handle_scans(&mut stage)?;
     let interval = Duration::from_secs_f64(cfg.report_interval_s);
     let mut last_report = std::time::Instant::now();
-    loop {
-        if opts.count.is_some_and(|c| report.received >= c) {
-            break;
-        }
+    while !done(&stage) {
         // The bounded wait also lets the periodic work run while idle.
-        if !transport::wait_or_stop(&node, &scan_listener, Duration::from_millis(250))? {
+        if !transport::wait_or_stop(&scan_listener, Duration::from_millis(250))? {
             break;
         }
         // Also serves scans whose wake-up was missed (e.g. a producer restarted between
         // our listener's cleanups): nothing strands in the queue.
-        handle_scans(&mut report, &mut seg)?;
+        handle_scans(&mut stage)?;
         if last_report.elapsed() >= interval {
             last_report = std::time::Instant::now();
-            let rejected: u64 = report.rejected.values().sum();
-            info!(
-                received = report.received,
-                segmented = report.segmented,
-                rejected,
-                dropped = report.dropped,
-                history = seg.history_len(),
-                "segmenter state"
-            );
-            seg.log_state();
+            stage.log_state();
             transport::cleanup_dead(&node);
         }
     }
+    let r = stage.report().clone();
     info!(
-        received = report.received,
-        segmented = report.segmented,
-        rejected = ?report.rejected,
-        dropped = report.dropped,
+        received = r.received,
+        segmented = r.segmented,
+        rejected = ?r.rejected,
+        dropped = r.dropped,
+        unreceived_masks = r.unreceived_masks,
+        producer_runs = r.producer_runs,
+        history_resets = stage.segmenter().counters().history_resets,
+        out_of_bounds_points = r.out_of_bounds_points,
         "segmenter stopped"
     );
-    Ok(report)
+    Ok(r)
 }

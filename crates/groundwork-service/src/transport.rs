@@ -25,14 +25,12 @@ pub type EventNotifier = Notifier<ipc::Service>;
 /// The wake-up side of a topic's readers.
 pub type EventListener = Listener<ipc::Service>;
 
-/// Dead nodes (processes that died without cleaning up) currently registered.
-fn dead_nodes(config: &iceoryx2::config::Config) -> u64 {
-    let mut dead = 0;
-    let _ = Node::<ipc::Service>::list(config, |s| {
-        dead += u64::from(matches!(s, NodeState::Dead(_)));
-        CallbackProgression::Continue
-    });
-    dead
+/// The iceoryx2 configuration every groundwork process uses: iceoryx2's defaults, set in
+/// code rather than looked up in files, so that all stages agree whatever their working
+/// directory, and a clean start logs no "No config file was loaded" warning.
+pub fn ipc_config() -> &'static iceoryx2::config::Config {
+    static CONFIG: std::sync::OnceLock<iceoryx2::config::Config> = std::sync::OnceLock::new();
+    CONFIG.get_or_init(iceoryx2::config::Config::default)
 }
 
 /// The iceoryx2 node name of a pipeline's stage: `<prefix>/<stage>`, so that a node
@@ -41,30 +39,74 @@ pub fn node_name(cfg: &ServiceConfig, stage: &str) -> String {
     format!("{}/{stage}", cfg.prefix)
 }
 
+/// Registered nodes of this pipeline (named `<prefix>/…`): (stage, alive, pid).
+pub fn pipeline_nodes(cfg: &ServiceConfig) -> Vec<(String, bool, i32)> {
+    use iceoryx2::node::NodeView;
+    let own = format!("{}/", cfg.prefix);
+    let mut found = Vec::new();
+    let _ = Node::<ipc::Service>::list(ipc_config(), |s| {
+        let (view_details, id, alive) = match &s {
+            NodeState::Alive(v) => (v.details(), v.id(), true),
+            NodeState::Dead(v) => (v.details(), v.id(), false),
+            _ => return CallbackProgression::Continue,
+        };
+        if let Some(d) = view_details {
+            if let Some(stage) = d.name().as_str().strip_prefix(&own) {
+                let pid = id.pid::<ipc::Service>().map_or(0, |p| p.value());
+                found.push((stage.to_string(), alive, pid));
+            }
+        }
+        CallbackProgression::Continue
+    });
+    found
+}
+
 /// Creates this process's node, named after the pipeline and the stage. Creating a node
 /// removes the ports and shared memory of processes that died without cleaning up (killed
-/// with -9, crashed); we count them first so that the log says what was removed.
+/// with -9, crashed); we count this pipeline's first so that the log says what was removed.
+///
+/// A stage that must be unique in its pipeline (`producer`, `segmenter`) is refused while
+/// another live process holds that role: two segmenters would answer every scan twice.
+/// (The topics also admit one publisher each, which settles a race of two starts.)
 pub fn node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Service>> {
     let name = node_name(cfg, stage);
-    let stale = dead_nodes(iceoryx2::config::Config::global_config());
+    let before = pipeline_nodes(cfg);
+    if matches!(stage, "producer" | "segmenter") {
+        if let Some((_, _, pid)) = before.iter().find(|(s, alive, _)| s == stage && *alive) {
+            anyhow::bail!(
+                "another {stage} of pipeline \"{}\" is running (pid {pid}): refusing to start a \
+                 second one (use another --prefix to run a second pipeline)",
+                cfg.prefix
+            );
+        }
+    }
+    let stale = before.iter().filter(|(_, alive, _)| !alive).count();
     let node = NodeBuilder::new()
+        .config(ipc_config())
         .name(&NodeName::new(&name).map_err(|e| anyhow::anyhow!("node name {name}: {e:?}"))?)
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"))?;
     // Whatever creation did not remove (e.g. a configuration that disables it) goes now.
     let c = node.try_cleanup_dead_nodes();
-    let left = dead_nodes(node.config());
-    if stale > 0 || c.cleanups > 0 {
+    let left = pipeline_nodes(cfg).iter().filter(|n| !n.1).count();
+    if stale > 0 {
         tracing::info!(
-            dead_processes = stale.max(c.cleanups),
+            dead_processes = stale,
             still_stale = left,
-            "removed stale resources of dead processes"
+            "removed stale resources of dead processes of this pipeline"
+        );
+    }
+    if c.failed_cleanups > 0 {
+        tracing::warn!(
+            failed = c.failed_cleanups,
+            "stale resources of dead processes could not be removed (another user's?)"
         );
     }
     Ok(node)
 }
 
-/// Periodic sweep for processes that died while we run.
+/// Periodic sweep for processes that died while we run (any pipeline's: iceoryx2 cleans
+/// them all); the log counts what was removed.
 pub fn cleanup_dead(node: &Node<ipc::Service>) {
     let c = node.try_cleanup_dead_nodes();
     if c.cleanups > 0 || c.failed_cleanups > 0 {
@@ -99,7 +141,8 @@ where
         .subscriber_max_buffer_size(queue)
         .subscriber_max_borrowed_samples(cfg.max_borrowed)
         .max_subscribers(cfg.max_subscribers)
-        .max_publishers(2)
+        // One producer, one segmenter: a second publisher is refused.
+        .max_publishers(1)
         .history_size(0)
         .enable_safe_overflow(cfg.overflow == OverflowPolicy::DropOldest)
         .open_or_create()
@@ -172,7 +215,15 @@ where
         .backpressure_strategy(BackpressureStrategy::DiscardData)
         .max_loaned_samples(2)
         .create()
-        .map_err(|e| anyhow::anyhow!("{what} publisher: {e:?}"))
+        .map_err(|e| match e {
+            iceoryx2::port::publisher::PublisherCreateError::ExceedsMaxSupportedPublishers => {
+                anyhow::anyhow!(
+                    "{what} topic already has its publisher: another process of this pipeline \
+                     publishes {what}s (use another --prefix)"
+                )
+            }
+            e => anyhow::anyhow!("{what} publisher: {e:?}"),
+        })
 }
 
 fn subscriber<P, H>(
@@ -220,19 +271,24 @@ pub fn mask_subscriber(
 }
 
 /// Blocks on `listener` for at most `timeout` (no busy spinning), then reports whether the
-/// process should go on: `Ok(false)` once SIGINT/SIGTERM arrived (iceoryx2 catches them).
-/// The bounded wait is what lets an idle stage notice a termination request.
+/// process should go on: `Ok(false)` once SIGINT, SIGTERM or SIGHUP arrived. Any other
+/// signal (SIGCONT after a SIGSTOP) merely ends the wait early. The bounded wait is what
+/// lets an idle stage notice a termination request.
 pub fn wait_or_stop(
-    node: &Node<ipc::Service>,
     listener: &EventListener,
     timeout: std::time::Duration,
 ) -> anyhow::Result<bool> {
-    let woke = listener
-        .timed_wait(|_| {}, timeout)
-        .map_err(|e| anyhow::anyhow!("wait for {}: {e:?}", listener.name()));
-    if node.wait(std::time::Duration::ZERO).is_err() {
+    use iceoryx2::port::listener::ListenerWaitError;
+    if crate::signals::stop_requested() {
+        return Ok(false);
+    }
+    let woke = listener.timed_wait(|_| {}, timeout);
+    if crate::signals::stop_requested() {
         tracing::info!("termination requested");
         return Ok(false);
     }
-    woke.map(|_| true)
+    match woke {
+        Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(true),
+        Err(e) => Err(anyhow::anyhow!("wait for {}: {e:?}", listener.name())),
+    }
 }
