@@ -105,3 +105,36 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
         );
     }
 }
+
+/// Frame 0 with one return set to (10, 0, 1e20), as a corrupted packet might carry: that
+/// point alone gets probability 0 and is counted, no value is NaN, and through the
+/// history the next frames are unaffected (they equal a run with that return removed).
+#[test]
+fn one_absurd_return_poisons_nothing() {
+    let cfg = load_config(&hdl64e_preset()).unwrap();
+    let seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
+    let poses = seq.poses.clone().unwrap();
+    let mut poisoned = Segmenter::new(cfg.clone()).unwrap();
+    let mut clean = Segmenter::new(cfg).unwrap();
+    for (f, (scan, pose)) in seq.scans.iter().zip(&poses).take(3).enumerate() {
+        let mut pts = groundwork_io::read_scan(scan, 200_000).unwrap();
+        let mut removed = pts.clone();
+        if f == 0 {
+            pts[500] = groundwork_core::Point::new(10.0, 0.0, 1e20);
+            // Removed: a point in the near disc, which is never fitted either.
+            removed[500] = groundwork_core::Point::new(0.0, 0.0, 0.0);
+        }
+        let (mut a, mut b) = (vec![0.0; pts.len()], vec![0.0; pts.len()]);
+        let r = poisoned.segment(&pts, Some(pose), &mut a).unwrap();
+        clean.segment(&removed, Some(pose), &mut b).unwrap();
+        assert!(a.iter().all(|p| p.is_finite()), "frame {f}");
+        assert_eq!(r.out_of_bounds_points, usize::from(f == 0));
+        let differ = a
+            .iter()
+            .zip(&b)
+            .filter(|(x, y)| x.to_bits() != y.to_bits())
+            .count();
+        assert_eq!(differ, 0, "frame {f}: {differ} probabilities moved");
+    }
+    assert_eq!(poisoned.counters().out_of_bounds_points, 1);
+}

@@ -414,6 +414,9 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(stdout.contains("12 masks (12 segmented"), "{stdout}");
+    // A clean start and stop logs no warning (iceoryx2's config is set in code).
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains(" WARN "), "{stderr}");
     assert!(
         stdout.contains("end to end") && stdout.contains("live accuracy"),
         "{stdout}"
@@ -437,4 +440,339 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
             .all(|f| f.to_string_lossy().ends_with("global_mgmt")),
         "left behind: {new:?}"
     );
+}
+
+fn signal(pid: i32, sig: rustix::process::Signal) {
+    let pid = rustix::process::Pid::from_raw(pid).unwrap();
+    rustix::process::kill_process(pid, sig).unwrap();
+}
+
+fn service(p: &str) -> groundwork_service::ServiceConfig {
+    groundwork_service::ServiceConfig {
+        prefix: p.to_string(),
+        ..Default::default()
+    }
+}
+
+/// Pid of the live process holding `stage` in pipeline `p`, waiting up to 10 s for it.
+fn stage_pid(p: &str, stage: &str) -> i32 {
+    let t = Instant::now();
+    loop {
+        let nodes = groundwork_service::transport::pipeline_nodes(&service(p));
+        if let Some(n) = nodes.iter().find(|n| n.0 == stage && n.1) {
+            return n.2;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "no {stage}: {nodes:?}"
+        );
+        sleep(0.1);
+    }
+}
+
+fn shm_files() -> Vec<std::ffi::OsString> {
+    std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name())
+        .collect()
+}
+
+/// Asserts that pipeline `p` left no node (alive or dead) and no shared memory beyond
+/// iceoryx2's management file, waiting up to `limit` for its processes to leave.
+fn assert_nothing_left(p: &str, shm_before: &[std::ffi::OsString], limit: Duration) {
+    let t = Instant::now();
+    loop {
+        let nodes = groundwork_service::transport::pipeline_nodes(&service(p));
+        let new: Vec<_> = shm_files()
+            .into_iter()
+            .filter(|f| !shm_before.contains(f) && !f.to_string_lossy().ends_with("global_mgmt"))
+            .collect();
+        if nodes.is_empty() && new.is_empty() {
+            return;
+        }
+        assert!(t.elapsed() < limit, "left behind: {nodes:?} {new:?}");
+        sleep(0.1);
+    }
+}
+
+/// `groundwork pipeline` as a child with its output in files.
+fn pipeline(dir: &Path, p: &str, args: &[&str], own_group: bool) -> Proc {
+    use std::os::unix::process::CommandExt;
+    let stderr = dir.join("pipeline.err");
+    let mut c = Command::new(env!("CARGO_BIN_EXE_groundwork"));
+    c.args(["pipeline", "--prefix", p, "--rate", "10"])
+        .args(args)
+        .env("RUST_LOG", "info")
+        .stdout(std::fs::File::create(dir.join("pipeline.out")).unwrap())
+        .stderr(std::fs::File::create(&stderr).unwrap());
+    if own_group {
+        c.process_group(0);
+    }
+    Proc {
+        child: c.spawn().unwrap(),
+        stderr,
+    }
+}
+
+#[test]
+fn stop_and_continue_does_not_end_any_stage() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prefix("stopcont");
+    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "4"]);
+    let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
+    sleep(0.5);
+    let mut prod = Proc::start(
+        tmp.path(),
+        "producer",
+        &p,
+        &["--rate", "10", "--count", "50"],
+    );
+    sleep(1.0);
+    use rustix::process::Signal;
+    // A debugger, `kill -STOP` while profiling, Ctrl-Z: each stage in turn.
+    for pid in [seg.child.id(), consumer.child.id(), prod.child.id()] {
+        signal(pid as i32, Signal::STOP);
+        sleep(0.7);
+        signal(pid as i32, Signal::CONT);
+        sleep(0.3);
+    }
+    assert!(seg.alive(), "segmenter ended:\n{}", seg.log());
+    assert!(
+        prod.wait(Duration::from_secs(15)).success(),
+        "{}",
+        prod.log()
+    );
+    assert!(
+        !prod.log().contains("termination requested"),
+        "{}",
+        prod.log()
+    );
+    assert!(
+        consumer.wait(Duration::from_secs(15)).success(),
+        "{}",
+        consumer.log()
+    );
+    assert!(seg.alive(), "segmenter ended:\n{}", seg.log());
+    seg.term();
+    assert!(seg.wait(Duration::from_secs(5)).success(), "{}", seg.log());
+    // The consumer's report was written and every scan is accounted for.
+    let r = report(&json);
+    let f = &r["scan_fate"];
+    let total: u64 = ["masked", "rejected", "unanswered", "dropped"]
+        .iter()
+        .map(|k| f[k].as_u64().unwrap())
+        .sum();
+    assert_eq!(total, 50, "{r}");
+    assert!(f["masked"].as_u64().unwrap() >= 40, "{r}");
+}
+
+#[test]
+fn every_scan_is_accounted_for_across_a_segmenter_restart() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prefix("fate");
+    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "3"]);
+    sleep(0.3);
+    // The consumer and the producer run before any segmenter exists.
+    let mut prod = Proc::start(
+        tmp.path(),
+        "producer",
+        &p,
+        &["--rate", "10", "--count", "60"],
+    );
+    sleep(1.0);
+    let mut seg_a = Proc::start(tmp.path(), "segmenter-a", &p, &["--frames", "1"]);
+    sleep(2.0);
+    seg_a.kill9();
+    sleep(1.0);
+    let mut seg_b = Proc::start(tmp.path(), "segmenter-b", &p, &["--frames", "1"]);
+    assert!(prod.wait(Duration::from_secs(15)).success());
+    let published = published(&prod.log());
+    assert!(consumer.wait(Duration::from_secs(10)).success());
+    seg_b.term();
+    seg_b.wait(Duration::from_secs(5));
+    let r = report(&json);
+    let f = &r["scan_fate"];
+    let get = |k: &str| f[k].as_u64().unwrap();
+    // Exactly one bucket per published scan.
+    assert_eq!(
+        get("masked") + get("rejected") + get("unanswered") + get("dropped"),
+        published,
+        "{r}"
+    );
+    // The first second (no segmenter) and the second after the kill got no mask.
+    assert!(get("unanswered") >= 12, "{r}");
+    assert!(get("masked") >= 30, "{r}");
+    assert_eq!(r["segmenter_runs"], 2, "{r}");
+}
+
+#[test]
+fn a_second_producer_or_segmenter_of_a_pipeline_is_refused() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prefix("dup");
+    let mut seg_a = Proc::start(tmp.path(), "segmenter-a", &p, &["--frames", "1"]);
+    let mut prod_a = Proc::start(tmp.path(), "producer-a", &p, &["--rate", "5"]);
+    stage_pid(&p, "segmenter");
+    stage_pid(&p, "producer");
+    for (name, args) in [
+        ("segmenter-b", &["--frames", "1"][..]),
+        ("producer-b", &["--rate", "5"][..]),
+    ] {
+        let mut b = Proc::start(tmp.path(), name, &p, args);
+        let st = b.wait(Duration::from_secs(10));
+        assert_eq!(st.code(), Some(2), "{}", b.log());
+        let role = name.split('-').next().unwrap();
+        assert!(
+            b.log().contains(&format!("another {role} of pipeline")),
+            "{}",
+            b.log()
+        );
+    }
+    assert!(
+        seg_a.alive() && prod_a.alive(),
+        "the first ones keep running"
+    );
+    prod_a.term();
+    seg_a.term();
+    assert!(prod_a.wait(Duration::from_secs(5)).success());
+    assert!(seg_a.wait(Duration::from_secs(5)).success());
+}
+
+#[test]
+fn skipped_input_files_are_counted_and_the_producer_exits_non_zero() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prefix("skip");
+    let dir = tmp.path().join("seq");
+    std::fs::create_dir(&dir).unwrap();
+    for i in 0..2 {
+        let name = format!("{i:06}.bin");
+        std::fs::copy(data().join("velodyne").join(&name), dir.join(&name)).unwrap();
+    }
+    std::fs::write(dir.join("000002.bin"), [0u8; 7]).unwrap();
+    let mut prod = Proc::start(
+        tmp.path(),
+        "producer",
+        &p,
+        &["--rate", "50", "--count", "6", dir.to_str().unwrap()],
+    );
+    let st = prod.wait(Duration::from_secs(10));
+    let log = prod.log();
+    assert_eq!(st.code(), Some(1), "{log}");
+    assert!(log.contains("000002.bin"), "{log}");
+    let stopped = log
+        .lines()
+        .find(|l| l.contains("producer stopped"))
+        .unwrap();
+    assert!(
+        stopped.contains("published=6") && stopped.contains("skipped_files=1"),
+        "{stopped}"
+    );
+}
+
+#[test]
+fn the_pipeline_fails_when_a_stage_dies_and_restarts_it_when_asked() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    use rustix::process::Signal;
+    // Without --restart: a supervisor sees a failure.
+    for stage in ["segmenter", "producer", "consumer"] {
+        let p = prefix(&format!("die-{stage}"));
+        let mut pl = pipeline(tmp.path(), &p, &[], false);
+        let pid = stage_pid(&p, stage);
+        sleep(1.0);
+        signal(pid, Signal::KILL);
+        let st = pl.wait(Duration::from_secs(15));
+        assert_eq!(st.code(), Some(1), "{stage}:\n{}", pl.log());
+        assert!(pl.log().contains("killed by signal 9"), "{}", pl.log());
+    }
+    // With --restart 1: the dead segmenter is started again and the run completes.
+    let p = prefix("restart");
+    let mut pl = pipeline(tmp.path(), &p, &["--count", "40", "--restart", "1"], false);
+    let pid = stage_pid(&p, "segmenter");
+    sleep(1.5);
+    signal(pid, Signal::KILL);
+    let st = pl.wait(Duration::from_secs(30));
+    let log = pl.log();
+    assert!(st.success(), "{log}");
+    assert!(log.contains("restarting"), "{log}");
+    let out = std::fs::read_to_string(tmp.path().join("pipeline.out")).unwrap();
+    assert!(out.contains("2 segmenter run(s)"), "{out}");
+}
+
+#[test]
+fn stages_die_with_a_killed_launcher_and_sighup_stops_the_pipeline_cleanly() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    use rustix::process::Signal;
+    let before = shm_files();
+    // kill -9 of the launcher: its stages get SIGTERM from the kernel and leave cleanly.
+    let p = prefix("orphan");
+    let mut pl = pipeline(tmp.path(), &p, &[], false);
+    stage_pid(&p, "producer");
+    sleep(1.5);
+    pl.kill9();
+    assert_nothing_left(&p, &before, Duration::from_secs(10));
+
+    // SIGHUP to the whole group (an ssh session closing): a clean stop with a report.
+    let p = prefix("hangup");
+    let mut pl = pipeline(tmp.path(), &p, &[], true);
+    stage_pid(&p, "producer");
+    sleep(2.0);
+    let pgid = rustix::process::Pid::from_child(&pl.child);
+    rustix::process::kill_process_group(pgid, Signal::HUP).unwrap();
+    let st = pl.wait(Duration::from_secs(15));
+    assert!(st.success(), "{}", pl.log());
+    let out = std::fs::read_to_string(tmp.path().join("pipeline.out")).unwrap();
+    assert!(
+        out.contains("scan fate") && out.contains("end to end"),
+        "{out}"
+    );
+    assert_nothing_left(&p, &before, Duration::from_secs(5));
+}
+
+#[test]
+fn another_user_cannot_attach_to_a_pipeline() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    if !rustix::process::geteuid().is_root() {
+        eprintln!("skipped: needs root to run a stage as another user");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prefix("perm");
+    let before = shm_files();
+    let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
+    stage_pid(&p, "segmenter");
+    // The pipeline's shared memory is this user's alone.
+    use std::os::unix::fs::MetadataExt;
+    for f in shm_files().iter().filter(|f| !before.contains(f)) {
+        let m = std::fs::metadata(Path::new("/dev/shm").join(f)).unwrap();
+        assert_eq!(
+            m.mode() & 0o077,
+            0,
+            "{f:?} is open to others: {:o}",
+            m.mode()
+        );
+    }
+    // A consumer and a producer run as `nobody` are refused with a clear message.
+    for stage in ["consumer", "producer"] {
+        let o = Command::new("setpriv")
+            .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
+            .arg(env!("CARGO_BIN_EXE_groundwork"))
+            .args([stage, "--prefix", &p, "--count", "1"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.contains("permission denied") && err.contains("run every stage as that user"),
+            "{err}"
+        );
+    }
+    assert!(seg.alive());
+    seg.term();
+    assert!(seg.wait(Duration::from_secs(5)).success());
 }

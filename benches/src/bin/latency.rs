@@ -476,6 +476,11 @@ fn round(args: &Args, exe: &Path, groundwork: &Path, n: usize) -> Result<Vec<Row
 }
 
 fn main() -> Result<()> {
+    // On a CPU below the build's target the first vector instruction would be SIGILL.
+    if let Err(e) = groundwork_core::cpu::check() {
+        eprintln!("error: {e}");
+        std::process::exit(3);
+    }
     let args = Args::parse();
     match args.role.as_deref() {
         Some("pong-iox") => {

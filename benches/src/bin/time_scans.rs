@@ -21,6 +21,11 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    // On a CPU below the build's target the first vector instruction would be SIGILL.
+    if let Err(e) = groundwork_core::cpu::check() {
+        eprintln!("error: {e}");
+        std::process::exit(3);
+    }
     let args = Args::parse();
     let cfg = groundwork_benches::preset()?;
     let max = cfg.sensor.max_points;

@@ -11,6 +11,18 @@ use crate::error::FormatError;
 /// instance id in the high 16 bits) and returns the semantic ids. The label count must
 /// match the scan's point count.
 pub fn read_labels(path: &Path, points: usize) -> Result<Vec<u16>, FormatError> {
+    // The size says whether it can match before anything is read (a wrong file given as
+    // labels may be huge).
+    let size = fs::metadata(path)
+        .map_err(|e| FormatError::io(path, e))?
+        .len();
+    if size % 4 == 0 && size / 4 != points as u64 {
+        return Err(FormatError::LabelCount {
+            path: path.to_path_buf(),
+            labels: (size / 4) as usize,
+            points,
+        });
+    }
     let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
     if bytes.len() % 4 != 0 {
         return Err(FormatError::Size {

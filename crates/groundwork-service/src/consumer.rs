@@ -400,6 +400,8 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
             transport::cleanup_dead(&node);
         }
     }
+    // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
+    transport::cleanup_dead(&node);
     // Scans already queued are seen, so that they count (as unanswered if no mask came).
     while let Some(scan) = scan_sub.receive().context("receive scan")? {
         stage.on_scan(scan.user_header());

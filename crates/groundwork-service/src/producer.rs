@@ -291,6 +291,8 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
             break;
         }
     }
+    // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
+    transport::cleanup_dead(&node);
     let r = stage.report().clone();
     info!(
         published = r.published,

@@ -362,6 +362,8 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
             transport::cleanup_dead(&node);
         }
     }
+    // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
+    transport::cleanup_dead(&node);
     let r = stage.report().clone();
     info!(
         received = r.received,
@@ -375,4 +377,91 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
         "segmenter stopped"
     );
     Ok(r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header(epoch: u64, seq: u64, n: usize, x: f64, t_ms: u64) -> ScanHeader {
+        let mut pose = ScanHeader::default().pose;
+        pose[3] = x;
+        ScanHeader {
+            point_count: n as u32,
+            sequence: seq,
+            producer_epoch: epoch,
+            sensor_timestamp_ns: t_ms * 1_000_000,
+            has_pose: 1,
+            pose,
+            ..ScanHeader::default()
+        }
+    }
+
+    fn stage() -> SegmenterStage {
+        let mut cfg = SegmenterConfig::default();
+        cfg.sensor.mount.height = 1.73;
+        cfg.history.frames = 3;
+        let opts = SegmenterOptions {
+            segmenter: cfg,
+            count: None,
+            echo: false,
+        };
+        SegmenterStage::new(&opts, 200_000).unwrap()
+    }
+
+    #[test]
+    fn a_new_producer_run_keeps_the_history_only_if_its_pose_continues_it() {
+        let pts: Vec<ScanPoint> = crate::synthetic::scan(20_000)
+            .iter()
+            .map(|p| ScanPoint {
+                x: p.x,
+                y: p.y,
+                z: p.z,
+                intensity: p.intensity,
+            })
+            .collect();
+        let mut s = stage();
+        let mut out = vec![0.0; pts.len()];
+        let mut run = |s: &mut SegmenterStage, h: ScanHeader| {
+            let m = s.process(&h, &pts, 1, &mut out);
+            assert_eq!(m.status, MaskStatus::OK, "{:?}", s.last_rejection());
+            m
+        };
+        for i in 0..3 {
+            run(&mut s, header(1, i, pts.len(), i as f64 * 0.5, i * 100));
+        }
+        assert_eq!(s.segmenter().history_len(), 2);
+        // A restarted driver on the same drive: pose and clock continue. History kept.
+        let m = run(&mut s, header(2, 0, pts.len(), 1.5, 300));
+        assert_eq!(m.frames_queried, 3);
+        // Another recording that starts elsewhere: history cleared, counted.
+        let m = run(&mut s, header(3, 0, pts.len(), 500.0, 400));
+        assert_eq!(m.frames_queried, 1);
+        let r = s.report();
+        assert_eq!((r.producer_runs, r.history_resets_new_run), (3, 1));
+        assert_eq!(r.dropped, 0);
+        // Sequence numbers jump inside a run: counted as dropped, no overflow at the top.
+        run(&mut s, header(3, 5, pts.len(), 500.0, 500));
+        run(&mut s, header(3, u64::MAX, pts.len(), 500.0, 600));
+        run(&mut s, header(3, 0, pts.len(), 500.0, 700));
+        assert_eq!(s.report().dropped, 4 + (u64::MAX - 6));
+    }
+
+    #[test]
+    fn a_bad_header_gets_an_empty_mask_naming_it() {
+        let mut s = stage();
+        let pts = vec![ScanPoint::default(); 10];
+        let mut h = header(1, 0, 11, 0.0, 0);
+        assert_eq!(s.mask_len(&h, &pts), 0);
+        let m = s.process(&h, &pts, 1, &mut []);
+        assert_eq!((m.status, m.point_count), (MaskStatus::COUNT_MISMATCH, 0));
+        assert!(s.last_rejection().unwrap().contains("11"));
+        h.point_count = 10;
+        h.pose[0] = 2.0; // not a rotation
+        let mut out = vec![0.0; 10];
+        let m = s.process(&h, &pts, 1, &mut out);
+        assert_eq!(m.status, MaskStatus::OTHER);
+        assert!(s.last_rejection().unwrap().contains("pose"));
+        assert_eq!(s.report().rejected.values().sum::<u64>(), 2);
+    }
 }

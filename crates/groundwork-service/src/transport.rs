@@ -85,7 +85,17 @@ pub fn node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Servic
         .config(ipc_config())
         .name(&NodeName::new(&name).map_err(|e| anyhow::anyhow!("node name {name}: {e:?}"))?)
         .create::<ipc::Service>()
-        .map_err(|e| anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"))?;
+        .map_err(|e| {
+            let root = ipc_config().global.root_path().to_string();
+            match std::fs::read_dir(&root) {
+                Err(io) if io.kind() == std::io::ErrorKind::PermissionDenied => anyhow::anyhow!(
+                    "cannot create iceoryx2 node ({e:?}): {root}: permission denied. The \
+                     pipeline's shared memory and sockets belong to the user who started it \
+                     (created 0600 under a 0750 root): run every stage as that user"
+                ),
+                _ => anyhow::anyhow!("cannot create iceoryx2 node: {e:?}"),
+            }
+        })?;
     // Whatever creation did not remove (e.g. a configuration that disables it) goes now.
     let c = node.try_cleanup_dead_nodes();
     let left = pipeline_nodes(cfg).iter().filter(|n| !n.1).count();

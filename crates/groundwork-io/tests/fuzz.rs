@@ -1,0 +1,161 @@
+//! Every reader and config parser fed truncated, random and lying inputs: an error (or a
+//! valid result), never a panic, and never an allocation larger than the file.
+//!
+//! A counting global allocator records the largest single allocation while a reader runs;
+//! the tests share one lock so that they do not see each other's allocations.
+
+#![allow(unsafe_code)] // the counting allocator below
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::path::Path;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use groundwork_core::Point;
+use groundwork_io::{
+    parse_config, read_calib_tr, read_labels, read_poses, read_prob, read_scan, write_kitti_bin,
+};
+use proptest::prelude::*;
+
+struct Counting;
+
+static LARGEST: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards every call to the system allocator unchanged; only records sizes.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
+        // SAFETY: same layout the caller gave us.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: ptr was allocated by System with this layout.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        LARGEST.fetch_max(new_size, Ordering::Relaxed);
+        // SAFETY: ptr was allocated by System with this layout.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: Counting = Counting;
+
+static SERIAL: Mutex<()> = Mutex::new(());
+
+/// Small allocations anything makes (paths, error messages, proptest's own bookkeeping).
+const SLACK: usize = 64 * 1024;
+
+/// Writes `bytes` to `name`, runs `read` on it, and checks: no panic, no allocation larger
+/// than the file (+ slack), an error that names the file. Returns whether it was accepted.
+fn run<T, E: std::fmt::Display>(
+    name: &str,
+    bytes: &[u8],
+    read: impl Fn(&Path) -> Result<T, E>,
+) -> Result<bool, TestCaseError> {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(name);
+    std::fs::write(&path, bytes).unwrap();
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    LARGEST.store(0, Ordering::Relaxed);
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read(&path)));
+    let largest = LARGEST.load(Ordering::Relaxed);
+    let Ok(result) = result else {
+        return Err(TestCaseError::fail(format!("{name}: reader panicked")));
+    };
+    prop_assert!(
+        largest <= bytes.len() + SLACK,
+        "{name}: allocated {largest} bytes for a {}-byte file",
+        bytes.len()
+    );
+    if let Err(e) = &result {
+        prop_assert!(e.to_string().contains(name), "{e}");
+    }
+    Ok(result.is_ok())
+}
+
+fn kitti_bytes(n: usize) -> Vec<u8> {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("x.bin");
+    let pts: Vec<Point> = (0..n)
+        .map(|i| Point::new(i as f32, -(i as f32), 0.5))
+        .collect();
+    write_kitti_bin(&p, &pts).unwrap();
+    std::fs::read(p).unwrap()
+}
+
+const POSES: &str = "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0.8 0 1 0 0 0 0 1 0.1\n";
+const CALIB: &str = "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0 0 0 -1 0 1 0 0 0\n";
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    #[test]
+    fn binary_readers_survive_random_bytes(bytes in prop::collection::vec(any::<u8>(), 0..2048)) {
+        run("r.bin", &bytes, |p| read_scan(p, 400_000))?;
+        run("r.pcd.bin", &bytes, |p| read_scan(p, 400_000))?;
+        run("r.label", &bytes, |p| read_labels(p, 100))?;
+        run("r.prob", &bytes, read_prob)?;
+    }
+
+    #[test]
+    fn truncated_binary_files_are_errors(n in 1usize..300, cut in 1usize..16) {
+        let full = kitti_bytes(n);
+        prop_assert!(!run("t.bin", &full[..full.len() - cut], |p| read_scan(p, 400_000))?);
+        // A label file short of a record, or with a torn one.
+        let labels = vec![0u8; 4 * n - cut.min(4 * n - 1)];
+        prop_assert!(!run("t.label", &labels, |p| read_labels(p, n))?);
+    }
+
+    /// The caller's expectation lies (labels for a scan of a billion points; a maximum of
+    /// a few points): an error from the file size, no allocation for what was claimed.
+    #[test]
+    fn lying_sizes_allocate_nothing_they_claim(n in 1usize..200, claim in 1_000_000usize..2_000_000_000) {
+        prop_assert!(!run("l.label", &vec![0u8; 4 * n], |p| read_labels(p, claim))?);
+        prop_assert!(!run("s.bin", &kitti_bytes(n + 5), |p| read_scan(p, n))?);
+    }
+
+    #[test]
+    fn text_readers_survive_mangled_text(
+        cut in 0usize..120,
+        junk in "[ -~\n]{0,40}",
+        insert_at in 0usize..120,
+    ) {
+        for (name, text) in [("poses.txt", POSES), ("calib.txt", CALIB)] {
+            let mut s = text[..cut.min(text.len())].to_string();
+            s.insert_str(insert_at.min(s.len()), &junk);
+            run(name, s.as_bytes(), read_poses)?;
+            run(name, s.as_bytes(), read_calib_tr)?;
+        }
+    }
+
+    #[test]
+    fn config_parser_survives_mangled_presets(
+        cut in 0usize..2000,
+        junk in "[ -~\n]{0,40}",
+        insert_at in 0usize..2000,
+    ) {
+        let preset = include_str!("../../../config/sensors/hdl64e.toml");
+        let mut s = preset[..cut.min(preset.len())].to_string();
+        s.insert_str(insert_at.min(s.len()), &junk);
+        run("sensor.toml", s.as_bytes(), |p| {
+            parse_config(p, &std::fs::read_to_string(p).unwrap())
+        })?;
+    }
+}
+
+#[test]
+fn the_fixtures_the_strategies_start_from_are_valid() {
+    assert!(run("v.bin", &kitti_bytes(10), |p| read_scan(p, 100)).unwrap());
+    assert!(run("poses.txt", POSES.as_bytes(), read_poses).unwrap());
+    assert!(run("calib.txt", CALIB.as_bytes(), read_calib_tr).unwrap());
+    let preset = include_str!("../../../config/sensors/hdl64e.toml");
+    assert!(
+        run("sensor.toml", preset.as_bytes(), |p| parse_config(
+            p, preset
+        ))
+        .unwrap()
+    );
+}
