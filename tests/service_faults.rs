@@ -639,6 +639,18 @@ fn a_second_producer_or_segmenter_of_a_pipeline_is_refused() {
     seg_a.term();
     assert!(prod_a.wait(Duration::from_secs(5)).success());
     assert!(seg_a.wait(Duration::from_secs(5)).success());
+    // No consumer was attached: every mask reached nobody, and that is counted.
+    let log = seg_a.log();
+    let stopped = log
+        .lines()
+        .find(|l| l.contains("segmenter stopped"))
+        .unwrap();
+    let field = |k: &str| -> u64 {
+        let v = stopped.split(&format!("{k}=")).nth(1).unwrap();
+        v.split_whitespace().next().unwrap().parse().unwrap()
+    };
+    assert!(field("received") > 0, "{stopped}");
+    assert_eq!(field("unreceived_masks"), field("received"), "{stopped}");
 }
 
 #[test]
@@ -757,12 +769,25 @@ fn another_user_cannot_attach_to_a_pipeline() {
             m.mode()
         );
     }
-    // A consumer and a producer run as `nobody` are refused with a clear message.
-    for stage in ["consumer", "producer"] {
+    // A consumer and a producer run as `nobody` are refused with a clear message. The
+    // binary is copied where `nobody` may run it (the checkout may be private to root).
+    use std::os::unix::fs::PermissionsExt;
+    let open = PathBuf::from(format!("/tmp/gwtest-perm-{}", std::process::id()));
+    std::fs::create_dir_all(&open).unwrap();
+    std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let exe = open.join("groundwork");
+    std::fs::copy(env!("CARGO_BIN_EXE_groundwork"), &exe).unwrap();
+    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
+    for args in [
+        &["consumer", "--count", "1"][..],
+        &["producer", "--synthetic", "1000"],
+    ] {
         let o = Command::new("setpriv")
             .args(["--reuid=65534", "--regid=65534", "--clear-groups"])
-            .arg(env!("CARGO_BIN_EXE_groundwork"))
-            .args([stage, "--prefix", &p, "--count", "1"])
+            .arg(&exe)
+            .args(args)
+            .args(["--prefix", &p])
+            .current_dir(&open)
             .output()
             .unwrap();
         let err = String::from_utf8_lossy(&o.stderr);
@@ -772,6 +797,7 @@ fn another_user_cannot_attach_to_a_pipeline() {
             "{err}"
         );
     }
+    let _ = std::fs::remove_dir_all(&open);
     assert!(seg.alive());
     seg.term();
     assert!(seg.wait(Duration::from_secs(5)).success());

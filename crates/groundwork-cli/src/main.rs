@@ -148,6 +148,12 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         warmup: u64,
     },
+    /// Print the shared memory (MiB) one pipeline with this service configuration may need
+    /// at worst: the `/dev/shm` size a container must get (`docker run --shm-size`).
+    ShmSize {
+        #[command(flatten)]
+        service: ServiceArgs,
+    },
     /// Segment scans: writes <out>/<scan>.prob (f32 per point) and <out>/<scan>.ground (u8).
     Segment {
         #[command(flatten)]
@@ -257,6 +263,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
             } else {
                 ExitCode::from(1)
             })
+        }
+        Command::ShmSize { service } => {
+            let cfg = load_service(&service)?;
+            // Round up, and leave room for iceoryx2's management segments.
+            println!("{}m", (cfg.shared_memory_estimate() >> 20) + 1 + 16);
+            Ok(ExitCode::SUCCESS)
         }
         Command::Segmenter {
             common,
