@@ -168,4 +168,42 @@ mod tests {
         assert!(e.contains("/dev/shm") && e.contains("max_points"), "{e}");
         check_shared_memory(&ServiceConfig::default()).unwrap();
     }
+
+    #[test]
+    fn mangled_service_files_are_errors_naming_the_file_never_panics() {
+        let text = include_str!("../../../config/service.toml");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("service.toml");
+        let junk = [
+            "=",
+            "[",
+            "\"",
+            "max_points = -1",
+            "\u{0}",
+            "rate_hz = nan",
+            "x",
+        ];
+        let mut accepted = 0;
+        // Every cut of the file, each with every piece of junk inserted at the cut.
+        for cut in (0..=text.len()).filter(|&c| text.is_char_boundary(c)) {
+            for j in junk {
+                let mangled = format!("{}{j}{}", &text[..cut], &text[cut..]);
+                std::fs::write(&path, mangled).unwrap();
+                match ServiceConfig::load(&path) {
+                    Ok(c) => {
+                        c.validate().unwrap();
+                        accepted += 1;
+                    }
+                    Err(e) => assert!(e.to_string().contains("service.toml"), "{e}"),
+                }
+            }
+        }
+        assert!(
+            accepted > 0,
+            "some insertions land in comments and are harmless"
+        );
+        std::fs::write(&path, [0xff, 0xfe, 0x00, 0x41]).unwrap();
+        let e = ServiceConfig::load(&path).unwrap_err().to_string();
+        assert!(e.contains("service.toml"), "{e}");
+    }
 }
