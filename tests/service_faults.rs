@@ -635,6 +635,8 @@ fn a_second_producer_or_segmenter_of_a_pipeline_is_refused() {
         seg_a.alive() && prod_a.alive(),
         "the first ones keep running"
     );
+    // Let a few scans flow (5 Hz) before stopping, for the count below.
+    sleep(2.0);
     prod_a.term();
     seg_a.term();
     assert!(prod_a.wait(Duration::from_secs(5)).success());
