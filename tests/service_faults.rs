@@ -804,3 +804,27 @@ fn another_user_cannot_attach_to_a_pipeline() {
     seg.term();
     assert!(seg.wait(Duration::from_secs(5)).success());
 }
+
+#[test]
+fn stale_counts_name_only_this_pipelines_dead_processes() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let other = prefix("stale-other");
+    let mine = prefix("stale-mine");
+    // Another pipeline's segmenter dies with -9 and leaves its node behind.
+    let mut dead = Proc::start(tmp.path(), "segmenter-other", &other, &["--frames", "1"]);
+    stage_pid(&other, "segmenter");
+    dead.kill9();
+    // This pipeline's segmenter cleans it up (iceoryx2 cleans every dead node) but does
+    // not report it as one of its own.
+    let mut seg = Proc::start(tmp.path(), "segmenter-mine", &mine, &["--frames", "1"]);
+    stage_pid(&mine, "segmenter");
+    seg.term();
+    assert!(seg.wait(Duration::from_secs(5)).success());
+    let log = seg.log();
+    assert!(!log.contains("removed stale resources"), "{log}");
+    assert!(
+        groundwork_service::transport::pipeline_nodes(&service(&other)).is_empty(),
+        "the dead node was removed all the same"
+    );
+}
