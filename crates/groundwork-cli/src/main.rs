@@ -564,9 +564,8 @@ fn offline_header(job: &Job, k: usize, points: usize) -> groundwork_msg::ScanHea
         ..Default::default()
     };
     if let Some(p) = &job.pose {
-        let m = p.to_homogeneous();
         h.has_pose = 1;
-        h.pose = std::array::from_fn(|i| m[(i / 4, i % 4)]);
+        h.pose = producer::pose_matrix(p);
     }
     h
 }

@@ -38,20 +38,6 @@ pub struct MissingCpuFeatures {
     missing: [bool; 9],
 }
 
-impl MissingCpuFeatures {
-    /// Names of the missing features.
-    pub fn names(&self) -> impl Iterator<Item = &'static str> + '_ {
-        #[cfg(target_arch = "x86_64")]
-        let names = REQUIRED.iter().map(|(n, _)| *n);
-        #[cfg(not(target_arch = "x86_64"))]
-        let names = std::iter::empty();
-        names
-            .enumerate()
-            .filter(|(i, _)| self.missing[*i])
-            .map(|(_, n)| n)
-    }
-}
-
 impl std::fmt::Display for MissingCpuFeatures {
     // Runs on CPUs without AVX: plain indexed loop, barriers against vectorisation.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

@@ -181,10 +181,10 @@ impl Segmenter {
     }
 
     /// Forgets the history and the height filter (e.g. on a new sequence); counted as a
-    /// requested history reset if there was a history.
-    pub fn reset(&mut self) {
-        self.reset_history();
+    /// requested history reset if there was a history. Returns whether frames were dropped.
+    pub fn reset(&mut self) -> bool {
         self.height.reset();
+        self.reset_history()
     }
 
     /// Forgets the multi-frame history (a new producer run, a new sequence); counted as a

@@ -46,8 +46,6 @@ pub struct StageOutcome {
 pub struct Outcome {
     /// Per stage, in start order.
     pub stages: Vec<StageOutcome>,
-    /// Stopped by SIGINT, SIGTERM or SIGHUP.
-    pub interrupted: bool,
 }
 
 impl Outcome {
@@ -155,11 +153,9 @@ pub fn run(
             }
         }
     }
-    let mut interrupted = false;
     'supervise: loop {
         if !signals::sleep(Duration::from_millis(100)) {
             info!("stop requested: stopping the pipeline");
-            interrupted = true;
             break;
         }
         for s in running.iter_mut().filter(|s| s.status.is_none()) {
@@ -214,6 +210,5 @@ pub fn run(
                 failure: s.failure,
             })
             .collect(),
-        interrupted,
     })
 }

@@ -127,7 +127,9 @@ pub fn load(source: &Source, max_points: usize) -> anyhow::Result<(Vec<Frame>, V
     }
 }
 
-fn pose_matrix(p: &Pose) -> [f64; 16] {
+/// A pose as a scan header carries it: 4×4 row-major (the inverse of
+/// [`crate::segmenter::decode_pose`]).
+pub fn pose_matrix(p: &Pose) -> [f64; 16] {
     let m = p.to_homogeneous();
     std::array::from_fn(|i| m[(i / 4, i % 4)])
 }

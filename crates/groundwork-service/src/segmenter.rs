@@ -261,9 +261,7 @@ impl SegmenterStage {
     /// start afresh, counted as a requested reset; whether frames were dropped.
     pub fn new_sequence(&mut self) -> bool {
         self.last = None;
-        let dropped = self.seg.history_len() > 0;
-        self.seg.reset();
-        dropped
+        self.seg.reset()
     }
 
     /// Counts a mask that reached no subscriber.
