@@ -98,13 +98,29 @@ fn report(path: &Path) -> serde_json::Value {
 
 /// `published=N` from the producer's final log line.
 fn published(log: &str) -> u64 {
-    let line = log
+    logged(log, "producer stopped", "published")
+}
+
+/// The number logged as `key=` on the last line of `log` that contains `line`.
+fn logged(log: &str, line: &str, key: &str) -> u64 {
+    let found = log
         .lines()
         .rev()
-        .find(|l| l.contains("producer stopped"))
-        .unwrap_or_else(|| panic!("{log}"));
-    let v = line.split("published=").nth(1).unwrap();
+        .find(|l| l.contains(line))
+        .unwrap_or_else(|| panic!("no {line:?} in:\n{log}"));
+    let v = found
+        .split(&format!(" {key}="))
+        .nth(1)
+        .unwrap_or_else(|| panic!("no {key} in {found}"));
     v.split_whitespace().next().unwrap().parse().unwrap()
+}
+
+/// Scans in the four buckets of a consumer report's `scan_fate`.
+fn scan_fate_total(r: &serde_json::Value) -> u64 {
+    ["masked", "rejected", "unanswered", "dropped"]
+        .iter()
+        .map(|k| r["scan_fate"][k].as_u64().unwrap())
+        .sum()
 }
 
 /// The states ("alive", "dead", "other") of the iceoryx2 nodes called `name`.
@@ -203,13 +219,7 @@ fn killed_producer_leaves_the_others_serving_and_a_new_one_resumes() {
     // not about keeping up (dropped masks are asserted to be zero below).
     let mut prod_a = Proc::start(tmp.path(), "producer-a", &p, &["--rate", "10"]);
     sleep(1.5);
-    let producer = groundwork_service::transport::node_name(
-        &groundwork_service::ServiceConfig {
-            prefix: p.clone(),
-            ..Default::default()
-        },
-        "producer",
-    );
+    let producer = groundwork_service::transport::node_name(&service(&p), "producer");
     assert_eq!(node_states(&producer), ["alive"]);
     prod_a.kill9();
     // The survivors' periodic sweep (every 2 s) removes what the killed producer left,
@@ -559,13 +569,8 @@ fn stop_and_continue_does_not_end_any_stage() {
     assert!(seg.wait(Duration::from_secs(5)).success(), "{}", seg.log());
     // The consumer's report was written and every scan is accounted for.
     let r = report(&json);
-    let f = &r["scan_fate"];
-    let total: u64 = ["masked", "rejected", "unanswered", "dropped"]
-        .iter()
-        .map(|k| f[k].as_u64().unwrap())
-        .sum();
-    assert_eq!(total, 50, "{r}");
-    assert!(f["masked"].as_u64().unwrap() >= 40, "{r}");
+    assert_eq!(scan_fate_total(&r), 50, "{r}");
+    assert!(r["scan_fate"]["masked"].as_u64().unwrap() >= 40, "{r}");
 }
 
 #[test]
@@ -597,11 +602,7 @@ fn every_scan_is_accounted_for_across_a_segmenter_restart() {
     let f = &r["scan_fate"];
     let get = |k: &str| f[k].as_u64().unwrap();
     // Exactly one bucket per published scan.
-    assert_eq!(
-        get("masked") + get("rejected") + get("unanswered") + get("dropped"),
-        published,
-        "{r}"
-    );
+    assert_eq!(scan_fate_total(&r), published, "{r}");
     // The first second (no segmenter) and the second after the kill got no mask.
     assert!(get("unanswered") >= 12, "{r}");
     assert!(get("masked") >= 30, "{r}");
@@ -643,16 +644,9 @@ fn a_second_producer_or_segmenter_of_a_pipeline_is_refused() {
     assert!(seg_a.wait(Duration::from_secs(5)).success());
     // No consumer was attached: every mask reached nobody, and that is counted.
     let log = seg_a.log();
-    let stopped = log
-        .lines()
-        .find(|l| l.contains("segmenter stopped"))
-        .unwrap();
-    let field = |k: &str| -> u64 {
-        let v = stopped.split(&format!("{k}=")).nth(1).unwrap();
-        v.split_whitespace().next().unwrap().parse().unwrap()
-    };
-    assert!(field("received") > 0, "{stopped}");
-    assert_eq!(field("unreceived_masks"), field("received"), "{stopped}");
+    let field = |k: &str| logged(&log, "segmenter stopped", k);
+    assert!(field("received") > 0, "{log}");
+    assert_eq!(field("unreceived_masks"), field("received"), "{log}");
 }
 
 #[test]
@@ -677,13 +671,11 @@ fn skipped_input_files_are_counted_and_the_producer_exits_non_zero() {
     let log = prod.log();
     assert_eq!(st.code(), Some(1), "{log}");
     assert!(log.contains("000002.bin"), "{log}");
-    let stopped = log
-        .lines()
-        .find(|l| l.contains("producer stopped"))
-        .unwrap();
-    assert!(
-        stopped.contains("published=6") && stopped.contains("skipped_files=1"),
-        "{stopped}"
+    assert_eq!(published(&log), 6, "{log}");
+    assert_eq!(
+        logged(&log, "producer stopped", "skipped_files"),
+        1,
+        "{log}"
     );
 }
 
