@@ -19,8 +19,7 @@ fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
     let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
     // Single frame: no poses needed, and only the labeled frames.
     seq.poses = None;
-    seq.scans.truncate(3);
-    seq.labels.truncate(3);
+    seq.limit = Some(3);
     let mut seg = Segmenter::new(cfg).unwrap();
     let r = evaluate(&seq, &mut seg, Protocol::Gmm, |_| {}).unwrap();
     assert_eq!(r.labeled_scans, 3);
@@ -45,8 +44,7 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
     let cfg = load_config(&hdl64e_preset()).unwrap();
     let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
     seq.poses = None;
-    seq.scans.truncate(1);
-    seq.labels.truncate(1);
+    seq.limit = Some(1);
     let mut seg = Segmenter::new(cfg.clone()).unwrap();
     let gmm = evaluate(&seq, &mut seg, Protocol::Gmm, |_| {}).unwrap();
     let mut seg = Segmenter::new(cfg).unwrap();
@@ -64,8 +62,7 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
 fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
     let single = {
         let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
-        seq.scans.truncate(3);
-        seq.labels.truncate(3);
+        seq.limit = Some(3);
         let mut cfg = load_config(&hdl64e_preset()).unwrap();
         cfg.history.frames = 1;
         let mut seg = Segmenter::new(cfg).unwrap();
@@ -76,8 +73,7 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
         cfg.history.frames = frames;
         let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
         assert!(seq.poses.is_some(), "poses.txt + calib.txt are vendored");
-        seq.scans.truncate(3);
-        seq.labels.truncate(3);
+        seq.limit = Some(3);
         let mut seg = Segmenter::new(cfg).unwrap();
         let multi = evaluate(&seq, &mut seg, Protocol::Gmm, |_| {}).unwrap();
         assert_eq!(multi.scans[2].frames_queried, 3.min(frames as usize));
@@ -116,8 +112,8 @@ fn one_absurd_return_poisons_nothing() {
     let poses = seq.poses.clone().unwrap();
     let mut poisoned = Segmenter::new(cfg.clone()).unwrap();
     let mut clean = Segmenter::new(cfg).unwrap();
-    for (f, (scan, pose)) in seq.scans.iter().zip(&poses).take(3).enumerate() {
-        let mut pts = groundwork_io::read_scan(scan, 200_000).unwrap();
+    for (f, (item, pose)) in seq.scans(200_000).zip(&poses).take(3).enumerate() {
+        let mut pts = item.scan.unwrap().points;
         let mut removed = pts.clone();
         if f == 0 {
             pts[500] = groundwork_core::Point::new(10.0, 0.0, 1e20);

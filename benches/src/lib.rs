@@ -18,5 +18,5 @@ pub fn preset() -> anyhow::Result<SegmenterConfig> {
 /// KITTI frame `n` (0..=5) of the vendored sequence.
 pub fn kitti_frame(n: usize) -> anyhow::Result<Vec<Point>> {
     let p = kitti_sequence().join(format!("velodyne/{n:06}.bin"));
-    Ok(groundwork_io::read_scan(&p, 1_000_000)?)
+    Ok(groundwork_io::read_scan(&p, 1_000_000)?.points)
 }

@@ -32,7 +32,7 @@ fn main() -> anyhow::Result<()> {
     let mut seg = Segmenter::new(cfg)?;
     let mut times = Vec::new();
     for path in &args.scans {
-        let points = groundwork_io::read_scan(path, max)?;
+        let points = groundwork_io::read_scan(path, max)?.points;
         let mut out = vec![0.0f32; points.len()];
         for _ in 0..args.warmup {
             seg.segment(&points, None, &mut out)?;

@@ -8,7 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use groundwork_core::{Segmenter, SegmenterConfig};
 use groundwork_eval::{Protocol, Sequence, evaluate, median};
-use groundwork_io::{load_config, parse_config, read_scan, scan_stem, write_outputs};
+use groundwork_io::{load_config, parse_config, write_outputs};
 use groundwork_service::{
     ServiceConfig, check_shared_memory, consumer, launcher, producer, segmenter,
 };
@@ -47,6 +47,9 @@ struct Common {
     /// KITTI calib.txt with Tr (default: <sequence>/calib.txt if present).
     #[arg(long)]
     calib: Option<PathBuf>,
+    /// PointCloud2 topic of MCAP recordings (default: the first point cloud topic).
+    #[arg(long)]
+    topic: Option<String>,
 }
 
 #[derive(clap::Args, Debug, Clone)]
@@ -68,7 +71,8 @@ enum Command {
         common: Common,
         #[command(flatten)]
         service: ServiceArgs,
-        /// Scans to replay (looping); default: the bundled KITTI sequence.
+        /// Scans to replay (looping): a folder of scans or an MCAP recording; default: the
+        /// bundled KITTI sequence.
         #[arg(long)]
         data: Option<PathBuf>,
         /// Stop after this many scans (default: run until Ctrl-C).
@@ -102,7 +106,11 @@ enum Command {
         /// Fault testing: every N-th scan is malformed (NaN, empty, bad schema, bad count).
         #[arg(long)]
         malformed_every: Option<u64>,
-        /// Sequence folder to replay; default: the bundled KITTI sequence.
+        /// PointCloud2 topic of a recording (default: its first point cloud topic).
+        #[arg(long)]
+        topic: Option<String>,
+        /// Folder of scans or MCAP recording to replay (a recording at its recorded rate
+        /// unless --rate is given); default: the bundled KITTI sequence.
         data: Option<PathBuf>,
     },
     /// Stage: segment scans into masks, keeping the multi-frame history.
@@ -169,8 +177,13 @@ enum Command {
     Eval {
         #[command(flatten)]
         common: Common,
-        /// Sequence folder with velodyne/ and labels/ (poses.txt, calib.txt optional).
+        /// Sequence folder with velodyne/ and labels/ (poses.txt, calib.txt optional), a
+        /// folder of scans, or an MCAP recording.
         sequence: PathBuf,
+        /// Folder of .label files (default: <sequence>/labels). For a recording, the
+        /// index-th message's labels are <index:06>.label.
+        #[arg(long)]
+        labels: Option<PathBuf>,
         /// Label protocol: gmm (vegetation ignored) or terraseg (vegetation is non-ground).
         #[arg(long, value_enum, default_value_t = ProtocolArg::Gmm)]
         protocol: ProtocolArg,
@@ -223,9 +236,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Eval {
             common,
             sequence,
+            labels,
             protocol,
             json,
-        } => eval(&common, &sequence, protocol, json),
+        } => eval(&common, &sequence, labels.as_deref(), protocol, json),
         Command::Pipeline {
             common,
             service,
@@ -241,12 +255,15 @@ fn run(cli: Cli) -> Result<ExitCode> {
             rate,
             synthetic,
             malformed_every,
+            topic,
             data,
         } => {
             let cfg = load_service(&service)?;
             let source = match synthetic {
                 Some(n) => producer::Source::Synthetic(n),
-                None => producer::Source::Sequence(data.unwrap_or_else(|| BUNDLED_DATA.into())),
+                None => {
+                    producer::Source::from_path(data.unwrap_or_else(|| BUNDLED_DATA.into()), topic)
+                }
             };
             let r = producer::run(
                 &cfg,
@@ -345,7 +362,11 @@ fn pipeline(
     load(common)?;
     check_shared_memory(&cfg)?;
     let data = data.unwrap_or_else(|| BUNDLED_DATA.into());
-    anyhow::ensure!(data.is_dir(), "{}: no such folder", data.display());
+    anyhow::ensure!(
+        data.exists(),
+        "{}: no such folder or recording",
+        data.display()
+    );
     let exe = std::env::current_exe().context("cannot find this executable")?;
     let stage = |name: &'static str| {
         let mut c = std::process::Command::new(&exe);
@@ -363,7 +384,9 @@ fn pipeline(
         seg.arg("--frames").arg(f.to_string());
     }
     let mut con = stage("consumer");
-    con.arg("--labels").arg(&data);
+    if data.is_dir() {
+        con.arg("--labels").arg(&data);
+    }
     if let Some(n) = count {
         con.arg("--count")
             .arg(n.to_string())
@@ -379,6 +402,9 @@ fn pipeline(
     }
     if let Some(r) = rate {
         prod.arg("--rate").arg(r.to_string());
+    }
+    if let Some(t) = &common.topic {
+        prod.arg("--topic").arg(t);
     }
     prod.arg(&data);
     let outcome = launcher::run(
@@ -438,51 +464,46 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     pb
 }
 
-/// One scan to segment: its file, pose, and the input (folder) it came from.
-struct Job {
-    path: PathBuf,
-    pose: Option<groundwork_core::Pose>,
-    input: usize,
+/// Where `segment` writes: `.prob`/`.ground` files in a folder, or one recording.
+enum SegmentOutput {
+    Files(PathBuf),
+    Recording(Box<groundwork_io::RecordingWriter>),
 }
 
 fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
     let cfg = load(common)?;
     let thr = cfg.ground.ground_threshold;
     let max = cfg.sensor.max_points;
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let mut output = if out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
+    {
+        if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("{}: cannot create", dir.display()))?;
+        }
+        SegmentOutput::Recording(Box::new(groundwork_io::RecordingWriter::create(out)?))
+    } else {
+        std::fs::create_dir_all(out)
+            .with_context(|| format!("{}: cannot create", out.display()))?;
+        SegmentOutput::Files(out.to_path_buf())
+    };
 
-    // Each input is a scan file or a folder; a folder may carry poses for history. An
-    // input that cannot be used is reported and counted, and the others still run.
+    // Each input is a scan file, a folder or a recording; a folder may carry poses for
+    // history. An input that cannot be used is reported and counted, and the others
+    // still run.
     let mut failed = 0usize;
-    let mut jobs: Vec<Job> = Vec::new();
-    for (input, path) in inputs.iter().enumerate() {
-        if path.is_dir() {
-            match Sequence::open(path, common.poses.as_deref(), common.calib.as_deref()) {
-                Ok(seq) => {
-                    let poses = seq.poses.clone();
-                    jobs.extend(seq.scans.into_iter().enumerate().map(|(i, s)| Job {
-                        path: s,
-                        pose: poses.as_ref().and_then(|p| p.get(i).copied()),
-                        input,
-                    }));
-                }
-                Err(e) => {
-                    failed += 1;
-                    error!("skipped: {e}");
-                }
+    let mut sequences = Vec::new();
+    for path in inputs {
+        match Sequence::open(path, common.poses.as_deref(), common.calib.as_deref()) {
+            Ok(seq) => sequences.push(seq.with_topic(common.topic.clone())),
+            Err(e) => {
+                failed += 1;
+                error!("skipped: {e}");
             }
-        } else if path.is_file() {
-            jobs.push(Job {
-                path: path.clone(),
-                pose: None,
-                input,
-            });
-        } else {
-            failed += 1;
-            error!("skipped: {}: no such file or folder", path.display());
         }
     }
-    if cfg.history.frames > 1 && jobs.iter().all(|j| j.pose.is_none()) {
+    if cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
         info!("no poses found: scans are segmented single-frame");
     }
     // The same stage as the service's segmenter process: same checks, same counters.
@@ -494,52 +515,76 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
         },
         max,
     )?;
-    let pb = progress(jobs.len(), "segment");
-    let mut times = Vec::with_capacity(jobs.len());
+    let known: Option<usize> = sequences.iter().map(Sequence::len_hint).sum();
+    let pb = progress(known.unwrap_or(0), "segment");
+    let mut times = Vec::new();
     let mut probs = Vec::new();
-    let mut sequence_resets = 0u64;
-    for (k, job) in jobs.iter().enumerate() {
-        // Every input folder is a sequence of its own: the history of the previous one
-        // describes another place (and KITTI sequences all start at the identity pose).
-        if k > 0 && jobs[k - 1].input != job.input && stage.new_sequence() {
+    let (mut sequence_resets, mut scans, mut placeholders) = (0u64, 0usize, 0usize);
+    for (input, seq) in sequences.iter().enumerate() {
+        // Every input is a sequence of its own: the history of the previous one describes
+        // another place (and KITTI sequences all start at the identity pose).
+        if input > 0 && stage.new_sequence() {
             sequence_resets += 1;
         }
-        let result = (|| -> Result<()> {
-            let points = read_scan(&job.path, max)?;
-            let header = offline_header(job, k, points.len());
-            probs.resize(stage.mask_len(&header, &points), 0.0);
-            let t = Instant::now();
-            let mask = stage.process(&header, &points, 0, &mut probs);
-            if let Some(reason) = stage.last_rejection() {
-                bail!("{}: {reason}", job.path.display());
+        for item in seq.scans(max) {
+            if known.is_none() {
+                pb.inc_length(1);
             }
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-            if mask.out_of_bounds_points > 0 {
-                pb.suspend(|| {
-                    tracing::warn!(
-                        points = mask.out_of_bounds_points,
-                        "{}: points beyond the coordinate bound (probability 0)",
-                        job.path.display()
-                    )
-                });
+            let k = scans;
+            scans += 1;
+            let result = (|| -> Result<()> {
+                let scan = item.scan.as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
+                let header = offline_header(seq.pose(item.index), input, k, scan.points.len());
+                probs.resize(stage.mask_len(&header, &scan.points), 0.0);
+                let t = Instant::now();
+                let mask = stage.process(&header, &scan.points, 0, &mut probs);
+                if let Some(reason) = stage.last_rejection() {
+                    bail!("{}: {reason}", item.name);
+                }
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                if mask.out_of_bounds_points > 0 {
+                    pb.suspend(|| {
+                        tracing::warn!(
+                            points = mask.out_of_bounds_points,
+                            "{}: points beyond the coordinate bound (probability 0)",
+                            item.name
+                        )
+                    });
+                }
+                placeholders += scan.skipped();
+                match &mut output {
+                    // One value per record of the input: placeholders get 0.
+                    SegmentOutput::Files(dir) => {
+                        write_outputs(dir, &item.name, &scan.expand(&probs, 0.0), thr)?
+                    }
+                    SegmentOutput::Recording(w) => {
+                        let topic = item.topic.as_deref().unwrap_or("/points");
+                        // Files have no time: 10 Hz from 0, in processing order.
+                        let t = item.log_time_ns.unwrap_or(k as u64 * 100_000_000);
+                        w.write(topic, scan, &probs, t)?
+                    }
+                }
+                Ok(())
+            })();
+            if let Err(e) = result {
+                // One bad scan never costs the others.
+                failed += 1;
+                pb.suspend(|| error!("skipped: {e:#}"));
             }
-            write_outputs(out, &scan_stem(&job.path), &probs, thr)?;
-            Ok(())
-        })();
-        if let Err(e) = result {
-            // One bad scan never costs the others.
-            failed += 1;
-            pb.suspend(|| error!("skipped: {e:#}"));
+            pb.inc(1);
         }
-        pb.inc(1);
     }
     pb.finish_and_clear();
+    if let SegmentOutput::Recording(w) = output {
+        w.finish()?;
+    }
     stage.segmenter().log_state();
     let c = stage.segmenter().counters();
     info!(
-        scans = jobs.len(),
+        scans,
         failed,
         sequence_resets,
+        placeholders,
         history_resets = c.history_resets,
         out_of_bounds_points = c.out_of_bounds_points,
         median_ms = median(times),
@@ -553,26 +598,42 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
     })
 }
 
-/// The header a scan read from a file would carry in the service: its folder is its
-/// producer run, its place in the job list its sequence number.
-fn offline_header(job: &Job, k: usize, points: usize) -> groundwork_msg::ScanHeader {
+/// The header a scan read from a file would carry in the service: its input is its
+/// producer run, its place among all scans its sequence number.
+fn offline_header(
+    pose: Option<&groundwork_core::Pose>,
+    input: usize,
+    k: usize,
+    points: usize,
+) -> groundwork_msg::ScanHeader {
     let mut h = groundwork_msg::ScanHeader {
         point_count: u32::try_from(points).unwrap_or(u32::MAX),
         sequence: k as u64,
-        producer_epoch: job.input as u64 + 1,
+        producer_epoch: input as u64 + 1,
         source_index: k as u64,
         ..Default::default()
     };
-    if let Some(p) = &job.pose {
+    if let Some(p) = pose {
         h.has_pose = 1;
         h.pose = producer::pose_matrix(p);
     }
     h
 }
 
-fn eval(common: &Common, dir: &Path, protocol: ProtocolArg, json: bool) -> Result<ExitCode> {
+fn eval(
+    common: &Common,
+    dir: &Path,
+    labels: Option<&Path>,
+    protocol: ProtocolArg,
+    json: bool,
+) -> Result<ExitCode> {
     let cfg = load(common)?;
-    let seq = Sequence::open(dir, common.poses.as_deref(), common.calib.as_deref())?;
+    let mut seq = Sequence::open(dir, common.poses.as_deref(), common.calib.as_deref())?
+        .with_topic(common.topic.clone());
+    if let Some(l) = labels {
+        anyhow::ensure!(l.is_dir(), "{}: no such folder", l.display());
+        seq = seq.with_labels(l.to_path_buf());
+    }
     if cfg.history.frames > 1 && seq.poses.is_none() {
         info!("no poses.txt + calib.txt: multi-frame history is not used");
     }
@@ -581,8 +642,14 @@ fn eval(common: &Common, dir: &Path, protocol: ProtocolArg, json: bool) -> Resul
         ProtocolArg::Gmm => Protocol::Gmm,
         ProtocolArg::Terraseg => Protocol::Terraseg,
     };
-    let pb = progress(seq.scans.len(), "eval");
-    let report = evaluate(&seq, &mut seg, protocol, |_| pb.inc(1))?;
+    let known = seq.len_hint();
+    let pb = progress(known.unwrap_or(0), "eval");
+    let report = evaluate(&seq, &mut seg, protocol, |_| {
+        if known.is_none() {
+            pb.inc_length(1);
+        }
+        pb.inc(1)
+    })?;
     pb.finish_and_clear();
     if json {
         println!("{}", serde_json::to_string_pretty(&report)?);

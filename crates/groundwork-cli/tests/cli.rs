@@ -240,3 +240,111 @@ fn each_input_folder_starts_a_fresh_history() {
     assert!(o.status.success());
     assert_eq!(a, fs::read(single.join("000000.prob")).unwrap());
 }
+
+fn fixture(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../groundwork-io/tests/fixtures")
+        .join(name)
+}
+
+/// A ROS 2 recording in, a recording out: every input point comes back with its
+/// probability (NaN placeholders as placeholders with 0), and the result equals what the
+/// `.prob` route gives for the same messages.
+#[test]
+fn segment_takes_a_recording_and_writes_one_that_reads_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = fixture("kitti_pointcloud2.mcap");
+    let out_mcap = tmp.path().join("result.mcap");
+    let o = bin()
+        .args(["segment", "--frames", "1", "--out"])
+        .arg(&out_mcap)
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out_dir = tmp.path().join("probs");
+    let o = bin()
+        .args(["segment", "--frames", "1", "--out"])
+        .arg(&out_dir)
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let inputs: Vec<_> = groundwork_io::RecordingReader::open(&rec, None, 10_000)
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    let outputs: Vec<_> = groundwork_io::RecordingReader::open(&out_mcap, None, 10_000)
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    assert_eq!(outputs.len(), 3);
+    for (i, (a, b)) in inputs.iter().zip(&outputs).enumerate() {
+        // Same points, same records, same topic and times.
+        assert_eq!(a.scan.points, b.scan.points, "message {i}");
+        assert_eq!(a.scan.source_index, b.scan.source_index, "message {i}");
+        assert_eq!(a.scan.organized, b.scan.organized, "message {i}");
+        assert_eq!((a.log_time_ns, &a.topic), (b.log_time_ns, &b.topic));
+    }
+    // The probabilities in the recording are the .prob files' values.
+    let mut msgs = mcap::MessageStream::new(&fs::read(&out_mcap).unwrap())
+        .unwrap()
+        .map(Result::unwrap)
+        .map(|m| m.data.into_owned())
+        .collect::<Vec<_>>()
+        .into_iter();
+    for (i, input) in inputs.iter().enumerate() {
+        let msg = msgs.next().unwrap();
+        let probs =
+            groundwork_io::pointcloud2::decode_probabilities(Path::new("m"), &msg, 10_000).unwrap();
+        let prob_file =
+            groundwork_io::read_prob(&out_dir.join(format!("kitti_pointcloud2_{i:06}.prob")))
+                .unwrap();
+        assert_eq!(probs, prob_file, "message {i}");
+        assert_eq!(probs.len(), input.scan.records);
+        let ground = probs.iter().filter(|&&p| p >= 0.5).count();
+        assert!(
+            ground > probs.len() / 4,
+            "a KITTI street scan is largely ground: {ground} of {}",
+            probs.len()
+        );
+    }
+}
+
+/// A folder may mix formats: each scan is read by the reader its file calls for.
+#[test]
+fn segment_reads_a_folder_of_mixed_formats() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    copy_scan(1, &input);
+    for name in ["kitti_binary_compressed.pcd", "kitti_ascii.ply"] {
+        fs::copy(fixture(name), input.join(name)).unwrap();
+    }
+    // A PLY without its extension: found by its magic bytes.
+    fs::copy(fixture("kitti_binary_le.ply"), input.join("anonymous")).unwrap();
+    let out = tmp.path().join("out");
+    let o = bin()
+        .args(["segment", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for (stem, points) in [
+        (
+            "000001",
+            fs::metadata(data().join("velodyne/000001.bin"))
+                .unwrap()
+                .len() as usize
+                / 16,
+        ),
+        ("kitti_binary_compressed", 1286),
+        ("kitti_ascii", 1286),
+        ("anonymous", 1286),
+    ] {
+        let p = groundwork_io::read_prob(&out.join(format!("{stem}.prob"))).unwrap();
+        assert_eq!(p.len(), points, "{stem}");
+    }
+}

@@ -8,8 +8,7 @@ use std::time::{Duration, Instant};
 
 use groundwork_core::{FrameReport, Pose, Segmenter};
 use groundwork_io::{
-    FormatError, lidar_poses, list_scans, read_calib_tr, read_labels, read_poses, read_scan,
-    scan_stem,
+    FormatError, ScanItem, ScanSource, lidar_poses, read_calib_tr, read_labels, read_poses,
 };
 use serde::Serialize;
 use thiserror::Error;
@@ -31,6 +30,9 @@ pub enum SequenceError {
         /// What is missing.
         message: String,
     },
+    /// A scan could not be read (an evaluation stops: its pooled figures would lie).
+    #[error("{0}")]
+    Scan(String),
     /// The segmenter rejected a scan.
     #[error("{}: {source}", path.display())]
     Segment {
@@ -41,80 +43,113 @@ pub enum SequenceError {
     },
 }
 
-/// The files of one sequence.
+/// One sequence of scans: a KITTI-layout folder, a plain folder of scans (any format), a
+/// single scan file, or an MCAP recording; with labels and poses where they exist.
 #[derive(Debug, Clone)]
 pub struct Sequence {
-    /// Scan files, sorted.
-    pub scans: Vec<PathBuf>,
-    /// Label file of each scan, where one exists.
-    pub labels: Vec<Option<PathBuf>>,
+    /// Where the scans come from, in order.
+    pub source: ScanSource,
+    /// Folder of SemanticKITTI-style `.label` files: `<stem>.label` for a scan file,
+    /// `<index:06>.label` for the index-th message of a recording.
+    pub label_dir: Option<PathBuf>,
     /// LiDAR world pose of each scan (inv(Tr)·P·Tr), where poses and calibration exist.
     pub poses: Option<Vec<Pose>>,
+    /// Read at most this many scans.
+    pub limit: Option<usize>,
 }
 
 impl Sequence {
-    /// Opens `<dir>` (with `velodyne/`) or a plain folder of scans. `poses`/`calib` override
-    /// the default `<dir>/poses.txt` and `<dir>/calib.txt`; without both, scans have no pose.
+    /// Opens `<dir>` (with `velodyne/`), a plain folder of scans, a scan file or a
+    /// recording. `poses`/`calib` override the default `<dir>/poses.txt` and
+    /// `<dir>/calib.txt` (a file or recording has no default); without both, scans have
+    /// no pose. Labels are `<dir>/labels/` where it exists (see [`Self::with_labels`]).
     pub fn open(
         dir: &Path,
         poses: Option<&Path>,
         calib: Option<&Path>,
     ) -> Result<Self, SequenceError> {
-        let velodyne = dir.join("velodyne");
-        let scan_dir = if velodyne.is_dir() {
-            velodyne
-        } else {
-            dir.to_path_buf()
-        };
-        let scans = list_scans(&scan_dir)?;
-        if scans.is_empty() {
-            return Err(SequenceError::Layout {
-                path: scan_dir,
-                message: "no scan files (*.bin, *.pcd.bin)".into(),
-            });
-        }
-        let label_dir = dir.join("labels");
-        let labels = scans
-            .iter()
-            .map(|s| {
-                let l = label_dir.join(format!("{}.label", scan_stem(s)));
-                l.is_file().then_some(l)
-            })
-            .collect();
+        let source = ScanSource::open(dir, None)?;
+        let folder = dir.is_dir();
+        let label_dir = Some(dir.join("labels")).filter(|l| folder && l.is_dir());
+        let default = |name: &str| folder.then(|| dir.join(name));
         let poses_path = poses
             .map(Path::to_path_buf)
-            .unwrap_or_else(|| dir.join("poses.txt"));
+            .or_else(|| default("poses.txt"));
         let calib_path = calib
             .map(Path::to_path_buf)
-            .unwrap_or_else(|| dir.join("calib.txt"));
+            .or_else(|| default("calib.txt"));
         let explicit = poses.is_some() || calib.is_some();
-        let poses = if poses_path.is_file() && calib_path.is_file() {
-            let cam = read_poses(&poses_path)?;
-            let tr = read_calib_tr(&calib_path)?;
-            if cam.len() < scans.len() {
+        let poses = match (poses_path, calib_path) {
+            (Some(p), Some(c)) if p.is_file() && c.is_file() => {
+                let cam = read_poses(&p)?;
+                let tr = read_calib_tr(&c)?;
+                if let Some(n) = source.len_hint().filter(|&n| cam.len() < n) {
+                    return Err(SequenceError::Layout {
+                        path: p,
+                        message: format!("{} poses for {n} scans", cam.len()),
+                    });
+                }
+                Some(lidar_poses(&cam, &tr))
+            }
+            (p, c) if explicit => {
+                let show = |x: Option<PathBuf>| {
+                    x.map_or("(not given)".to_string(), |x| x.display().to_string())
+                };
                 return Err(SequenceError::Layout {
-                    path: poses_path,
-                    message: format!("{} poses for {} scans", cam.len(), scans.len()),
+                    path: dir.to_path_buf(),
+                    message: format!("poses need both {} and {}", show(p), show(c)),
                 });
             }
-            Some(lidar_poses(&cam, &tr))
-        } else if explicit {
-            return Err(SequenceError::Layout {
-                path: dir.to_path_buf(),
-                message: format!(
-                    "poses need both {} and {}",
-                    poses_path.display(),
-                    calib_path.display()
-                ),
-            });
-        } else {
-            None
+            _ => None,
         };
         Ok(Self {
-            scans,
-            labels,
+            source,
+            label_dir,
             poses,
+            limit: None,
         })
+    }
+
+    /// Reads labels from this folder instead.
+    pub fn with_labels(mut self, dir: PathBuf) -> Self {
+        self.label_dir = Some(dir);
+        self
+    }
+
+    /// Reads the PointCloud2 messages of this topic (recordings only).
+    pub fn with_topic(mut self, topic: Option<String>) -> Self {
+        if let ScanSource::Recording { topic: t, .. } = &mut self.source {
+            *t = topic;
+        }
+        self
+    }
+
+    /// The scans in order (at most `limit`), each at most `max_points` points.
+    pub fn scans(&self, max_points: usize) -> impl Iterator<Item = ScanItem> + use<> {
+        self.source
+            .scans(max_points)
+            .take(self.limit.unwrap_or(usize::MAX))
+    }
+
+    /// Scans to expect, where known before reading.
+    pub fn len_hint(&self) -> Option<usize> {
+        let n = self.source.len_hint()?;
+        Some(self.limit.map_or(n, |l| l.min(n)))
+    }
+
+    /// The pose of the index-th scan, if poses are known.
+    pub fn pose(&self, index: usize) -> Option<&Pose> {
+        self.poses.as_ref().and_then(|p| p.get(index))
+    }
+
+    /// The label file of a scan, if it exists.
+    pub fn label_path(&self, item: &ScanItem) -> Option<PathBuf> {
+        let stem = match &self.source {
+            ScanSource::Files(_) => item.name.clone(),
+            ScanSource::Recording { .. } => format!("{:06}", item.index),
+        };
+        let l = self.label_dir.as_ref()?.join(format!("{stem}.label"));
+        l.is_file().then_some(l)
     }
 }
 
@@ -174,26 +209,33 @@ pub fn evaluate(
 ) -> Result<EvalReport, SequenceError> {
     let max = segmenter.config().sensor.max_points;
     let thr = segmenter.config().ground.ground_threshold;
-    let mut scans = Vec::with_capacity(seq.scans.len());
+    let mut scans = Vec::with_capacity(seq.len_hint().unwrap_or(0));
     let mut pooled = Confusion::default();
     let mut probs = Vec::new();
-    for (i, path) in seq.scans.iter().enumerate() {
-        let points = read_scan(path, max)?;
-        let pose = seq.poses.as_ref().and_then(|p| p.get(i));
+    for item in seq.scans(max) {
+        let scan = item
+            .scan
+            .as_ref()
+            .map_err(|e| SequenceError::Scan(e.to_string()))?;
+        let points = &scan.points;
+        let pose = seq.pose(item.index);
         probs.resize(points.len(), 0.0);
         let t = Instant::now();
         let report: FrameReport =
             segmenter
-                .segment(&points, pose, &mut probs)
+                .segment(points, pose, &mut probs)
                 .map_err(|source| SequenceError::Segment {
-                    path: path.clone(),
+                    path: PathBuf::from(&item.name),
                     source,
                 })?;
         let total = t.elapsed();
-        let confusion = match &seq.labels[i] {
+        let confusion = match seq.label_path(&item) {
             Some(l) => {
-                let labels = read_labels(l, points.len())?;
-                Some(Confusion::from_predictions(&probs, &labels, protocol, thr))
+                // Labels are per record of the input: placeholders the reader left out are
+                // scored as the non-ground they were given (probability 0).
+                let labels = read_labels(&l, scan.records)?;
+                let all = scan.expand(&probs, 0.0);
+                Some(Confusion::from_predictions(&all, &labels, protocol, thr))
             }
             None => None,
         };
@@ -201,7 +243,7 @@ pub fn evaluate(
             pooled.merge(c);
         }
         let r = ScanResult {
-            name: scan_stem(path),
+            name: item.name.clone(),
             points: points.len(),
             metrics: confusion.as_ref().map(Confusion::metrics),
             confusion,

@@ -81,6 +81,15 @@ pub enum FormatError {
         /// What is wrong.
         message: String,
     },
+    /// A file of a known format whose content is malformed (a lying header, a truncated
+    /// body, a field that is missing or of the wrong type).
+    #[error("{}: {message}", path.display())]
+    Malformed {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, and where.
+        message: String,
+    },
     /// A file kind this crate does not read.
     #[error("{}: unsupported file type (expected {expected})", path.display())]
     Unsupported {
@@ -96,6 +105,13 @@ impl FormatError {
         Self::Io {
             path: path.to_path_buf(),
             source,
+        }
+    }
+
+    pub(crate) fn malformed(path: &Path, message: impl Into<String>) -> Self {
+        Self::Malformed {
+            path: path.to_path_buf(),
+            message: message.into(),
         }
     }
 

@@ -1,53 +1,253 @@
-//! Point cloud files. The loader is chosen by the file name, not by a flag:
-//! `*.pcd.bin` is nuScenes (5 × f32: x, y, z, intensity, ring), `*.bin` is KITTI
-//! (4 × f32: x, y, z, intensity), both little-endian.
+//! Point cloud files. The reader is chosen from the file, never from a flag: first by the
+//! name's extension, then (for any other name) by the magic bytes at its start.
+//!
+//! | format | extension | magic |
+//! |---|---|---|
+//! | KITTI velodyne (4 × f32 LE: x, y, z, intensity) | `.bin` | — |
+//! | nuScenes (5 × f32 LE: x, y, z, intensity, ring) | `.pcd.bin` | — |
+//! | PCD ascii / binary / binary_compressed | `.pcd` | `# .PCD`, `VERSION`, `FIELDS` |
+//! | PLY ascii / binary | `.ply` | `ply` |
+//! | MCAP recording of PointCloud2 (many scans) | `.mcap` | `\x89MCAP` |
 
 use std::fs;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use groundwork_core::Point;
 
 use crate::error::FormatError;
 
-/// Layout of a binary point file.
+/// A single-scan file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ScanFormat {
     /// KITTI / SemanticKITTI velodyne `.bin`: x, y, z, intensity as f32.
     KittiBin,
     /// nuScenes `.pcd.bin`: x, y, z, intensity, ring index as f32.
     NuScenesBin,
+    /// Point Cloud Library `.pcd` (ascii, binary or binary_compressed).
+    Pcd,
+    /// Stanford `.ply` vertices (ascii or binary).
+    Ply,
 }
 
-impl ScanFormat {
-    /// Picks the format from the file name.
-    pub fn from_path(path: &Path) -> Option<Self> {
+/// What a file holds: one scan, or a recording of many.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputKind {
+    /// One scan in this format.
+    Scan(ScanFormat),
+    /// An MCAP recording (ROS 2 `sensor_msgs/msg/PointCloud2` messages).
+    Recording,
+}
+
+/// The names a reader accepts, for error messages.
+pub const SUPPORTED: &str =
+    "KITTI .bin, nuScenes .pcd.bin, .pcd, .ply or an .mcap recording of PointCloud2";
+
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+
+impl InputKind {
+    /// The kind its name says, if the extension is known.
+    pub fn from_name(path: &Path) -> Option<Self> {
         let name = path.file_name()?.to_str()?.to_ascii_lowercase();
-        if name.ends_with(".pcd.bin") {
-            Some(Self::NuScenesBin)
+        let kind = if name.ends_with(".pcd.bin") {
+            Self::Scan(ScanFormat::NuScenesBin)
         } else if name.ends_with(".bin") {
-            Some(Self::KittiBin)
+            Self::Scan(ScanFormat::KittiBin)
+        } else if name.ends_with(".pcd") {
+            Self::Scan(ScanFormat::Pcd)
+        } else if name.ends_with(".ply") {
+            Self::Scan(ScanFormat::Ply)
+        } else if name.ends_with(".mcap") {
+            Self::Recording
+        } else {
+            return None;
+        };
+        Some(kind)
+    }
+
+    /// The kind the first bytes of a file say, if they carry a known magic.
+    pub fn from_magic(head: &[u8]) -> Option<Self> {
+        let text = |prefix: &[u8]| head.starts_with(prefix);
+        if head.starts_with(MCAP_MAGIC) {
+            Some(Self::Recording)
+        } else if text(b"ply\n") || text(b"ply\r\n") {
+            Some(Self::Scan(ScanFormat::Ply))
+        } else if text(b"# .PCD") || text(b"VERSION") || text(b"FIELDS") {
+            Some(Self::Scan(ScanFormat::Pcd))
         } else {
             None
         }
     }
 
-    /// Bytes per point.
-    pub fn record_size(self) -> usize {
-        match self {
-            Self::KittiBin => 16,
-            Self::NuScenesBin => 20,
+    /// Extension first, then magic bytes.
+    pub fn detect(path: &Path) -> Result<Self, FormatError> {
+        if let Some(kind) = Self::from_name(path) {
+            return Ok(kind);
+        }
+        let mut head = [0u8; 16];
+        let mut file = fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+        let mut n = 0;
+        while n < head.len() {
+            match file.read(&mut head[n..]) {
+                Ok(0) => break,
+                Ok(k) => n += k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(FormatError::io(path, e)),
+            }
+        }
+        Self::from_magic(&head[..n]).ok_or_else(|| FormatError::Unsupported {
+            path: path.to_path_buf(),
+            expected: SUPPORTED,
+        })
+    }
+}
+
+/// One scan as read from a file or a recorded message.
+///
+/// `points` holds only points with finite coordinates. Formats that mark missing returns
+/// with NaN placeholders (an organized or non-dense PCD or PointCloud2) lose those points
+/// here; `source_index` then maps every point back to its record, so that an output per
+/// record (`.prob`, a written PointCloud2) still lines up with the input.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Scan {
+    /// Finite points in record order (sensor frame, metres).
+    pub points: Vec<Point>,
+    /// Record index of each point, where records were left out (`None`: point i is
+    /// record i).
+    pub source_index: Option<Vec<u32>>,
+    /// Records in the input, placeholders included.
+    pub records: usize,
+    /// Rows × columns of an organized cloud (height > 1), as the input gave them.
+    pub organized: Option<(u32, u32)>,
+    /// Sensor time of the scan, ns, where the format carries one.
+    pub stamp_ns: Option<u64>,
+    /// Coordinate frame name, where the format carries one (PointCloud2 `frame_id`).
+    pub frame_id: Option<String>,
+}
+
+/// What a reader does with a record whose x, y or z is NaN or infinite.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum NonFinite {
+    /// Corruption: the whole file is an error naming the first such record.
+    Reject,
+    /// A no-return placeholder the format allows: left out, mapped back.
+    Skip,
+}
+
+impl Scan {
+    /// A scan whose every record is a point.
+    pub fn dense(points: Vec<Point>) -> Self {
+        Self {
+            records: points.len(),
+            points,
+            ..Self::default()
+        }
+    }
+
+    /// Builds a scan from decoded records, applying the format's rule for non-finite
+    /// coordinates. An empty result is an error.
+    pub(crate) fn from_records(
+        path: &Path,
+        records: Vec<Point>,
+        rule: NonFinite,
+    ) -> Result<Self, FormatError> {
+        if records.is_empty() {
+            return Err(FormatError::Empty {
+                path: path.to_path_buf(),
+            });
+        }
+        let finite = |p: &Point| p.x.is_finite() && p.y.is_finite() && p.z.is_finite();
+        let Some(first_bad) = records.iter().position(|p| !finite(p)) else {
+            return Ok(Self::dense(records));
+        };
+        if rule == NonFinite::Reject {
+            let p = records[first_bad];
+            return Err(FormatError::NonFinite {
+                path: path.to_path_buf(),
+                index: first_bad,
+                x: p.x,
+                y: p.y,
+                z: p.z,
+            });
+        }
+        let n = records.len();
+        let (mut points, mut index) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for (i, p) in records.into_iter().enumerate() {
+            if finite(&p) {
+                points.push(p);
+                index.push(i as u32);
+            }
+        }
+        if points.is_empty() {
+            return Err(FormatError::malformed(
+                path,
+                format!("none of its {n} points has finite coordinates"),
+            ));
+        }
+        Ok(Self {
+            points,
+            source_index: Some(index),
+            records: n,
+            ..Self::default()
+        })
+    }
+
+    /// Records left out as placeholders.
+    pub fn skipped(&self) -> usize {
+        self.records - self.points.len()
+    }
+
+    /// Spreads one value per point back over the records, `fill` for left-out ones.
+    pub fn expand(&self, values: &[f32], fill: f32) -> Vec<f32> {
+        match &self.source_index {
+            None => values.to_vec(),
+            Some(index) => {
+                let mut out = vec![fill; self.records];
+                for (&i, &v) in index.iter().zip(values) {
+                    out[i as usize] = v;
+                }
+                out
+            }
         }
     }
 }
 
-/// Reads a scan, rejecting truncated files, empty scans, non-finite coordinates and scans
-/// with more than `max_points` points (checked from the file size before reading it).
-pub fn read_scan(path: &Path, max_points: usize) -> Result<Vec<Point>, FormatError> {
-    let format = ScanFormat::from_path(path).ok_or_else(|| FormatError::Unsupported {
-        path: path.to_path_buf(),
-        expected: "KITTI .bin or nuScenes .pcd.bin",
-    })?;
-    let record = format.record_size();
+/// Reads a single-scan file of any supported format (see the module documentation).
+/// Rejects truncated files, lying headers, empty scans, non-finite coordinates (where the
+/// format has no placeholders) and scans of more than `max_points` records, the latter
+/// checked before the points are read.
+pub fn read_scan(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
+    match InputKind::detect(path)? {
+        InputKind::Scan(ScanFormat::KittiBin) => read_float_records(path, max_points, 4),
+        InputKind::Scan(ScanFormat::NuScenesBin) => read_float_records(path, max_points, 5),
+        InputKind::Scan(ScanFormat::Pcd) => crate::pcd::read(path, max_points),
+        InputKind::Scan(ScanFormat::Ply) => crate::ply::read(path, max_points),
+        InputKind::Recording => Err(FormatError::malformed(
+            path,
+            "an MCAP recording holds many scans: give it as an input of its own (like a folder)",
+        )),
+    }
+}
+
+/// The file size, and the number of records it holds, checked against the maximum.
+pub(crate) fn checked_count(
+    path: &Path,
+    records: u64,
+    max_points: usize,
+) -> Result<usize, FormatError> {
+    if records > max_points as u64 {
+        return Err(FormatError::TooManyPoints {
+            path: path.to_path_buf(),
+            points: usize::try_from(records).unwrap_or(usize::MAX),
+            max: max_points,
+        });
+    }
+    Ok(records as usize)
+}
+
+/// KITTI and nuScenes: headerless little-endian f32 records, x, y, z, intensity first.
+fn read_float_records(path: &Path, max_points: usize, floats: usize) -> Result<Scan, FormatError> {
+    let record = 4 * floats;
     let size = fs::metadata(path)
         .map_err(|e| FormatError::io(path, e))?
         .len();
@@ -58,19 +258,7 @@ pub fn read_scan(path: &Path, max_points: usize) -> Result<Vec<Point>, FormatErr
             record,
         });
     }
-    let n = (size / record as u64) as usize;
-    if n == 0 {
-        return Err(FormatError::Empty {
-            path: path.to_path_buf(),
-        });
-    }
-    if n > max_points {
-        return Err(FormatError::TooManyPoints {
-            path: path.to_path_buf(),
-            points: n,
-            max: max_points,
-        });
-    }
+    let n = checked_count(path, size / record as u64, max_points)?;
     let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
     if bytes.len() != n * record {
         // The file changed between stat and read.
@@ -92,28 +280,7 @@ pub fn read_scan(path: &Path, max_points: usize) -> Result<Vec<Point>, FormatErr
             intensity: f(r, 3),
         })
         .collect();
-    check_finite(path, &points)?;
-    Ok(points)
-}
-
-/// Rejects a scan with a NaN or infinite coordinate, naming the first such point.
-pub fn check_finite(path: &Path, points: &[Point]) -> Result<(), FormatError> {
-    match points
-        .iter()
-        .position(|p| !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite()))
-    {
-        Some(index) => {
-            let p = points[index];
-            Err(FormatError::NonFinite {
-                path: path.to_path_buf(),
-                index,
-                x: p.x,
-                y: p.y,
-                z: p.z,
-            })
-        }
-        None => Ok(()),
-    }
+    Scan::from_records(path, points, NonFinite::Reject)
 }
 
 /// Writes a KITTI `.bin` scan (used by tests and tools that generate scans).
@@ -127,26 +294,38 @@ pub fn write_kitti_bin(path: &Path, points: &[Point]) -> Result<(), FormatError>
     fs::write(path, bytes).map_err(|e| FormatError::io(path, e))
 }
 
-/// The scan files of a folder (any supported format), sorted by name.
+/// The single-scan files of a folder, any mix of formats, sorted by name. Files without a
+/// known extension are included when their magic bytes say they are scans; recordings are
+/// not scans of a folder (give them as inputs of their own).
 pub fn list_scans(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
     let mut files: Vec<PathBuf> = fs::read_dir(dir)
         .map_err(|e| FormatError::io(dir, e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && ScanFormat::from_path(p).is_some())
+        .filter(|p| p.is_file() && is_scan_file(p))
         .collect();
     files.sort();
     Ok(files)
 }
 
+fn is_scan_file(path: &Path) -> bool {
+    match InputKind::from_name(path) {
+        Some(kind) => matches!(kind, InputKind::Scan(_)),
+        // Only unnamed kinds are sniffed: a `.label`, `.txt` or `.prob` is never a scan.
+        None => {
+            path.extension().is_none() && matches!(InputKind::detect(path), Ok(InputKind::Scan(_)))
+        }
+    }
+}
+
 /// A scan file's stem without its format suffix (`000042.bin` → `000042`,
-/// `n015-…__LIDAR_TOP__1533.pcd.bin` → `n015-…__LIDAR_TOP__1533`).
+/// `n015-…__LIDAR_TOP__1533.pcd.bin` → `n015-…__LIDAR_TOP__1533`, `cloud.pcd` → `cloud`).
 pub fn scan_stem(path: &Path) -> String {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let lower = name.to_ascii_lowercase();
-    for suffix in [".pcd.bin", ".bin"] {
+    for suffix in [".pcd.bin", ".bin", ".pcd", ".ply", ".mcap"] {
         if lower.ends_with(suffix) {
             return name[..name.len() - suffix.len()].to_string();
         }
@@ -164,7 +343,7 @@ mod tests {
         let p = dir.path().join("000001.bin");
         let pts = vec![Point::new(1.0, 2.0, 3.0), Point::new(-1.0, 0.5, -1.7)];
         write_kitti_bin(&p, &pts).unwrap();
-        assert_eq!(read_scan(&p, 10).unwrap(), pts);
+        assert_eq!(read_scan(&p, 10).unwrap(), Scan::dense(pts));
 
         // Too many points, checked before reading.
         let e = read_scan(&p, 1).unwrap_err().to_string();
@@ -185,7 +364,7 @@ mod tests {
         let e = read_scan(&p, 10).unwrap_err().to_string();
         assert!(e.contains("empty scan"), "{e}");
 
-        // NaN.
+        // NaN: KITTI has no placeholders, so it is corruption.
         write_kitti_bin(&p, &[Point::new(1.0, f32::NAN, 0.0)]).unwrap();
         let e = read_scan(&p, 10).unwrap_err().to_string();
         assert!(e.contains("point 0") && e.contains("non-finite"), "{e}");
@@ -196,8 +375,12 @@ mod tests {
             .to_string();
         assert!(e.contains("nope.bin"), "{e}");
 
-        // Unsupported extension.
-        assert!(read_scan(&dir.path().join("a.txt"), 10).is_err());
+        // Unknown extension and no magic.
+        fs::write(dir.path().join("a.txt"), "hello").unwrap();
+        let e = read_scan(&dir.path().join("a.txt"), 10)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("a.txt") && e.contains("unsupported"), "{e}");
     }
 
     #[test]
@@ -207,10 +390,10 @@ mod tests {
         let vals: [f32; 10] = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0];
         let bytes: Vec<u8> = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
         fs::write(&p, bytes).unwrap();
-        let pts = read_scan(&p, 10).unwrap();
-        assert_eq!(pts.len(), 2);
+        let scan = read_scan(&p, 10).unwrap();
+        assert_eq!(scan.points.len(), 2);
         assert_eq!(
-            pts[1],
+            scan.points[1],
             Point {
                 x: 6.0,
                 y: 7.0,
@@ -219,5 +402,46 @@ mod tests {
             }
         );
         assert_eq!(scan_stem(&p), "x");
+    }
+
+    #[test]
+    fn magic_bytes_decide_for_unknown_names() {
+        assert_eq!(
+            InputKind::from_magic(b"ply\nformat ascii 1.0\n"),
+            Some(InputKind::Scan(ScanFormat::Ply))
+        );
+        assert_eq!(
+            InputKind::from_magic(b"# .PCD v0.7 - Point"),
+            Some(InputKind::Scan(ScanFormat::Pcd))
+        );
+        assert_eq!(
+            InputKind::from_magic(b"\x89MCAP0\r\n\x01"),
+            Some(InputKind::Recording)
+        );
+        assert_eq!(InputKind::from_magic(b"\x00\x00\x80?"), None);
+        // The name wins where it is known.
+        assert_eq!(
+            InputKind::from_name(Path::new("a/B.PLY")),
+            Some(InputKind::Scan(ScanFormat::Ply))
+        );
+        assert_eq!(InputKind::from_name(Path::new("scan")), None);
+    }
+
+    #[test]
+    fn placeholders_map_back_to_their_records() {
+        let p = Path::new("c.pcd");
+        let recs = vec![
+            Point::new(1.0, 0.0, 0.0),
+            Point::new(f32::NAN, f32::NAN, f32::NAN),
+            Point::new(2.0, 0.0, 0.0),
+        ];
+        let s = Scan::from_records(p, recs.clone(), NonFinite::Skip).unwrap();
+        assert_eq!(s.points.len(), 2);
+        assert_eq!(s.skipped(), 1);
+        assert_eq!(s.expand(&[0.25, 0.75], -1.0), vec![0.25, -1.0, 0.75]);
+        let e = Scan::from_records(p, recs, NonFinite::Reject).unwrap_err();
+        assert!(e.to_string().contains("point 1"), "{e}");
+        let all_nan = vec![Point::new(f32::NAN, 0.0, 0.0)];
+        assert!(Scan::from_records(p, all_nan, NonFinite::Skip).is_err());
     }
 }

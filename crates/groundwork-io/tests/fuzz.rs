@@ -14,7 +14,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use groundwork_core::Point;
 use groundwork_io::{
-    parse_config, read_calib_tr, read_labels, read_poses, read_prob, read_scan, write_kitti_bin,
+    FormatError, RecordingReader, parse_config, read_calib_tr, read_labels, read_poses, read_prob,
+    read_scan, write_kitti_bin,
 };
 use proptest::prelude::*;
 
@@ -55,6 +56,17 @@ fn run<T, E: std::fmt::Display>(
     bytes: &[u8],
     read: impl Fn(&Path) -> Result<T, E>,
 ) -> Result<bool, TestCaseError> {
+    run_bounded(name, bytes, bytes.len(), read)
+}
+
+/// [`run`] for compressed formats, whose reader may legitimately unpack up to `bound`
+/// bytes (what it accepts for the configured maximum of points) from a smaller file.
+fn run_bounded<T, E: std::fmt::Display>(
+    name: &str,
+    bytes: &[u8],
+    bound: usize,
+    read: impl Fn(&Path) -> Result<T, E>,
+) -> Result<bool, TestCaseError> {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join(name);
     std::fs::write(&path, bytes).unwrap();
@@ -66,7 +78,7 @@ fn run<T, E: std::fmt::Display>(
         return Err(TestCaseError::fail(format!("{name}: reader panicked")));
     };
     prop_assert!(
-        largest <= bytes.len() + SLACK,
+        largest <= bound.max(bytes.len()) + SLACK,
         "{name}: allocated {largest} bytes for a {}-byte file",
         bytes.len()
     );
@@ -86,6 +98,53 @@ fn kitti_bytes(n: usize) -> Vec<u8> {
     std::fs::read(p).unwrap()
 }
 
+/// Fixtures written by independent tools (see `fixtures/README.md`), to be mangled.
+const FIXTURES: [&str; 6] = [
+    "kitti_ascii.pcd",
+    "kitti_binary.pcd",
+    "kitti_binary_compressed.pcd",
+    "kitti_ascii.ply",
+    "kitti_binary_le.ply",
+    "kitti_pointcloud2.mcap",
+];
+
+fn fixture(name: &str) -> Vec<u8> {
+    std::fs::read(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/fixtures")
+            .join(name),
+    )
+    .unwrap()
+}
+
+/// Reads any scan file or recording to the end; the first error, if any.
+fn read_any(path: &Path) -> Result<usize, FormatError> {
+    if path.extension().is_some_and(|e| e == "mcap") {
+        let mut points = 0;
+        for s in RecordingReader::open(path, None, MAX_POINTS)? {
+            points += s?.scan.points.len();
+        }
+        Ok(points)
+    } else {
+        read_scan(path, MAX_POINTS).map(|s| s.points.len())
+    }
+}
+
+/// Scans of the fixtures have 1286 points.
+const MAX_POINTS: usize = 2000;
+
+/// What reading `name` may allocate at most: a compressed format unpacks up to what the
+/// reader accepts for `MAX_POINTS` points, anything else no more than the file.
+fn bound(name: &str, bytes: &[u8]) -> usize {
+    if name.ends_with(".mcap") {
+        RecordingReader::record_limit(MAX_POINTS)
+    } else if name.contains("compressed") {
+        MAX_POINTS * 64
+    } else {
+        bytes.len()
+    }
+}
+
 const POSES: &str = "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0.8 0 1 0 0 0 0 1 0.1\n";
 const CALIB: &str = "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0 0 0 -1 0 1 0 0 0\n";
 
@@ -97,6 +156,9 @@ proptest! {
         run("r.bin", &bytes, |p| read_scan(p, 400_000))?;
         run("r.pcd.bin", &bytes, |p| read_scan(p, 400_000))?;
         run("r.label", &bytes, |p| read_labels(p, 100))?;
+        run("r.pcd", &bytes, read_any)?;
+        run("r.ply", &bytes, read_any)?;
+        run_bounded("r.mcap", &bytes, bound("r.mcap", &bytes), read_any)?;
         run("r.prob", &bytes, read_prob)?;
     }
 
@@ -115,6 +177,33 @@ proptest! {
     fn lying_sizes_allocate_nothing_they_claim(n in 1usize..200, claim in 1_000_000usize..2_000_000_000) {
         prop_assert!(!run("l.label", &vec![0u8; 4 * n], |p| read_labels(p, claim))?);
         prop_assert!(!run("s.bin", &kitti_bytes(n + 5), |p| read_scan(p, n))?);
+    }
+
+    /// Files other tools wrote, truncated, with bytes overwritten and junk inserted: a
+    /// header that now lies about counts, sizes or lengths is an error, never a panic or
+    /// an allocation of what it claims.
+    #[test]
+    fn format_readers_survive_mangled_fixtures(
+        which in 0usize..FIXTURES.len(),
+        cut in 0.0f64..1.0,
+        flips in prop::collection::vec((0.0f64..1.0, any::<u8>()), 0..6),
+        junk in prop::collection::vec(any::<u8>(), 0..16),
+        insert_at in 0.0f64..1.0,
+    ) {
+        let name = FIXTURES[which];
+        let mut bytes = fixture(name);
+        // Mostly keep the whole file, so that flips land in headers and bodies too.
+        let keep = if cut < 0.5 { bytes.len() } else { (bytes.len() as f64 * (cut - 0.5) * 2.0) as usize };
+        bytes.truncate(keep);
+        for (at, value) in flips {
+            if !bytes.is_empty() {
+                let i = (at * bytes.len() as f64) as usize % bytes.len();
+                bytes[i] = value;
+            }
+        }
+        let at = (insert_at * bytes.len() as f64) as usize;
+        bytes.splice(at..at, junk);
+        run_bounded(name, &bytes, bound(name, &bytes), read_any)?;
     }
 
     #[test]
@@ -149,6 +238,13 @@ proptest! {
 #[test]
 fn the_fixtures_the_strategies_start_from_are_valid() {
     assert!(run("v.bin", &kitti_bytes(10), |p| read_scan(p, 100)).unwrap());
+    for name in FIXTURES {
+        let bytes = fixture(name);
+        assert!(
+            run_bounded(name, &bytes, bound(name, &bytes), read_any).unwrap(),
+            "{name}"
+        );
+    }
     assert!(run("poses.txt", POSES.as_bytes(), read_poses).unwrap());
     assert!(run("calib.txt", CALIB.as_bytes(), read_calib_tr).unwrap());
     let preset = include_str!("../../../config/sensors/hdl64e.toml");

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use groundwork_core::{Point, Pose};
 use groundwork_eval::Sequence;
+use groundwork_io::{ScanIter, ScanSource};
 use groundwork_msg::{SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch};
 use serde::Serialize;
 use tracing::{info, warn};
@@ -20,10 +21,25 @@ use crate::{signals, transport};
 /// Where scans come from.
 #[derive(Debug, Clone)]
 pub enum Source {
-    /// A KITTI-layout folder (velodyne/, optional poses.txt + calib.txt), replayed in a loop.
+    /// A folder of scans (KITTI layout with velodyne/ and optional poses.txt + calib.txt,
+    /// or any mix of scan formats), replayed in a loop.
     Sequence(PathBuf),
+    /// An MCAP recording's PointCloud2 messages (of this topic, or the first point cloud
+    /// topic), streamed and replayed in a loop at the recorded rate.
+    Recording(PathBuf, Option<String>),
     /// Generated scans of this many points (flat ground and a few boxes), no pose.
     Synthetic(usize),
+}
+
+impl Source {
+    /// A folder or a recording, told apart by the path.
+    pub fn from_path(path: PathBuf, topic: Option<String>) -> Self {
+        if path.is_file() {
+            Self::Recording(path, topic)
+        } else {
+            Self::Sequence(path)
+        }
+    }
 }
 
 /// Kinds of deliberately malformed scans, for fault tests.
@@ -79,50 +95,142 @@ pub struct Frame {
     pub points: Vec<Point>,
     /// World from sensor, if known.
     pub pose: Option<Pose>,
-    /// Index in its source (file index), for label lookup.
+    /// Index in its source (file or message index), for label lookup.
     pub index: u64,
+    /// Recorded time (recordings), ns: replays keep the recorded spacing.
+    pub log_time_ns: Option<u64>,
 }
 
-/// Reads the source's frames; a file that cannot be read is skipped and reported (the
-/// second value), never fatal unless nothing is left.
-pub fn load(source: &Source, max_points: usize) -> anyhow::Result<(Vec<Frame>, Vec<String>)> {
-    match source {
-        Source::Synthetic(n) => {
-            anyhow::ensure!(
-                *n <= max_points,
-                "--synthetic {n} exceeds max_points {max_points}"
-            );
-            let frame = Frame {
-                points: crate::synthetic::scan(*n),
-                pose: None,
-                index: 0,
-            };
-            Ok((vec![frame], Vec::new()))
+/// The frames a producer replays: loaded once (folders, synthetic), or streamed from a
+/// recording, which may be far larger than memory and is reopened at its end.
+#[derive(Debug)]
+pub enum Frames {
+    /// All frames in memory, replayed in a loop.
+    Loaded(Vec<Frame>),
+    /// A recording read one message at a time.
+    Streamed(Box<Stream>),
+}
+
+/// A recording being replayed.
+#[derive(Debug)]
+pub struct Stream {
+    /// The recording.
+    source: ScanSource,
+    /// Point limit.
+    max_points: usize,
+    /// The reader of the current pass.
+    reader: ScanIter,
+    /// The frame being published.
+    current: Frame,
+    /// The one after it (to know the recorded gap), if the pass has one.
+    next: Option<Frame>,
+}
+
+/// Reads the next good frame of a stream, reporting and counting bad ones; None at the end
+/// of the pass.
+fn next_streamed(reader: &mut ScanIter, skipped: &mut Vec<String>) -> Option<Frame> {
+    for item in reader.by_ref() {
+        match item.scan {
+            Ok(scan) => {
+                if scan.skipped() > 0 {
+                    tracing::debug!(
+                        placeholders = scan.skipped(),
+                        "{}: NaN placeholders left out",
+                        item.name
+                    );
+                }
+                return Some(Frame {
+                    points: scan.points,
+                    pose: None,
+                    index: item.index as u64,
+                    log_time_ns: item.log_time_ns,
+                });
+            }
+            Err(e) => {
+                warn!("skipped: {e}");
+                skipped.push(e.to_string());
+            }
         }
-        Source::Sequence(dir) => {
-            let seq = Sequence::open(dir, None, None)?;
-            let (mut frames, mut skipped) = (Vec::new(), Vec::new());
-            for (i, path) in seq.scans.iter().enumerate() {
-                // A bad file is reported and skipped; the replay goes on with the others.
-                match groundwork_io::read_scan(path, max_points) {
-                    Ok(points) => frames.push(Frame {
-                        points,
-                        pose: seq.poses.as_ref().and_then(|p| p.get(i).copied()),
-                        index: i as u64,
-                    }),
-                    Err(e) => {
-                        warn!("skipped: {e}");
-                        skipped.push(e.to_string());
+    }
+    None
+}
+
+impl Frames {
+    /// Frames of a source; a scan that cannot be read is skipped and reported (the second
+    /// value), never fatal unless nothing is left.
+    pub fn load(source: &Source, max_points: usize) -> anyhow::Result<(Self, Vec<String>)> {
+        let mut skipped = Vec::new();
+        match source {
+            Source::Synthetic(n) => {
+                anyhow::ensure!(
+                    *n <= max_points,
+                    "--synthetic {n} exceeds max_points {max_points}"
+                );
+                let frame = Frame {
+                    points: crate::synthetic::scan(*n),
+                    pose: None,
+                    index: 0,
+                    log_time_ns: None,
+                };
+                Ok((Self::Loaded(vec![frame]), skipped))
+            }
+            Source::Sequence(dir) => {
+                let seq = Sequence::open(dir, None, None)?;
+                let mut frames = Vec::new();
+                for item in seq.scans(max_points) {
+                    // A bad file is reported and skipped; the replay goes on with the others.
+                    match item.scan {
+                        Ok(scan) => frames.push(Frame {
+                            points: scan.points,
+                            pose: seq.pose(item.index).copied(),
+                            index: item.index as u64,
+                            log_time_ns: None,
+                        }),
+                        Err(e) => {
+                            warn!("skipped: {e}");
+                            skipped.push(e.to_string());
+                        }
                     }
                 }
+                anyhow::ensure!(
+                    !frames.is_empty(),
+                    "{}: no readable scans ({} skipped)",
+                    dir.display(),
+                    skipped.len()
+                );
+                Ok((Self::Loaded(frames), skipped))
             }
-            anyhow::ensure!(
-                !frames.is_empty(),
-                "{}: no readable scans ({} skipped)",
-                dir.display(),
-                skipped.len()
-            );
-            Ok((frames, skipped))
+            Source::Recording(path, topic) => {
+                let source = ScanSource::Recording {
+                    path: path.clone(),
+                    topic: topic.clone(),
+                };
+                let mut reader = source.scans(max_points);
+                let current = next_streamed(&mut reader, &mut skipped).with_context(|| {
+                    format!(
+                        "{}: no readable scans ({} skipped)",
+                        path.display(),
+                        skipped.len()
+                    )
+                })?;
+                let next = next_streamed(&mut reader, &mut skipped);
+                let stream = Stream {
+                    source,
+                    max_points,
+                    reader,
+                    current,
+                    next,
+                };
+                Ok((Self::Streamed(Box::new(stream)), skipped))
+            }
+        }
+    }
+
+    /// Frames in memory (a streamed recording holds one).
+    pub fn loaded(&self) -> usize {
+        match self {
+            Self::Loaded(f) => f.len(),
+            Self::Streamed(_) => 1,
         }
     }
 }
@@ -137,7 +245,9 @@ pub fn pose_matrix(p: &Pose) -> [f64; 16] {
 /// The producer stage: frames, run identity, sequence, counters. No IPC.
 #[derive(Debug)]
 pub struct ProducerStage {
-    frames: Vec<Frame>,
+    frames: Frames,
+    /// Index of the frame of the last message (loaded frames).
+    last: usize,
     epoch: u64,
     sequence: u64,
     malformed_every: Option<u64>,
@@ -147,8 +257,6 @@ pub struct ProducerStage {
 /// The next message: which frame, its header, and the fault to inject (if any).
 #[derive(Debug, Clone)]
 pub struct Outgoing {
-    /// Index into the stage's frames.
-    pub frame: usize,
     /// Points the payload carries.
     pub len: usize,
     /// The header (stamps `produced_ns` set; `published_ns` is set just before sending).
@@ -158,10 +266,11 @@ pub struct Outgoing {
 }
 
 impl ProducerStage {
-    /// A stage over loaded frames (at least one), a new producer run.
-    pub fn new(frames: Vec<Frame>, skipped: Vec<String>, malformed_every: Option<u64>) -> Self {
+    /// A stage over frames (at least one), a new producer run.
+    pub fn new(frames: Frames, skipped: Vec<String>, malformed_every: Option<u64>) -> Self {
         Self {
             frames,
+            last: 0,
             epoch: new_epoch(),
             sequence: 0,
             malformed_every,
@@ -173,16 +282,67 @@ impl ProducerStage {
     }
 
     /// The frames replayed.
-    pub fn frames(&self) -> &[Frame] {
+    pub fn frames(&self) -> &Frames {
         &self.frames
+    }
+
+    /// The frame of the last message built.
+    fn frame(&self) -> &Frame {
+        match &self.frames {
+            Frames::Loaded(f) => &f[self.last],
+            Frames::Streamed(s) => &s.current,
+        }
+    }
+
+    /// Moves to the frame of the next message (the first call stays on the first frame).
+    fn advance(&mut self) {
+        if self.sequence == 0 {
+            return;
+        }
+        match &mut self.frames {
+            Frames::Loaded(f) => self.last = (self.last + 1) % f.len(),
+            Frames::Streamed(stream) => {
+                let Stream {
+                    source,
+                    max_points,
+                    reader,
+                    current,
+                    next,
+                } = &mut **stream;
+                let skipped = &mut self.report.skipped_files;
+                let upcoming = match next.take() {
+                    Some(n) => Some(n),
+                    None => {
+                        // End of the recording: replay it from the start.
+                        *reader = source.scans(*max_points);
+                        next_streamed(reader, skipped)
+                    }
+                };
+                if let Some(n) = upcoming {
+                    *current = n;
+                }
+                *next = next_streamed(reader, skipped);
+            }
+        }
+    }
+
+    /// The recorded gap between the frame of the last message and the one after it, for
+    /// replays at the recorded rate (None: not a recording, or unknown).
+    pub fn recorded_gap(&self) -> Option<Duration> {
+        let Frames::Streamed(s) = &self.frames else {
+            return None;
+        };
+        let (a, b) = (s.current.log_time_ns?, s.next.as_ref()?.log_time_ns?);
+        // A gap beyond a second is a pause in the recording, not the sensor's rate.
+        Some(Duration::from_nanos(b.saturating_sub(a)).min(Duration::from_secs(1)))
     }
 
     /// Builds the next message's header; `now_ns` is its production stamp (and, for
     /// replays, its sensor time).
     pub fn process(&mut self, now_ns: u64) -> Outgoing {
+        self.advance();
         let seq = self.sequence;
-        let fi = (seq % self.frames.len() as u64) as usize;
-        let frame = &self.frames[fi];
+        let frame = self.frame();
         let bad = self
             .malformed_every
             .filter(|&k| k > 0 && seq % k == k - 1)
@@ -222,7 +382,6 @@ impl ProducerStage {
             self.report.malformed += 1;
         }
         Outgoing {
-            frame: fi,
             len,
             header,
             malformed: bad,
@@ -231,7 +390,7 @@ impl ProducerStage {
 
     /// The payload's i-th point of a message.
     pub fn point(&self, out: &Outgoing, i: usize) -> ScanPoint {
-        let p = self.frames[out.frame].points[i];
+        let p = self.frame().points[i];
         let nan = out.malformed == Some(Malformed::NonFinite) && i == out.len / 2;
         ScanPoint {
             x: if nan { f32::NAN } else { p.x },
@@ -256,17 +415,20 @@ impl ProducerStage {
 pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<ProducerReport> {
     signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
-    let (frames, skipped) = load(&opts.source, cfg.max_points)?;
+    let (frames, skipped) = Frames::load(&opts.source, cfg.max_points)?;
     let mut stage = ProducerStage::new(frames, skipped, opts.malformed_every);
     let node = transport::node(cfg, "producer")?;
     signals::install(&node)?;
     let svc = transport::scan_service(&node, cfg)?;
     let publisher = transport::scan_publisher(&svc, cfg)?;
     let notifier = transport::event_notifier(&node, cfg, "scans")?;
+    // A recording replays at its recorded rate unless a rate is asked for.
+    let recorded = opts.rate_hz.is_none() && matches!(opts.source, Source::Recording(..));
     let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
     let period = (rate > 0.0).then(|| Duration::from_secs_f64(1.0 / rate));
     info!(
-        scans = stage.frames().len(),
+        frames_in_memory = stage.frames().loaded(),
+        recorded_rate = recorded,
         skipped_files = stage.report().skipped_files.len(),
         rate_hz = rate,
         prefix = %cfg.prefix,
@@ -287,7 +449,12 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
         if reached == 0 {
             stage.count_unreceived();
         }
-        let wait = period.map_or(Duration::ZERO, |p| p.saturating_sub(t0.elapsed()));
+        let gap = if recorded {
+            stage.recorded_gap().or(period)
+        } else {
+            period
+        };
+        let wait = gap.map_or(Duration::ZERO, |p| p.saturating_sub(t0.elapsed()));
         if !signals::sleep(wait) {
             info!("termination requested");
             break;
@@ -304,4 +471,53 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
         "producer stopped"
     );
     Ok(r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn recording() -> PathBuf {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../groundwork-io/tests/fixtures/kitti_pointcloud2.mcap")
+    }
+
+    /// A recording streams one message at a time, loops at its end, and tells the
+    /// recorded spacing (10 Hz) for replays at the recorded rate.
+    #[test]
+    fn a_recording_is_streamed_in_a_loop_at_its_recorded_rate() {
+        let (frames, skipped) =
+            Frames::load(&Source::Recording(recording(), None), 10_000).unwrap();
+        assert!(skipped.is_empty());
+        assert_eq!(frames.loaded(), 1);
+        let mut stage = ProducerStage::new(frames, skipped, None);
+        let mut order = Vec::new();
+        for k in 0..7 {
+            let out = stage.process(k);
+            order.push(out.header.source_index);
+            assert_eq!(out.len, out.header.point_count as usize);
+            if out.header.source_index < 2 {
+                assert_eq!(stage.recorded_gap(), Some(Duration::from_millis(100)));
+            }
+        }
+        assert_eq!(order, [0, 1, 2, 0, 1, 2, 0]);
+        // Message 1 holds two NaN placeholders: left out of the published points.
+        let (frames, _) = Frames::load(&Source::Recording(recording(), None), 10_000).unwrap();
+        let mut stage = ProducerStage::new(frames, Vec::new(), None);
+        let lens: Vec<usize> = (0..3).map(|k| stage.process(k).len).collect();
+        assert_eq!(lens, [1286, 1284, 1286]);
+        let out = stage.process(3);
+        let p = stage.point(&out, 0);
+        assert!(p.x.is_finite());
+    }
+
+    #[test]
+    fn a_recording_without_point_clouds_is_an_error() {
+        let e = Frames::load(
+            &Source::Recording(recording(), Some("/chatter".into())),
+            10_000,
+        )
+        .unwrap_err();
+        assert!(format!("{e:#}").contains("no readable scans"), "{e:#}");
+    }
 }
