@@ -8,15 +8,13 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use groundwork_core::{Segmenter, SegmenterConfig};
 use groundwork_eval::{Protocol, Sequence, evaluate, median};
-use groundwork_io::{load_config, parse_config, write_outputs};
+use groundwork_io::{SENSOR_PRESETS, load_config_over, sensor_preset, write_outputs};
 use groundwork_service::{
     ServiceConfig, check_shared_memory, consumer, launcher, producer, segmenter,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::{error, info};
 
-/// The HDL-64E preset, embedded so the binary works from any directory.
-const DEFAULT_PRESET: &str = include_str!("../../../config/sensors/hdl64e.toml");
 /// The service defaults, likewise.
 const DEFAULT_SERVICE: &str = include_str!("../../../config/service.toml");
 /// The bundled sample scans (this checkout's copy).
@@ -34,8 +32,12 @@ struct Cli {
 
 #[derive(clap::Args, Debug)]
 struct Common {
-    /// Sensor/segmenter configuration (TOML). Default: the built-in HDL-64E preset
-    /// (config/sensors/hdl64e.toml).
+    /// Sensor preset (`groundwork sensors` lists them). Default: the service
+    /// configuration's `sensor`, else hdl64e.
+    #[arg(long)]
+    sensor: Option<String>,
+    /// Configuration file (TOML) laid over the sensor preset: every field it gives
+    /// replaces the preset's.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Multi-frame history length N_f (1 = single frame); overrides the config.
@@ -156,6 +158,8 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         warmup: u64,
     },
+    /// List the sensor presets (`--sensor NAME`): mount, ranges, limits.
+    Sensors,
     /// Print the shared memory (MiB) one pipeline with this service configuration may need
     /// at worst: the `/dev/shm` size a container must get (`docker run --shm-size`).
     ShmSize {
@@ -184,6 +188,10 @@ enum Command {
         /// index-th message's labels are <index:06>.label.
         #[arg(long)]
         labels: Option<PathBuf>,
+        /// Label layout and ground classes: semantickitti, nuscenes, rellis (built-in maps,
+        /// config/labels/) or the path of a map file for another dataset.
+        #[arg(long, default_value = "semantickitti")]
+        labels_format: String,
         /// Label protocol: gmm (vegetation ignored) or terraseg (vegetation is non-ground).
         #[arg(long, value_enum, default_value_t = ProtocolArg::Gmm)]
         protocol: ProtocolArg,
@@ -237,9 +245,17 @@ fn run(cli: Cli) -> Result<ExitCode> {
             common,
             sequence,
             labels,
+            labels_format,
             protocol,
             json,
-        } => eval(&common, &sequence, labels.as_deref(), protocol, json),
+        } => eval(
+            &common,
+            &sequence,
+            labels.as_deref(),
+            &labels_format,
+            protocol,
+            json,
+        ),
         Command::Pipeline {
             common,
             service,
@@ -281,6 +297,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 ExitCode::from(1)
             })
         }
+        Command::Sensors => {
+            print!("{}", sensors_table()?);
+            Ok(ExitCode::SUCCESS)
+        }
         Command::ShmSize { service } => {
             let cfg = load_service(&service)?;
             // Round up, and leave room for iceoryx2's management segments.
@@ -297,7 +317,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             segmenter::run(
                 &cfg,
                 &segmenter::SegmenterOptions {
-                    segmenter: load(&common)?,
+                    segmenter: load(&common, cfg.sensor.as_deref())?,
                     count,
                     echo,
                 },
@@ -336,6 +356,42 @@ fn run(cli: Cli) -> Result<ExitCode> {
     }
 }
 
+/// The presets as a table a person reads at a glance.
+fn sensors_table() -> Result<String> {
+    use std::fmt::Write;
+    let mut s = format!(
+        "{:<10} {:>7} {:>7} {:>7} {:>7} {:>6} {:>10} {:>9}  {}\n",
+        "sensor", "height", "roll°", "pitch°", "yaw°", "ego m", "range m", "max pts", "about"
+    );
+    for (name, text) in SENSOR_PRESETS {
+        let c = sensor_preset(name)?;
+        let m = &c.sensor.mount;
+        // The preset's first comment line says what the sensor is.
+        let about = text
+            .lines()
+            .next()
+            .and_then(|l| l.strip_prefix("# "))
+            .unwrap_or("")
+            .split(':')
+            .next()
+            .unwrap_or("");
+        let _ = writeln!(
+            s,
+            "{:<10} {:>7.2} {:>7.1} {:>7.1} {:>7.1} {:>6.1} {:>10} {:>9}  {}",
+            name,
+            m.height,
+            m.roll.to_degrees(),
+            m.pitch.to_degrees(),
+            m.yaw.to_degrees(),
+            c.sensor.ego_radius,
+            format!("{}–{}", c.zones.min_range, c.zones.max_range),
+            c.sensor.max_points,
+            about
+        );
+    }
+    Ok(s)
+}
+
 fn load_service(args: &ServiceArgs) -> Result<ServiceConfig> {
     let mut cfg = match &args.service {
         Some(p) => ServiceConfig::load(p)?,
@@ -359,7 +415,14 @@ fn pipeline(
 ) -> Result<ExitCode> {
     // Validate everything here, before any process starts.
     let cfg = load_service(service)?;
-    load(common)?;
+    let seg_cfg = load(common, cfg.sensor.as_deref())?;
+    anyhow::ensure!(
+        seg_cfg.sensor.max_points <= cfg.max_points,
+        "sensor {} takes scans of up to {} points, but the service's shared memory is sized for {} (raise max_points in the service configuration)",
+        seg_cfg.sensor.name,
+        seg_cfg.sensor.max_points,
+        cfg.max_points
+    );
     check_shared_memory(&cfg)?;
     let data = data.unwrap_or_else(|| BUNDLED_DATA.into());
     anyhow::ensure!(
@@ -377,6 +440,9 @@ fn pipeline(
         c
     };
     let mut seg = stage("segmenter");
+    if let Some(name) = &common.sensor {
+        seg.arg("--sensor").arg(name);
+    }
     if let Some(c) = &common.config {
         seg.arg("--config").arg(c);
     }
@@ -441,11 +507,11 @@ fn pipeline(
     })
 }
 
-fn load(common: &Common) -> Result<SegmenterConfig> {
-    let mut cfg = match &common.config {
-        Some(p) => load_config(p)?,
-        None => parse_config(Path::new("<built-in hdl64e preset>"), DEFAULT_PRESET)?,
-    };
+/// The segmenter configuration: the named preset (`--sensor`, else the service's, else
+/// hdl64e), the `--config` file over it, then `--frames`.
+fn load(common: &Common, service_sensor: Option<&str>) -> Result<SegmenterConfig> {
+    let sensor = common.sensor.as_deref().or(service_sensor);
+    let mut cfg = load_config_over(sensor, common.config.as_deref())?;
     if let Some(n) = common.frames {
         cfg.history.frames = n;
         cfg.validate().context("--frames")?;
@@ -471,7 +537,7 @@ enum SegmentOutput {
 }
 
 fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
-    let cfg = load(common)?;
+    let cfg = load(common, None)?;
     let thr = cfg.ground.ground_threshold;
     let max = cfg.sensor.max_points;
     let mut output = if out
@@ -624,12 +690,14 @@ fn eval(
     common: &Common,
     dir: &Path,
     labels: Option<&Path>,
+    labels_format: &str,
     protocol: ProtocolArg,
     json: bool,
 ) -> Result<ExitCode> {
-    let cfg = load(common)?;
+    let cfg = load(common, None)?;
     let mut seq = Sequence::open(dir, common.poses.as_deref(), common.calib.as_deref())?
-        .with_topic(common.topic.clone());
+        .with_topic(common.topic.clone())
+        .with_label_map(groundwork_io::LabelMap::load(labels_format)?);
     if let Some(l) = labels {
         anyhow::ensure!(l.is_dir(), "{}: no such folder", l.display());
         seq = seq.with_labels(l.to_path_buf());
@@ -671,10 +739,22 @@ mod tests {
     }
 
     #[test]
-    fn embedded_preset_is_valid() {
-        let c = parse_config(Path::new("preset"), DEFAULT_PRESET).unwrap();
+    fn the_default_preset_is_the_kitti_hdl64e() {
+        let common = Common {
+            sensor: None,
+            config: None,
+            frames: None,
+            poses: None,
+            calib: None,
+            topic: None,
+        };
+        let c = load(&common, None).unwrap();
         assert_eq!(c.sensor.name, "hdl64e");
         assert!((c.sensor.mount.height - 1.73).abs() < 1e-12);
+        assert_eq!(load(&common, Some("vlp16")).unwrap().sensor.name, "vlp16");
+        let table = sensors_table().unwrap();
+        assert_eq!(table.lines().count(), SENSOR_PRESETS.len() + 1);
+        assert!(table.contains("livox") && table.contains("1.10"), "{table}");
     }
 
     #[test]

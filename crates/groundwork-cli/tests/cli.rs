@@ -348,3 +348,86 @@ fn segment_reads_a_folder_of_mixed_formats() {
         assert_eq!(p.len(), points, "{stem}");
     }
 }
+
+/// The same scans with their SemanticKITTI labels rewritten into RELLIS-3D ids (u32) and
+/// nuScenes-lidarseg ids (u8): through their label maps, eval scores them exactly as it
+/// scores the originals, in both protocols.
+#[test]
+fn label_maps_score_other_datasets_like_semantickitti() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pooled = |dir: &Path, format: &str, protocol: &str| -> serde_json::Value {
+        let o = bin()
+            .args([
+                "eval",
+                "--json",
+                "--frames",
+                "1",
+                "--labels-format",
+                format,
+                "--protocol",
+                protocol,
+            ])
+            .arg(dir)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(v["labeled_scans"], 2, "{format}");
+        v["pooled"].clone()
+    };
+    // SemanticKITTI id → (RELLIS id, nuScenes id): ground classes onto ground classes,
+    // vegetation onto vegetation, unlabeled/outlier onto ignored, the rest onto a person
+    // and a car.
+    let remap = |id: u16| -> (u32, u8) {
+        match id {
+            40 | 44 => (10, 24),
+            48 => (23, 26),
+            49 | 60 => (1, 25),
+            72 => (3, 27),
+            70 => (4, 30),
+            0 | 1 => (0, 0),
+            _ => (17, 17),
+        }
+    };
+    let (rellis, nuscenes) = (tmp.path().join("rellis"), tmp.path().join("nuscenes"));
+    for d in [&rellis, &nuscenes] {
+        fs::create_dir_all(d.join("labels")).unwrap();
+    }
+    for n in 0..2u32 {
+        copy_scan(n, &rellis);
+        copy_scan(n, &nuscenes);
+        let raw = fs::read(data().join(format!("labels/{n:06}.label"))).unwrap();
+        let ids: Vec<u16> = raw
+            .chunks_exact(4)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .collect();
+        let r: Vec<u8> = ids
+            .iter()
+            .flat_map(|&i| (remap(i).0 | (5 << 16)).to_le_bytes())
+            .collect();
+        fs::write(rellis.join(format!("labels/{n:06}.label")), r).unwrap();
+        let u: Vec<u8> = ids.iter().map(|&i| remap(i).1).collect();
+        fs::write(nuscenes.join(format!("labels/{n:06}_lidarseg.bin")), u).unwrap();
+    }
+    let kitti = tmp.path().join("kitti");
+    fs::create_dir_all(kitti.join("labels")).unwrap();
+    for n in 0..2u32 {
+        copy_scan(n, &kitti);
+        fs::copy(
+            data().join(format!("labels/{n:06}.label")),
+            kitti.join(format!("labels/{n:06}.label")),
+        )
+        .unwrap();
+    }
+    for protocol in ["gmm", "terraseg"] {
+        let want = pooled(&kitti, "semantickitti", protocol);
+        assert!(want["tp"].as_u64().unwrap() > 10_000);
+        assert_eq!(pooled(&rellis, "rellis", protocol), want, "{protocol}");
+        assert_eq!(pooled(&nuscenes, "nuscenes", protocol), want, "{protocol}");
+    }
+    // Read with the wrong map, the same files score differently.
+    assert_ne!(
+        pooled(&rellis, "semantickitti", "gmm"),
+        pooled(&kitti, "semantickitti", "gmm")
+    );
+}

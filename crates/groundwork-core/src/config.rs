@@ -59,7 +59,7 @@ impl Default for SensorConfig {
             name: "generic".into(),
             mount: MountConfig::default(),
             ego_radius: 0.0,
-            max_points: 400_000,
+            max_points: 200_000,
             max_coordinate: None,
         }
     }

@@ -1,35 +1,26 @@
 //! Confusion counts and the metrics both papers report.
 
+use groundwork_io::LabelClass;
 use serde::Serialize;
 
-/// Which SemanticKITTI classes count as ground, non-ground or ignored.
+/// How vegetation is scored (the only class on which the two papers' protocols differ).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Protocol {
-    /// GMM paper (and Patchwork++): vegetation (70) is ignored.
+    /// GMM paper (and Patchwork++): vegetation is ignored.
     Gmm,
     /// TerraSeg: vegetation counts as non-ground.
     Terraseg,
 }
 
-/// Ground classes: road, parking, sidewalk, other-ground, lane-marking, terrain.
-pub const GROUND_CLASSES: [u16; 6] = [40, 44, 48, 49, 60, 72];
-/// Ignored by both protocols: unlabeled, outlier.
-pub const IGNORED_CLASSES: [u16; 2] = [0, 1];
-/// Vegetation: ignored by the GMM protocol, non-ground in TerraSeg's.
-pub const VEGETATION: u16 = 70;
-
 impl Protocol {
     /// `Some(true)` for ground, `Some(false)` for non-ground, `None` for ignored.
-    pub fn truth(self, semantic: u16) -> Option<bool> {
-        if IGNORED_CLASSES.contains(&semantic) {
-            None
-        } else if GROUND_CLASSES.contains(&semantic) {
-            Some(true)
-        } else if semantic == VEGETATION && self == Self::Gmm {
-            None
-        } else {
-            Some(false)
+    pub fn truth(self, class: LabelClass) -> Option<bool> {
+        match class {
+            LabelClass::Ground => Some(true),
+            LabelClass::NonGround => Some(false),
+            LabelClass::Ignored => None,
+            LabelClass::Vegetation => (self == Self::Terraseg).then_some(false),
         }
     }
 }
@@ -78,12 +69,12 @@ fn ratio(num: u64, den: u64) -> f64 {
 }
 
 impl Confusion {
-    /// Counts predictions (probability ≥ `threshold` = ground) against semantic labels.
+    /// Counts predictions (probability ≥ `threshold` = ground) against harmonised labels.
     /// Panics never: extra predictions or labels beyond the shorter slice are ignored, and
     /// callers check lengths when reading the files.
     pub fn from_predictions(
         probs: &[f32],
-        labels: &[u16],
+        labels: &[LabelClass],
         protocol: Protocol,
         threshold: f32,
     ) -> Self {
@@ -145,24 +136,21 @@ mod tests {
 
     #[test]
     fn protocols_differ_only_on_vegetation() {
-        for l in 0u16..300 {
-            let (g, t) = (Protocol::Gmm.truth(l), Protocol::Terraseg.truth(l));
-            if l == VEGETATION {
-                assert_eq!((g, t), (None, Some(false)));
-            } else {
-                assert_eq!(g, t, "label {l}");
-            }
+        use LabelClass::*;
+        for c in [Ground, NonGround, Ignored] {
+            assert_eq!(Protocol::Gmm.truth(c), Protocol::Terraseg.truth(c));
         }
-        assert_eq!(Protocol::Gmm.truth(40), Some(true));
-        assert_eq!(Protocol::Gmm.truth(72), Some(true));
-        assert_eq!(Protocol::Gmm.truth(0), None);
-        assert_eq!(Protocol::Gmm.truth(10), Some(false)); // car
+        assert_eq!(Protocol::Gmm.truth(Vegetation), None);
+        assert_eq!(Protocol::Terraseg.truth(Vegetation), Some(false));
+        assert_eq!(Protocol::Gmm.truth(Ground), Some(true));
+        assert_eq!(Protocol::Gmm.truth(Ignored), None);
     }
 
     #[test]
     fn metrics_of_a_known_matrix() {
         // labels: road, road, car, car, vegetation, unlabeled
-        let labels = [40, 40, 10, 10, 70, 0];
+        let map = groundwork_io::LabelMap::semantickitti();
+        let labels: Vec<LabelClass> = [40, 40, 10, 10, 70, 0].map(|l| map.class(l)).to_vec();
         let probs = [0.9, 0.2, 0.7, 0.1, 0.9, 0.9];
         let c = Confusion::from_predictions(&probs, &labels, Protocol::Gmm, 0.5);
         assert_eq!((c.tp, c.fn_, c.fp, c.tn, c.ignored), (1, 1, 1, 1, 2));

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use groundwork_core::{FrameReport, Pose, Segmenter};
 use groundwork_io::{
-    FormatError, ScanItem, ScanSource, lidar_poses, read_calib_tr, read_labels, read_poses,
+    FormatError, LabelMap, ScanItem, ScanSource, lidar_poses, read_calib_tr, read_poses,
 };
 use serde::Serialize;
 use thiserror::Error;
@@ -49,9 +49,11 @@ pub enum SequenceError {
 pub struct Sequence {
     /// Where the scans come from, in order.
     pub source: ScanSource,
-    /// Folder of SemanticKITTI-style `.label` files: `<stem>.label` for a scan file,
-    /// `<index:06>.label` for the index-th message of a recording.
+    /// Folder of label files, named as the label map says after the scan's stem (for the
+    /// index-th message of a recording, the stem is `<index:06>`).
     pub label_dir: Option<PathBuf>,
+    /// How the label files are laid out and which classes are ground.
+    pub label_map: LabelMap,
     /// LiDAR world pose of each scan (inv(Tr)·P·Tr), where poses and calibration exist.
     pub poses: Option<Vec<Pose>>,
     /// Read at most this many scans.
@@ -105,6 +107,7 @@ impl Sequence {
         Ok(Self {
             source,
             label_dir,
+            label_map: LabelMap::semantickitti(),
             poses,
             limit: None,
         })
@@ -113,6 +116,12 @@ impl Sequence {
     /// Reads labels from this folder instead.
     pub fn with_labels(mut self, dir: PathBuf) -> Self {
         self.label_dir = Some(dir);
+        self
+    }
+
+    /// Reads labels with this map (`--labels-format`).
+    pub fn with_label_map(mut self, map: LabelMap) -> Self {
+        self.label_map = map;
         self
     }
 
@@ -148,7 +157,7 @@ impl Sequence {
             ScanSource::Files(_) => item.name.clone(),
             ScanSource::Recording { .. } => format!("{:06}", item.index),
         };
-        let l = self.label_dir.as_ref()?.join(format!("{stem}.label"));
+        let l = self.label_map.file_for(self.label_dir.as_ref()?, &stem);
         l.is_file().then_some(l)
     }
 }
@@ -233,7 +242,7 @@ pub fn evaluate(
             Some(l) => {
                 // Labels are per record of the input: placeholders the reader left out are
                 // scored as the non-ground they were given (probability 0).
-                let labels = read_labels(&l, scan.records)?;
+                let labels = seq.label_map.read(&l, scan.records)?;
                 let all = scan.expand(&probs, 0.0);
                 Some(Confusion::from_predictions(&all, &labels, protocol, thr))
             }

@@ -1,4 +1,5 @@
-//! Loading the segmenter configuration from TOML.
+//! Loading the segmenter configuration from TOML: sensor presets (built in, from
+//! `config/sensors/`), and config files laid over a preset field by field.
 
 use std::fs;
 use std::path::Path;
@@ -6,6 +7,105 @@ use std::path::Path;
 use groundwork_core::SegmenterConfig;
 
 use crate::error::FormatError;
+
+/// The sensor presets of `config/sensors/`, built into the binary so that it works from any
+/// directory: (name, TOML text).
+pub const SENSOR_PRESETS: &[(&str, &str)] = &[
+    (
+        "hdl64e",
+        include_str!("../../../config/sensors/hdl64e.toml"),
+    ),
+    (
+        "hdl32e",
+        include_str!("../../../config/sensors/hdl32e.toml"),
+    ),
+    ("vlp16", include_str!("../../../config/sensors/vlp16.toml")),
+    (
+        "vlp32c",
+        include_str!("../../../config/sensors/vlp32c.toml"),
+    ),
+    (
+        "os1-64",
+        include_str!("../../../config/sensors/os1-64.toml"),
+    ),
+    (
+        "os1-128",
+        include_str!("../../../config/sensors/os1-128.toml"),
+    ),
+    (
+        "pandar64",
+        include_str!("../../../config/sensors/pandar64.toml"),
+    ),
+    ("livox", include_str!("../../../config/sensors/livox.toml")),
+];
+
+/// The preset used when none is named.
+pub const DEFAULT_SENSOR: &str = "hdl64e";
+
+/// The TOML text of a preset, or an error listing the presets.
+pub fn sensor_preset_text(name: &str) -> Result<&'static str, FormatError> {
+    SENSOR_PRESETS
+        .iter()
+        .find(|(n, _)| n.eq_ignore_ascii_case(name))
+        .map(|(_, t)| *t)
+        .ok_or_else(|| FormatError::Config {
+            path: format!("--sensor {name}").into(),
+            message: format!(
+                "no such sensor preset (presets: {})",
+                SENSOR_PRESETS
+                    .iter()
+                    .map(|(n, _)| *n)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        })
+}
+
+/// A sensor preset's configuration.
+pub fn sensor_preset(name: &str) -> Result<SegmenterConfig, FormatError> {
+    let text = sensor_preset_text(name)?;
+    parse_config(Path::new(&format!("config/sensors/{name}.toml")), text)
+}
+
+/// A preset (`DEFAULT_SENSOR` if None) with a config file laid over it: every field the
+/// file gives replaces the preset's, tables merge key by key (a `mount` with `matrix`
+/// replaces the whole mount). Unknown keys in the file are errors naming it.
+pub fn load_config_over(
+    preset: Option<&str>,
+    path: Option<&Path>,
+) -> Result<SegmenterConfig, FormatError> {
+    let name = preset.unwrap_or(DEFAULT_SENSOR);
+    let base = sensor_preset_text(name)?;
+    let Some(path) = path else {
+        return sensor_preset(name);
+    };
+    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+    let config_error = |e: &dyn std::fmt::Display| FormatError::Config {
+        path: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    };
+    let mut merged: toml::Table = toml::from_str(base).map_err(|e| config_error(&e))?;
+    let overlay: toml::Table = toml::from_str(&text).map_err(|e| config_error(&e))?;
+    merge(&mut merged, overlay);
+    // Deserialise the merged table; errors still name the user's file (only its keys can
+    // be unknown: the presets are tested).
+    let cfg: SegmenterConfig = merged.try_into().map_err(|e| config_error(&e))?;
+    cfg.validate().map_err(|e| config_error(&e))?;
+    Ok(cfg)
+}
+
+fn merge(base: &mut toml::Table, overlay: toml::Table) {
+    for (key, value) in overlay {
+        let replace_whole =
+            key == "mount" && value.as_table().is_some_and(|t| t.contains_key("matrix"));
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) if !replace_whole => merge(b, o),
+            (_, v) => {
+                base.insert(key, v);
+            }
+        }
+    }
+}
 
 /// Parses and validates a segmenter configuration. Unknown keys, wrong types and
 /// inconsistent values are errors naming the file (and the key, where TOML knows it).
@@ -49,5 +149,49 @@ mod tests {
         let c = parse_config(p, "[gmm]\nk_max = 4\n").unwrap();
         assert_eq!(c.gmm.k_max, 4);
         assert_eq!(c.gmm.n_min, 20, "unspecified fields keep their defaults");
+    }
+
+    #[test]
+    fn every_preset_is_valid_and_named_after_its_file() {
+        for (name, _) in SENSOR_PRESETS {
+            let c = sensor_preset(name).unwrap();
+            assert_eq!(c.sensor.name, *name);
+            groundwork_core::mount_transform(&c.sensor.mount).unwrap();
+        }
+        let e = sensor_preset("hdl65e").unwrap_err().to_string();
+        assert!(e.contains("hdl65e") && e.contains("vlp16"), "{e}");
+    }
+
+    #[test]
+    fn a_config_file_overrides_single_fields_of_a_preset() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("mine.toml");
+        fs::write(
+            &p,
+            "[sensor]\nmount = { height = 0.6, pitch = 0.1 }\n[gmm]\nk_max = 4\n",
+        )
+        .unwrap();
+        let c = load_config_over(Some("vlp16"), Some(&p)).unwrap();
+        let preset = sensor_preset("vlp16").unwrap();
+        assert_eq!(c.sensor.mount.height, 0.6);
+        assert_eq!(c.sensor.mount.pitch, 0.1);
+        assert_eq!(c.gmm.k_max, 4);
+        // Everything else is the preset's.
+        assert_eq!(c.zones, preset.zones);
+        assert_eq!(c.gmm.n_min, preset.gmm.n_min);
+        assert_eq!(c.sensor.max_points, preset.sensor.max_points);
+        // A matrix replaces the preset's height/roll/pitch/yaw.
+        fs::write(
+            &p,
+            "[sensor.mount]\nmatrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.6], [0, 0, 0, 1]]\n",
+        )
+        .unwrap();
+        let c = load_config_over(None, Some(&p)).unwrap();
+        assert_eq!(c.sensor.mount.height, 0.0);
+        assert!(c.sensor.mount.matrix.is_some());
+        // Unknown keys name the user's file.
+        fs::write(&p, "[sensor]\nheight = 0.6\n").unwrap();
+        let e = load_config_over(None, Some(&p)).unwrap_err().to_string();
+        assert!(e.contains("mine.toml") && e.contains("height"), "{e}");
     }
 }

@@ -7,6 +7,7 @@ pub mod config;
 pub mod error;
 pub mod input;
 pub mod kitti;
+pub mod labels;
 pub mod output;
 pub mod pcd;
 pub mod ply;
@@ -14,10 +15,13 @@ pub mod pointcloud2;
 pub mod recording;
 pub mod scan;
 
-pub use config::{load_config, parse_config};
+pub use config::{
+    DEFAULT_SENSOR, SENSOR_PRESETS, load_config, load_config_over, parse_config, sensor_preset,
+};
 pub use error::FormatError;
 pub use input::{ScanItem, ScanIter, ScanSource};
 pub use kitti::{lidar_poses, read_calib_tr, read_labels, read_poses};
+pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{read_prob, write_outputs};
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::{InputKind, Scan, ScanFormat, list_scans, read_scan, scan_stem, write_kitti_bin};

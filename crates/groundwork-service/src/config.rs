@@ -39,6 +39,9 @@ pub struct ServiceConfig {
     pub rate_hz: f64,
     /// Seconds between periodic state logs.
     pub report_interval_s: f64,
+    /// Sensor preset the segmenter stage uses (`groundwork sensors` lists them; absent:
+    /// hdl64e). `--sensor` and `--config` of the stage override it.
+    pub sensor: Option<String>,
 }
 
 impl Default for ServiceConfig {
@@ -53,6 +56,7 @@ impl Default for ServiceConfig {
             max_subscribers: 4,
             rate_hz: 10.0,
             report_interval_s: 2.0,
+            sensor: None,
         }
     }
 }
@@ -99,6 +103,9 @@ impl ServiceConfig {
             self.report_interval_s.is_finite() && self.report_interval_s > 0.0,
             "report_interval_s must be > 0"
         );
+        if let Some(name) = &self.sensor {
+            groundwork_io::sensor_preset(name).map_err(|e| anyhow::anyhow!("sensor: {e}"))?;
+        }
         Ok(())
     }
 
@@ -152,6 +159,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("prefx"), "{e}");
+    }
+
+    #[test]
+    fn the_sensor_key_names_a_preset() {
+        let c: ServiceConfig = toml::from_str("sensor = \"os1-64\"").unwrap();
+        c.validate().unwrap();
+        let c: ServiceConfig = toml::from_str("sensor = \"hdl99\"").unwrap();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("hdl99") && e.contains("os1-128"), "{e}");
     }
 
     #[test]

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use groundwork_eval::{Confusion, Metrics, Protocol};
+use groundwork_io::{LabelClass, LabelMap};
 use groundwork_msg::{MaskHeader, MaskStatus, ScanHeader, monotonic_ns};
 use serde::Serialize;
 use tracing::{info, warn};
@@ -116,7 +117,8 @@ pub struct ConsumerStage {
     last_scan: Option<(u64, u64)>,
     last_mask: Option<(u64, u64, u64)>,
     segmenter_epochs: HashSet<u64>,
-    labels: HashMap<u64, Option<Vec<u16>>>,
+    labels: HashMap<u64, Option<Vec<LabelClass>>>,
+    label_map: LabelMap,
     label_order: VecDeque<u64>,
     confusion: Option<Confusion>,
     stats: LatencyStats,
@@ -220,7 +222,7 @@ impl ConsumerStage {
             let p = dir.join(format!("labels/{index:06}.label"));
             let l = p
                 .is_file()
-                .then(|| groundwork_io::read_labels(&p, probs.len()))
+                .then(|| self.label_map.read(&p, probs.len()))
                 .transpose()
                 .unwrap_or_else(|e| {
                     warn!("{e}");

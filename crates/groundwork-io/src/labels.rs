@@ -1,0 +1,306 @@
+//! Label maps (TerraSeg's OmniLiDAR label harmonisation): each dataset's class ids mapped
+//! onto the four classes ground segmentation is scored on. The maps are data, in
+//! `config/labels/` (built in); a user adds a TOML file for their own dataset.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::error::FormatError;
+
+/// The harmonised class of a labelled point.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LabelClass {
+    /// Road, sidewalk, terrain, … as the dataset defines ground.
+    Ground,
+    /// Trees and bushes: ignored by the GMM paper's protocol, non-ground in TerraSeg's.
+    Vegetation,
+    /// Everything else.
+    NonGround,
+    /// Unlabelled, noise, outliers: never scored.
+    Ignored,
+}
+
+/// How a label file stores one point's class.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LabelRecord {
+    /// Little-endian u32: class id in the low 16 bits, instance id in the high 16.
+    U32,
+    /// One byte: the class id.
+    U8,
+}
+
+impl LabelRecord {
+    fn size(self) -> usize {
+        match self {
+            Self::U32 => 4,
+            Self::U8 => 1,
+        }
+    }
+}
+
+/// One dataset's label map.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LabelMap {
+    /// Dataset name (`--labels-format`).
+    pub name: String,
+    /// Layout of the label files.
+    pub record: LabelRecord,
+    /// Label file name of a scan, `{stem}` standing for the scan's stem.
+    pub file: String,
+    /// Class ids that are ground.
+    pub ground: Vec<u16>,
+    /// Class ids that are vegetation.
+    #[serde(default)]
+    pub vegetation: Vec<u16>,
+    /// Class ids never scored.
+    #[serde(default)]
+    pub ignored: Vec<u16>,
+}
+
+/// The built-in maps of `config/labels/`: (name, TOML text).
+pub const LABEL_MAPS: &[(&str, &str)] = &[
+    (
+        "semantickitti",
+        include_str!("../../../config/labels/semantickitti.toml"),
+    ),
+    (
+        "nuscenes",
+        include_str!("../../../config/labels/nuscenes.toml"),
+    ),
+    ("rellis", include_str!("../../../config/labels/rellis.toml")),
+];
+
+impl Default for LabelMap {
+    /// SemanticKITTI's.
+    fn default() -> Self {
+        Self::semantickitti()
+    }
+}
+
+impl LabelMap {
+    /// Parses a map; `path` names it in errors.
+    pub fn parse(path: &Path, text: &str) -> Result<Self, FormatError> {
+        let map: Self = toml::from_str(text).map_err(|e| FormatError::Config {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        if !map.file.contains("{stem}") {
+            return Err(FormatError::Config {
+                path: path.to_path_buf(),
+                message: "file must contain {stem}".into(),
+            });
+        }
+        let overlap = map
+            .ground
+            .iter()
+            .chain(&map.vegetation)
+            .enumerate()
+            .find(|(i, id)| {
+                map.ground
+                    .iter()
+                    .chain(&map.vegetation)
+                    .skip(i + 1)
+                    .any(|o| o == *id)
+                    || map.ignored.contains(id)
+            });
+        if let Some((_, id)) = overlap {
+            return Err(FormatError::Config {
+                path: path.to_path_buf(),
+                message: format!("class id {id} is listed twice"),
+            });
+        }
+        Ok(map)
+    }
+
+    /// A built-in map by name, or a map file by path (a user's own dataset).
+    pub fn load(name_or_path: &str) -> Result<Self, FormatError> {
+        if let Some((name, text)) = LABEL_MAPS
+            .iter()
+            .find(|(n, _)| n.eq_ignore_ascii_case(name_or_path))
+        {
+            return Self::parse(Path::new(&format!("config/labels/{name}.toml")), text);
+        }
+        let path = Path::new(name_or_path);
+        if path.is_file() {
+            let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+            return Self::parse(path, &text);
+        }
+        Err(FormatError::Config {
+            path: path.to_path_buf(),
+            message: format!(
+                "neither a built-in label map ({}) nor a map file",
+                LABEL_MAPS
+                    .iter()
+                    .map(|(n, _)| *n)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        })
+    }
+
+    /// SemanticKITTI's map, the default.
+    pub fn semantickitti() -> Self {
+        // The built-in map is tested to parse; the fallback is never taken.
+        Self::load("semantickitti").unwrap_or_else(|_| Self {
+            name: "semantickitti".into(),
+            record: LabelRecord::U32,
+            file: "{stem}.label".into(),
+            ground: vec![40, 44, 48, 49, 60, 72],
+            vegetation: vec![70],
+            ignored: vec![0, 1],
+        })
+    }
+
+    /// The harmonised class of a class id.
+    pub fn class(&self, id: u16) -> LabelClass {
+        if self.ignored.contains(&id) {
+            LabelClass::Ignored
+        } else if self.ground.contains(&id) {
+            LabelClass::Ground
+        } else if self.vegetation.contains(&id) {
+            LabelClass::Vegetation
+        } else {
+            LabelClass::NonGround
+        }
+    }
+
+    /// The label file of the scan `stem` in `dir`.
+    pub fn file_for(&self, dir: &Path, stem: &str) -> PathBuf {
+        dir.join(self.file.replace("{stem}", stem))
+    }
+
+    /// Reads a label file of `points` records and harmonises it. The size must match the
+    /// scan (checked before reading).
+    pub fn read(&self, path: &Path, points: usize) -> Result<Vec<LabelClass>, FormatError> {
+        let record = self.record.size();
+        let size = fs::metadata(path)
+            .map_err(|e| FormatError::io(path, e))?
+            .len();
+        if size % record as u64 != 0 {
+            return Err(FormatError::Size {
+                path: path.to_path_buf(),
+                size,
+                record,
+            });
+        }
+        if size / record as u64 != points as u64 {
+            return Err(FormatError::LabelCount {
+                path: path.to_path_buf(),
+                labels: (size / record as u64) as usize,
+                points,
+            });
+        }
+        let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
+        if bytes.len() != points * record {
+            return Err(FormatError::LabelCount {
+                path: path.to_path_buf(),
+                labels: bytes.len() / record,
+                points,
+            });
+        }
+        Ok(match self.record {
+            LabelRecord::U32 => bytes
+                .chunks_exact(4)
+                .map(|b| self.class(u16::from_le_bytes([b[0], b[1]])))
+                .collect(),
+            LabelRecord::U8 => bytes.iter().map(|&b| self.class(u16::from(b))).collect(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn built_in_maps_parse_and_harmonise() {
+        for (name, _) in LABEL_MAPS {
+            let m = LabelMap::load(name).unwrap();
+            assert_eq!(m.name, *name);
+        }
+        let kitti = LabelMap::semantickitti();
+        assert_eq!(kitti.class(40), LabelClass::Ground);
+        assert_eq!(kitti.class(70), LabelClass::Vegetation);
+        assert_eq!(kitti.class(10), LabelClass::NonGround);
+        assert_eq!(kitti.class(1), LabelClass::Ignored);
+        let rellis = LabelMap::load("rellis").unwrap();
+        for ground in [1, 3, 10, 23, 31, 33] {
+            assert_eq!(
+                rellis.class(ground),
+                LabelClass::Ground,
+                "RELLIS id {ground}"
+            );
+        }
+        assert_eq!(rellis.class(4), LabelClass::Vegetation); // tree
+        assert_eq!(rellis.class(17), LabelClass::NonGround); // person
+        let nu = LabelMap::load("NuScenes").unwrap();
+        assert_eq!(nu.class(24), LabelClass::Ground); // driveable surface
+        assert_eq!(nu.class(17), LabelClass::NonGround); // vehicle.car
+    }
+
+    #[test]
+    fn label_files_of_both_layouts_read_and_must_match_the_scan() {
+        let dir = tempfile::tempdir().unwrap();
+        let kitti = LabelMap::semantickitti();
+        let p = kitti.file_for(dir.path(), "000003");
+        // Instance ids in the high half do not change the class.
+        let raw: Vec<u8> = [40u32 | (7 << 16), 10 | (3 << 16), 70]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        fs::write(&p, raw).unwrap();
+        assert_eq!(
+            kitti.read(&p, 3).unwrap(),
+            [
+                LabelClass::Ground,
+                LabelClass::NonGround,
+                LabelClass::Vegetation
+            ]
+        );
+        let e = kitti.read(&p, 4).unwrap_err().to_string();
+        assert!(e.contains("000003.label") && e.contains("3 labels"), "{e}");
+
+        let nu = LabelMap::load("nuscenes").unwrap();
+        let p = nu.file_for(dir.path(), "n015__LIDAR_TOP__1");
+        assert!(p.ends_with("n015__LIDAR_TOP__1_lidarseg.bin"));
+        fs::write(&p, [24u8, 0, 17, 30]).unwrap();
+        assert_eq!(
+            nu.read(&p, 4).unwrap(),
+            [
+                LabelClass::Ground,
+                LabelClass::Ignored,
+                LabelClass::NonGround,
+                LabelClass::Vegetation
+            ]
+        );
+    }
+
+    #[test]
+    fn a_users_map_file_is_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("mine.toml");
+        fs::write(&p, "name = \"mine\"\nrecord = \"u32\"\nfile = \"{stem}.label\"\nground = [5, 6]\nignored = [6]\n").unwrap();
+        let e = LabelMap::load(p.to_str().unwrap()).unwrap_err().to_string();
+        assert!(e.contains("mine.toml") && e.contains("6"), "{e}");
+        fs::write(
+            &p,
+            "name = \"mine\"\nrecord = \"u16\"\nfile = \"{stem}.label\"\nground = [5]\n",
+        )
+        .unwrap();
+        assert!(LabelMap::load(p.to_str().unwrap()).is_err());
+        fs::write(
+            &p,
+            "name = \"mine\"\nrecord = \"u32\"\nfile = \"{stem}.label\"\nground = [5]\n",
+        )
+        .unwrap();
+        assert_eq!(
+            LabelMap::load(p.to_str().unwrap()).unwrap().class(5),
+            LabelClass::Ground
+        );
+        assert!(LabelMap::load("no-such-dataset").is_err());
+    }
+}
