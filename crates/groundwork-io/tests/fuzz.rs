@@ -1,13 +1,14 @@
 //! Every reader and config parser fed truncated, random and lying inputs: an error (or a
 //! valid result), never a panic, and never an allocation larger than the file.
 //!
-//! A counting global allocator records the largest single allocation while a reader runs;
-//! the tests share one lock so that they do not see each other's allocations.
+//! A counting global allocator records the largest single allocation of the reader's
+//! thread while a reader runs; the tests share one lock for the shared maximum.
 
 #![allow(unsafe_code)] // the counting allocator below
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::path::Path;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -23,10 +24,22 @@ struct Counting;
 
 static LARGEST: AtomicUsize = AtomicUsize::new(0);
 
+thread_local! {
+    /// Set on the thread running a reader: only its allocations count (tests run in
+    /// parallel, and another test's fixture loading must not count as this reader's).
+    static MEASURING: Cell<bool> = const { Cell::new(false) };
+}
+
+fn record(size: usize) {
+    if MEASURING.try_with(Cell::get).unwrap_or(false) {
+        LARGEST.fetch_max(size, Ordering::Relaxed);
+    }
+}
+
 // SAFETY: forwards every call to the system allocator unchanged; only records sizes.
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
+        record(layout.size());
         // SAFETY: same layout the caller gave us.
         unsafe { System.alloc(layout) }
     }
@@ -35,7 +48,7 @@ unsafe impl GlobalAlloc for Counting {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        LARGEST.fetch_max(new_size, Ordering::Relaxed);
+        record(new_size);
         // SAFETY: ptr was allocated by System with this layout.
         unsafe { System.realloc(ptr, layout, new_size) }
     }
@@ -72,7 +85,9 @@ fn run_bounded<T, E: std::fmt::Display>(
     std::fs::write(&path, bytes).unwrap();
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     LARGEST.store(0, Ordering::Relaxed);
+    MEASURING.with(|m| m.set(true));
     let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read(&path)));
+    MEASURING.with(|m| m.set(false));
     let largest = LARGEST.load(Ordering::Relaxed);
     let Ok(result) = result else {
         return Err(TestCaseError::fail(format!("{name}: reader panicked")));
@@ -145,6 +160,15 @@ fn bound(name: &str, bytes: &[u8]) -> usize {
     }
 }
 
+/// The last character boundary of `s` at or before byte `i` (the presets hold `°`).
+fn boundary(s: &str, i: usize) -> usize {
+    let mut i = i.min(s.len());
+    while !s.is_char_boundary(i) {
+        i -= 1;
+    }
+    i
+}
+
 const POSES: &str = "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0.8 0 1 0 0 0 0 1 0.1\n";
 const CALIB: &str = "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0 0 0 -1 0 1 0 0 0\n";
 
@@ -213,8 +237,8 @@ proptest! {
         insert_at in 0usize..120,
     ) {
         for (name, text) in [("poses.txt", POSES), ("calib.txt", CALIB)] {
-            let mut s = text[..cut.min(text.len())].to_string();
-            s.insert_str(insert_at.min(s.len()), &junk);
+            let mut s = text[..boundary(text, cut)].to_string();
+            s.insert_str(boundary(&s, insert_at), &junk);
             run(name, s.as_bytes(), read_poses)?;
             run(name, s.as_bytes(), read_calib_tr)?;
         }
@@ -227,8 +251,8 @@ proptest! {
         insert_at in 0usize..2000,
     ) {
         let preset = include_str!("../../../config/sensors/hdl64e.toml");
-        let mut s = preset[..cut.min(preset.len())].to_string();
-        s.insert_str(insert_at.min(s.len()), &junk);
+        let mut s = preset[..boundary(preset, cut)].to_string();
+        s.insert_str(boundary(&s, insert_at), &junk);
         run("sensor.toml", s.as_bytes(), |p| {
             parse_config(p, &std::fs::read_to_string(p).unwrap())
         })?;
