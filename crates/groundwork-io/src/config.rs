@@ -42,21 +42,31 @@ pub const SENSOR_PRESETS: &[(&str, &str)] = &[
 /// The preset used when none is named.
 pub const DEFAULT_SENSOR: &str = "hdl64e";
 
+/// A built-in table's entry by name (any case): (name, TOML text).
+pub(crate) fn builtin(
+    table: &[(&'static str, &'static str)],
+    name: &str,
+) -> Option<(&'static str, &'static str)> {
+    table
+        .iter()
+        .copied()
+        .find(|(n, _)| n.eq_ignore_ascii_case(name))
+}
+
+/// A built-in table's names, for error messages.
+pub(crate) fn builtin_names(table: &[(&str, &str)]) -> String {
+    table.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
+}
+
 /// The TOML text of a preset, or an error listing the presets.
 pub fn sensor_preset_text(name: &str) -> Result<&'static str, FormatError> {
-    SENSOR_PRESETS
-        .iter()
-        .find(|(n, _)| n.eq_ignore_ascii_case(name))
-        .map(|(_, t)| *t)
+    builtin(SENSOR_PRESETS, name)
+        .map(|(_, t)| t)
         .ok_or_else(|| FormatError::Config {
             path: format!("--sensor {name}").into(),
             message: format!(
                 "no such sensor preset (presets: {})",
-                SENSOR_PRESETS
-                    .iter()
-                    .map(|(n, _)| *n)
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                builtin_names(SENSOR_PRESETS)
             ),
         })
 }

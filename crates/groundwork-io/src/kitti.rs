@@ -6,43 +6,18 @@ use std::path::Path;
 use groundwork_core::{Pose, pose_from_matrix};
 
 use crate::error::FormatError;
+use crate::labels::label_count;
+use crate::scan::read_records;
 
 /// Reads a SemanticKITTI `.label` file (u32 per point: semantic id in the low 16 bits,
 /// instance id in the high 16 bits) and returns the semantic ids. The label count must
 /// match the scan's point count.
 pub fn read_labels(path: &Path, points: usize) -> Result<Vec<u16>, FormatError> {
-    // The size says whether it can match before anything is read (a wrong file given as
-    // labels may be huge).
-    let size = fs::metadata(path)
-        .map_err(|e| FormatError::io(path, e))?
-        .len();
-    if size % 4 == 0 && size / 4 != points as u64 {
-        return Err(FormatError::LabelCount {
-            path: path.to_path_buf(),
-            labels: (size / 4) as usize,
-            points,
-        });
-    }
-    let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
-    if bytes.len() % 4 != 0 {
-        return Err(FormatError::Size {
-            path: path.to_path_buf(),
-            size: bytes.len() as u64,
-            record: 4,
-        });
-    }
-    let labels: Vec<u16> = bytes
+    let bytes = read_records(path, 4, |labels| label_count(path, labels, points))?;
+    Ok(bytes
         .chunks_exact(4)
-        .map(|b| (u32::from_le_bytes([b[0], b[1], b[2], b[3]]) & 0xFFFF) as u16)
-        .collect();
-    if labels.len() != points {
-        return Err(FormatError::LabelCount {
-            path: path.to_path_buf(),
-            labels: labels.len(),
-            points,
-        });
-    }
-    Ok(labels)
+        .map(|b| u16::from_le_bytes([b[0], b[1]]))
+        .collect())
 }
 
 fn parse_row_major_3x4(path: &Path, line: usize, vals: &[f64]) -> Result<Pose, FormatError> {

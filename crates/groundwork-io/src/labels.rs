@@ -7,7 +7,22 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use crate::config::{builtin, builtin_names};
 use crate::error::FormatError;
+use crate::scan::read_records;
+
+/// A label file of `labels` records for a scan of `points` points.
+pub(crate) fn label_count(path: &Path, labels: u64, points: usize) -> Result<(), FormatError> {
+    if labels == points as u64 {
+        Ok(())
+    } else {
+        Err(FormatError::LabelCount {
+            path: path.to_path_buf(),
+            labels: usize::try_from(labels).unwrap_or(usize::MAX),
+            points,
+        })
+    }
+}
 
 /// The harmonised class of a labelled point.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -94,20 +109,9 @@ impl LabelMap {
                 message: "file must contain {stem}".into(),
             });
         }
-        let overlap = map
-            .ground
-            .iter()
-            .chain(&map.vegetation)
-            .enumerate()
-            .find(|(i, id)| {
-                map.ground
-                    .iter()
-                    .chain(&map.vegetation)
-                    .skip(i + 1)
-                    .any(|o| o == *id)
-                    || map.ignored.contains(id)
-            });
-        if let Some((_, id)) = overlap {
+        let mut seen = std::collections::BTreeSet::new();
+        let all = map.ground.iter().chain(&map.vegetation).chain(&map.ignored);
+        if let Some(id) = all.into_iter().find(|&&id| !seen.insert(id)) {
             return Err(FormatError::Config {
                 path: path.to_path_buf(),
                 message: format!("class id {id} is listed twice"),
@@ -118,10 +122,7 @@ impl LabelMap {
 
     /// A built-in map by name, or a map file by path (a user's own dataset).
     pub fn load(name_or_path: &str) -> Result<Self, FormatError> {
-        if let Some((name, text)) = LABEL_MAPS
-            .iter()
-            .find(|(n, _)| n.eq_ignore_ascii_case(name_or_path))
-        {
+        if let Some((name, text)) = builtin(LABEL_MAPS, name_or_path) {
             return Self::parse(Path::new(&format!("config/labels/{name}.toml")), text);
         }
         let path = Path::new(name_or_path);
@@ -133,26 +134,15 @@ impl LabelMap {
             path: path.to_path_buf(),
             message: format!(
                 "neither a built-in label map ({}) nor a map file",
-                LABEL_MAPS
-                    .iter()
-                    .map(|(n, _)| *n)
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                builtin_names(LABEL_MAPS)
             ),
         })
     }
 
     /// SemanticKITTI's map, the default.
     pub fn semantickitti() -> Self {
-        // The built-in map is tested to parse; the fallback is never taken.
-        Self::load("semantickitti").unwrap_or_else(|_| Self {
-            name: "semantickitti".into(),
-            record: LabelRecord::U32,
-            file: "{stem}.label".into(),
-            ground: vec![40, 44, 48, 49, 60, 72],
-            vegetation: vec![70],
-            ignored: vec![0, 1],
-        })
+        #[allow(clippy::expect_used)] // built in at compile time, and tested to parse
+        Self::load("semantickitti").expect("built-in semantickitti label map parses")
     }
 
     /// The harmonised class of a class id.
@@ -176,32 +166,9 @@ impl LabelMap {
     /// Reads a label file of `points` records and harmonises it. The size must match the
     /// scan (checked before reading).
     pub fn read(&self, path: &Path, points: usize) -> Result<Vec<LabelClass>, FormatError> {
-        let record = self.record.size();
-        let size = fs::metadata(path)
-            .map_err(|e| FormatError::io(path, e))?
-            .len();
-        if size % record as u64 != 0 {
-            return Err(FormatError::Size {
-                path: path.to_path_buf(),
-                size,
-                record,
-            });
-        }
-        if size / record as u64 != points as u64 {
-            return Err(FormatError::LabelCount {
-                path: path.to_path_buf(),
-                labels: (size / record as u64) as usize,
-                points,
-            });
-        }
-        let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
-        if bytes.len() != points * record {
-            return Err(FormatError::LabelCount {
-                path: path.to_path_buf(),
-                labels: bytes.len() / record,
-                points,
-            });
-        }
+        let bytes = read_records(path, self.record.size(), |labels| {
+            label_count(path, labels, points)
+        })?;
         Ok(match self.record {
             LabelRecord::U32 => bytes
                 .chunks_exact(4)

@@ -296,15 +296,10 @@ pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
             }
             let body = read_body(path, &mut file, &head[h.len..], want)?;
             let off = offsets(&h);
-            let at = |rec: &[u8], k: usize| value(&rec[off[k]..], &h.fields[k]);
-            body.chunks_exact(point_size)
-                .map(|rec| Point {
-                    x: at(rec, x),
-                    y: at(rec, y),
-                    z: at(rec, z),
-                    intensity: intensity.map_or(0.0, |i| at(rec, i)),
-                })
-                .collect()
+            // Row-major: point i's field k at i × point_size + its offset.
+            assemble(n, [x, y, z], intensity, |i, k| {
+                value(&body[i * point_size + off[k]..], &h.fields[k])
+            })
         }
         Encoding::BinaryCompressed => {
             if body_len < 8 {
@@ -362,18 +357,10 @@ pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
                     s
                 })
                 .collect();
-            let at = |i: usize, k: usize| {
+            assemble(n, [x, y, z], intensity, |i, k| {
                 let f = &h.fields[k];
                 value(&raw[starts[k] + i * f.size * f.count..], f)
-            };
-            (0..n)
-                .map(|i| Point {
-                    x: at(i, x),
-                    y: at(i, y),
-                    z: at(i, z),
-                    intensity: intensity.map_or(0.0, |k| at(i, k)),
-                })
-                .collect()
+            })
         }
     };
     let mut scan = Scan::from_records(path, records, NonFinite::Skip)?;
@@ -381,6 +368,23 @@ pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
         scan.organized = Some((h.height as u32, h.width as u32));
     }
     Ok(scan)
+}
+
+/// The points of a binary body, `at(i, k)` being point i's value of field k.
+fn assemble(
+    n: usize,
+    [x, y, z]: [usize; 3],
+    intensity: Option<usize>,
+    at: impl Fn(usize, usize) -> f32,
+) -> Vec<Point> {
+    (0..n)
+        .map(|i| Point {
+            x: at(i, x),
+            y: at(i, y),
+            z: at(i, z),
+            intensity: intensity.map_or(0.0, |k| at(i, k)),
+        })
+        .collect()
 }
 
 /// `len` body bytes: those already read with the header, then the rest from the file.

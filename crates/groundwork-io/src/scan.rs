@@ -245,9 +245,14 @@ pub(crate) fn checked_count(
     Ok(records as usize)
 }
 
-/// KITTI and nuScenes: headerless little-endian f32 records, x, y, z, intensity first.
-fn read_float_records(path: &Path, max_points: usize, floats: usize) -> Result<Scan, FormatError> {
-    let record = 4 * floats;
+/// Reads a headerless file of `record`-byte records: its size must be whole records, and
+/// `check` vets the record count, both before a byte is read (a wrong file may be huge);
+/// a file that changed between the two is an error too.
+pub(crate) fn read_records(
+    path: &Path,
+    record: usize,
+    check: impl FnOnce(u64) -> Result<(), FormatError>,
+) -> Result<Vec<u8>, FormatError> {
     let size = fs::metadata(path)
         .map_err(|e| FormatError::io(path, e))?
         .len();
@@ -258,16 +263,24 @@ fn read_float_records(path: &Path, max_points: usize, floats: usize) -> Result<S
             record,
         });
     }
-    let n = checked_count(path, size / record as u64, max_points)?;
+    check(size / record as u64)?;
     let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
-    if bytes.len() != n * record {
-        // The file changed between stat and read.
+    if bytes.len() as u64 != size {
         return Err(FormatError::Size {
             path: path.to_path_buf(),
             size: bytes.len() as u64,
             record,
         });
     }
+    Ok(bytes)
+}
+
+/// KITTI and nuScenes: headerless little-endian f32 records, x, y, z, intensity first.
+fn read_float_records(path: &Path, max_points: usize, floats: usize) -> Result<Scan, FormatError> {
+    let record = 4 * floats;
+    let bytes = read_records(path, record, |n| {
+        checked_count(path, n, max_points).map(|_| ())
+    })?;
     let f = |b: &[u8], i: usize| {
         f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
     };
