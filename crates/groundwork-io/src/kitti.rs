@@ -87,9 +87,79 @@ pub fn lidar_poses(camera: &[Pose], tr: &Pose) -> Vec<Pose> {
     camera.iter().map(|p| tr_inv * p * tr).collect()
 }
 
+/// Writes a SemanticKITTI `.label` file: one little-endian u32 per point (class id in the
+/// low 16 bits, instance id in the high 16).
+pub fn write_labels(path: &Path, labels: &[u32]) -> Result<(), FormatError> {
+    let bytes: Vec<u8> = labels.iter().flat_map(|l| l.to_le_bytes()).collect();
+    fs::write(path, bytes).map_err(|e| FormatError::io(path, e))
+}
+
+/// Writes KITTI odometry `poses.txt`: one pose per line, the top three rows of a
+/// row-major 4×4 matrix.
+pub fn write_poses(path: &Path, poses: &[[[f64; 4]; 4]]) -> Result<(), FormatError> {
+    let mut text = String::new();
+    for m in poses {
+        let row: Vec<String> = m[..3]
+            .iter()
+            .flatten()
+            .map(|v| format!("{v:.9e}"))
+            .collect();
+        text.push_str(&row.join(" "));
+        text.push('\n');
+    }
+    fs::write(path, text).map_err(|e| FormatError::io(path, e))
+}
+
+/// Writes a KITTI odometry `calib.txt` holding only `Tr` (velodyne → camera), for
+/// sequences whose poses are the LiDAR's own (`Tr` = identity).
+pub fn write_calib_tr(path: &Path, tr: &[[f64; 4]; 4]) -> Result<(), FormatError> {
+    let row: Vec<String> = tr[..3]
+        .iter()
+        .flatten()
+        .map(|v| format!("{v:.9e}"))
+        .collect();
+    fs::write(path, format!("Tr: {}\n", row.join(" "))).map_err(|e| FormatError::io(path, e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn written_poses_calibration_and_labels_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (
+            pose_from_matrix(&[
+                [1.0, 0.0, 0.0, 2.0],
+                [0.0, 1.0, 0.0, 3.0],
+                [0.0, 0.0, 1.0, 4.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ])
+            .unwrap(),
+            pose_from_matrix(&[
+                [0.0, -1.0, 0.0, 1.5],
+                [1.0, 0.0, 0.0, -2.0],
+                [0.0, 0.0, 1.0, 0.25],
+                [0.0, 0.0, 0.0, 1.0],
+            ])
+            .unwrap(),
+        );
+        let m = |p: &Pose| {
+            let h = p.to_homogeneous();
+            std::array::from_fn(|r| std::array::from_fn(|c| h[(r, c)]))
+        };
+        let poses = dir.path().join("poses.txt");
+        write_poses(&poses, &[m(&a), m(&b)]).unwrap();
+        let back = read_poses(&poses).unwrap();
+        assert_eq!(back.len(), 2);
+        assert!((back[1].to_homogeneous() - b.to_homogeneous()).abs().max() < 1e-9);
+        let calib = dir.path().join("calib.txt");
+        write_calib_tr(&calib, &m(&Pose::identity())).unwrap();
+        assert_eq!(read_calib_tr(&calib).unwrap(), Pose::identity());
+        let labels = dir.path().join("0.label");
+        write_labels(&labels, &[40 | (3 << 16), 10]).unwrap();
+        assert_eq!(read_labels(&labels, 2).unwrap(), vec![40, 10]);
+    }
 
     #[test]
     fn labels_keep_the_semantic_half_and_must_match_the_scan() {

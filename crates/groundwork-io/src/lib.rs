@@ -20,7 +20,9 @@ pub use config::{
 };
 pub use error::FormatError;
 pub use input::{ScanItem, ScanIter, ScanSource};
-pub use kitti::{lidar_poses, read_calib_tr, read_labels, read_poses};
+pub use kitti::{
+    lidar_poses, read_calib_tr, read_labels, read_poses, write_calib_tr, write_labels, write_poses,
+};
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{read_prob, write_outputs};
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
