@@ -103,6 +103,32 @@ fn smoothstep(x: f64) -> f64 {
     x * x * (3.0 - 2.0 * x)
 }
 
+/// Offroad terrain height: rolling hills with ruts.
+fn offroad_height(x: f64, y: f64) -> f64 {
+    1.4 * (0.045 * x + 0.7).sin() * (0.033 * y).cos()
+        + 0.9 * (0.06 * (x + y) + 1.3).sin()
+        + 0.35 * (0.11 * x - 0.09 * y).cos()
+        // Ruts and clods: 3 cm at about 2 m.
+        + 0.03 * (3.1 * x).sin() * (2.7 * y).sin()
+}
+
+/// Parking lot height, and how much of it is the ramp and the sidewalk (their classes).
+fn parking_parts(x: f64, y: f64) -> (f64, f64, f64) {
+    // 1 % fall for drainage.
+    let mut height = 0.01 * x.clamp(-60.0, 100.0);
+    let (rx0, rx1, rx2) = RAMP_X;
+    let (ry0, ry1) = RAMP_Y;
+    let edge = 0.1;
+    let across = smoothstep((y - ry0) / edge) * (1.0 - smoothstep((y - ry1) / edge));
+    let along = smoothstep((x - rx0) / (rx1 - rx0)) * (1.0 - smoothstep((x - rx2) / edge));
+    let ramp = DECK * along * across;
+    height += ramp;
+    let walk =
+        smoothstep((y - WALK_Y.0) / CURB_WIDTH) * (1.0 - smoothstep((y - WALK_Y.1) / CURB_WIDTH));
+    height += CURB * walk;
+    (height, ramp, walk)
+}
+
 /// Height of urban curbs and the parking lot's sidewalk, metres.
 const CURB: f64 = 0.15;
 /// Width over which a curb rises, metres.
@@ -198,7 +224,13 @@ impl Scene {
 
     /// Terrain height at (x, y).
     pub fn height(&self, x: f64, y: f64) -> f64 {
-        self.surface(x, y).height
+        // The ray marcher's inner loop: offroad and parking heights do not need the
+        // path coordinates (an atan2 and a square root) that only their classes use.
+        match self.kind {
+            SceneKind::Urban => self.urban_surface(x, y).height,
+            SceneKind::Offroad => offroad_height(x, y),
+            SceneKind::Parking => parking_parts(x, y).0,
+        }
     }
 
     /// Arc length to the nearest cross street's centre line (cross streets every 45° of the
@@ -238,29 +270,16 @@ impl Scene {
     }
 
     fn offroad_surface(&self, x: f64, y: f64) -> Surface {
-        let height = 1.4 * (0.045 * x + 0.7).sin() * (0.033 * y).cos()
-            + 0.9 * (0.06 * (x + y) + 1.3).sin()
-            + 0.35 * (0.11 * x - 0.09 * y).cos()
-            // Ruts and clods: 3 cm at about 2 m.
-            + 0.03 * (3.1 * x).sin() * (2.7 * y).sin();
         let (_, d) = self.path_coordinates(DVec2::new(x, y));
         let class = if d.abs() < 1.8 { OTHER_GROUND } else { TERRAIN };
-        Surface { height, class }
+        Surface {
+            height: offroad_height(x, y),
+            class,
+        }
     }
 
     fn parking_surface(&self, x: f64, y: f64) -> Surface {
-        // 1 % fall for drainage.
-        let mut height = 0.01 * x.clamp(-60.0, 100.0);
-        let (rx0, rx1, rx2) = RAMP_X;
-        let (ry0, ry1) = RAMP_Y;
-        let edge = 0.1;
-        let across = smoothstep((y - ry0) / edge) * (1.0 - smoothstep((y - ry1) / edge));
-        let along = smoothstep((x - rx0) / (rx1 - rx0)) * (1.0 - smoothstep((x - rx2) / edge));
-        let ramp = DECK * along * across;
-        height += ramp;
-        let walk = smoothstep((y - WALK_Y.0) / CURB_WIDTH)
-            * (1.0 - smoothstep((y - WALK_Y.1) / CURB_WIDTH));
-        height += CURB * walk;
+        let (height, ramp, walk) = parking_parts(x, y);
         let (_, d) = self.path_coordinates(DVec2::new(x, y));
         let class = if ramp > 0.0 || d.abs() < 3.5 {
             ROAD
