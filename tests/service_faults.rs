@@ -452,6 +452,60 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
     );
 }
 
+/// The consumer's optional recording: every segmented scan as a PointCloud2 with its
+/// ground probabilities, readable by the same reader `segment` and `eval` use.
+#[test]
+fn the_consumer_records_the_pipeline_to_mcap() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = tmp.path().join("run/ground.mcap");
+    let p = prefix("record");
+    let out = Command::new(env!("CARGO_BIN_EXE_groundwork"))
+        .args([
+            "pipeline", "--count", "6", "--rate", "10", "--prefix", &p, "--out",
+        ])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("6 masks (6 segmented"), "{stdout}");
+    let scans: Vec<_> = groundwork_io::RecordingReader::open(&rec, None, 200_000)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(scans.len(), 6);
+    let bytes = std::fs::read(&rec).unwrap();
+    let messages = mcap::MessageStream::new(&bytes).unwrap();
+    let bundled: Vec<_> = groundwork_io::list_scans(&data().join("velodyne"))
+        .unwrap()
+        .iter()
+        .map(|f| groundwork_io::read_scan(f, 200_000).unwrap())
+        .collect();
+    for (i, (s, m)) in scans.iter().zip(messages).enumerate() {
+        // Points exactly as the producer published one of the bundled frames.
+        let want = bundled
+            .iter()
+            .find(|b| b.points == s.scan.points)
+            .unwrap_or_else(|| panic!("scan {i} is none of the bundled frames"));
+        assert_eq!(s.topic, "/points");
+        if i > 0 {
+            assert!(s.log_time_ns > scans[i - 1].log_time_ns);
+        }
+        let probs =
+            groundwork_io::pointcloud2::decode_probabilities(&rec, &m.unwrap().data, 200_000)
+                .unwrap();
+        assert_eq!(probs.len(), want.points.len());
+        assert!(probs.iter().all(|p| (0.0..=1.0).contains(p)));
+        let ground = probs.iter().filter(|&&p| p >= 0.5).count();
+        assert!(ground > probs.len() / 4, "scan {i}: {ground} ground");
+    }
+}
+
 fn signal(pid: i32, sig: rustix::process::Signal) {
     let pid = rustix::process::Pid::from_raw(pid).unwrap();
     rustix::process::kill_process(pid, sig).unwrap();

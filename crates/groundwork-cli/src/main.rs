@@ -83,7 +83,8 @@ enum Command {
         /// Producer rate, scans per second (0 = as fast as possible).
         #[arg(long)]
         rate: Option<f64>,
-        /// Consumer writes .prob/.ground files here.
+        /// Consumer writes .prob/.ground files into this folder, or one recording
+        /// (PointCloud2 with ground_probability) to a path ending in .mcap.
         #[arg(long)]
         out: Option<PathBuf>,
         /// Start a stage that dies (killed, crashed) again, up to this many times per
@@ -141,7 +142,8 @@ enum Command {
         /// Sequence folder with labels/ for live accuracy.
         #[arg(long)]
         labels: Option<PathBuf>,
-        /// Write .prob/.ground files here.
+        /// Write .prob/.ground files into this folder, or one recording (PointCloud2 with
+        /// ground_probability, topic /points) to a path ending in .mcap.
         #[arg(long)]
         out: Option<PathBuf>,
         /// Write the final report as JSON here.

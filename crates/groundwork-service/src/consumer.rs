@@ -11,9 +11,10 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use groundwork_core::Point;
 use groundwork_eval::{Confusion, Metrics, Protocol};
-use groundwork_io::{LabelClass, LabelMap};
-use groundwork_msg::{MaskHeader, MaskStatus, ScanHeader, monotonic_ns};
+use groundwork_io::{LabelClass, LabelMap, RecordingWriter, Scan};
+use groundwork_msg::{MaskHeader, MaskStatus, ScanHeader, ScanPoint, monotonic_ns};
 use serde::Serialize;
 use tracing::{info, warn};
 
@@ -31,7 +32,9 @@ pub struct ConsumerOptions {
     pub idle_timeout: Option<Duration>,
     /// Sequence folder with `labels/<index>.label` for live accuracy (gmm protocol).
     pub labels: Option<PathBuf>,
-    /// Write `<index>.prob` / `<index>.ground` here.
+    /// Write `<index>.prob` / `<index>.ground` into this folder, or, for a path ending in
+    /// `.mcap`, every segmented scan into one recording (PointCloud2 with a
+    /// `ground_probability` field, topic [`RECORDING_TOPIC`]).
     pub out: Option<PathBuf>,
     /// Write the final report as JSON here.
     pub report_json: Option<PathBuf>,
@@ -105,12 +108,59 @@ pub struct ConsumerReport {
 pub const PAIRING_WINDOW: usize = 256;
 /// Label files kept in memory (a replay loops over a few; a long drive never repeats).
 const LABEL_CACHE: usize = 32;
+/// Scans whose points are held for a recording until their mask comes. A mask normally
+/// follows its scan within a frame or two; a stalled segmenter must not make the consumer
+/// hold 256 scans of 200 000 points each.
+pub const RECORDING_WINDOW: usize = 16;
+/// The topic of the consumer's recording.
+pub const RECORDING_TOPIC: &str = "/points";
+
+/// Where the consumer writes what it receives.
+#[derive(Debug)]
+pub enum ConsumerOutput {
+    /// `<index>.prob` / `<index>.ground` per segmented scan.
+    Files(PathBuf),
+    /// One MCAP recording; the points of scans waiting for their masks are held here.
+    Recording {
+        /// The open recording.
+        writer: Box<RecordingWriter>,
+        /// (producer epoch, sequence) → the scan's points, at most [`RECORDING_WINDOW`].
+        scans: BTreeMap<(u64, u64), Vec<Point>>,
+    },
+}
+
+impl ConsumerOutput {
+    /// A recording for a path ending in `.mcap` (parent folders created), a folder
+    /// otherwise.
+    pub fn create(out: &Path) -> anyhow::Result<Self> {
+        let is_recording = out
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        let dir = if is_recording {
+            out.parent().filter(|d| !d.as_os_str().is_empty())
+        } else {
+            Some(out)
+        };
+        if let Some(dir) = dir {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("{}: cannot create", dir.display()))?;
+        }
+        Ok(if is_recording {
+            Self::Recording {
+                writer: Box::new(RecordingWriter::create(out)?),
+                scans: BTreeMap::new(),
+            }
+        } else {
+            Self::Files(out.to_path_buf())
+        })
+    }
+}
 
 /// The consumer stage: pairing, accounting, latency, accuracy, outputs. No IPC.
 #[derive(Debug, Default)]
 pub struct ConsumerStage {
     labels_dir: Option<PathBuf>,
-    out: Option<PathBuf>,
+    out: Option<ConsumerOutput>,
     warmup: u64,
     /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
     pending: BTreeMap<(u64, u64), u64>,
@@ -126,8 +176,8 @@ pub struct ConsumerStage {
 }
 
 impl ConsumerStage {
-    /// A stage scoring against `labels` (a sequence folder) and writing into `out`.
-    pub fn new(labels: Option<PathBuf>, out: Option<PathBuf>, warmup: u64) -> Self {
+    /// A stage scoring against `labels` (a sequence folder) and writing to `out`.
+    pub fn new(labels: Option<PathBuf>, out: Option<ConsumerOutput>, warmup: u64) -> Self {
         Self {
             labels_dir: labels,
             out,
@@ -136,8 +186,23 @@ impl ConsumerStage {
         }
     }
 
-    /// A scan was read.
-    pub fn on_scan(&mut self, h: &ScanHeader) {
+    /// A scan was read (its points are copied only when writing a recording).
+    pub fn on_scan(&mut self, h: &ScanHeader, points: &[ScanPoint]) {
+        if let Some(ConsumerOutput::Recording { scans, .. }) = &mut self.out {
+            let p = points
+                .iter()
+                .map(|p| Point {
+                    x: p.x,
+                    y: p.y,
+                    z: p.z,
+                    intensity: p.intensity,
+                })
+                .collect();
+            scans.insert((h.producer_epoch, h.sequence), p);
+            if scans.len() > RECORDING_WINDOW {
+                scans.pop_first();
+            }
+        }
         let r = &mut self.report;
         r.scans += 1;
         if let Some((e, s)) = self.last_scan {
@@ -172,6 +237,12 @@ impl ConsumerStage {
             r.segmenter_runs += 1;
         }
         let ok = h.status == MaskStatus::OK;
+        let held = match &mut self.out {
+            Some(ConsumerOutput::Recording { scans, .. }) => {
+                scans.remove(&(h.producer_epoch, h.scan_sequence))
+            }
+            _ => None,
+        };
         match self.pending.remove(&(h.producer_epoch, h.scan_sequence)) {
             Some(_) if ok => r.scan_fate.masked += 1,
             Some(_) => r.scan_fate.rejected += 1,
@@ -205,12 +276,36 @@ impl ConsumerStage {
         if self.labels_dir.is_some() {
             self.score(h.source_index, probs);
         }
-        if let Some(out) = &self.out {
-            let stem = format!("{:06}", h.source_index);
-            if let Err(e) = groundwork_io::write_outputs(out, &stem, probs, 0.5) {
-                self.report.write_failures += 1;
-                warn!("{e}");
+        let written = match &mut self.out {
+            None => Ok(()),
+            Some(ConsumerOutput::Files(dir)) => {
+                let stem = format!("{:06}", h.source_index);
+                groundwork_io::write_outputs(dir, &stem, probs, 0.5).map_err(|e| e.to_string())
             }
+            Some(ConsumerOutput::Recording { writer, .. }) => match held {
+                Some(points) if points.len() == probs.len() => {
+                    let mut scan = Scan::dense(points);
+                    scan.stamp_ns = Some(h.sensor_timestamp_ns);
+                    writer
+                        .write(RECORDING_TOPIC, &scan, probs, h.sensor_timestamp_ns)
+                        .map_err(|e| e.to_string())
+                }
+                Some(points) => Err(format!(
+                    "scan {} has {} points, its mask {}: not recorded",
+                    h.scan_sequence,
+                    points.len(),
+                    probs.len()
+                )),
+                None => Err(format!(
+                    "scan {} is no longer held (unseen, or more than {RECORDING_WINDOW} scans \
+                     ago): not recorded",
+                    h.scan_sequence
+                )),
+            },
+        };
+        if let Err(e) = written {
+            self.report.write_failures += 1;
+            warn!("{e}");
         }
     }
 
@@ -261,8 +356,14 @@ impl ConsumerStage {
         &self.stats
     }
 
-    /// Ends the run: scans still waiting for a mask are unanswered.
+    /// Ends the run: scans still waiting for a mask are unanswered; a recording is closed.
     pub fn finish(mut self, seconds: f64) -> ConsumerReport {
+        if let Some(ConsumerOutput::Recording { writer, .. }) = self.out.take() {
+            if let Err(e) = writer.finish() {
+                self.report.write_failures += 1;
+                warn!("{e}");
+            }
+        }
         self.report.scan_fate.unanswered += self.pending.len() as u64;
         self.report.dropped_scans = self.report.scan_fate.dropped;
         self.report.latency_us = self.stats.percentiles();
@@ -326,10 +427,11 @@ fn write_report(path: &Path, r: &ConsumerReport) -> anyhow::Result<()> {
 pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
     signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
-    if let Some(out) = &opts.out {
-        std::fs::create_dir_all(out)
-            .with_context(|| format!("{}: cannot create", out.display()))?;
-    }
+    let output = opts
+        .out
+        .as_deref()
+        .map(ConsumerOutput::create)
+        .transpose()?;
     let node = transport::node(cfg, "consumer")?;
     signals::install(&node)?;
     let scans = transport::scan_service(&node, cfg)?;
@@ -346,7 +448,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     let mut last_report = Instant::now();
     info!(prefix = %cfg.prefix, "consumer started");
 
-    let mut stage = ConsumerStage::new(opts.labels.clone(), opts.out.clone(), opts.warmup);
+    let mut stage = ConsumerStage::new(opts.labels.clone(), output, opts.warmup);
     let mut first: Option<Instant> = None;
     let mut last_mask = Instant::now();
     let mut stalled = false;
@@ -358,7 +460,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
             let next = mask_sub.receive().context("receive mask")?;
             let now = monotonic_ns();
             while let Some(scan) = scan_sub.receive().context("receive scan")? {
-                stage.on_scan(scan.user_header());
+                stage.on_scan(scan.user_header(), scan.payload());
             }
             let Some(mask) = next else {
                 return Ok(());
@@ -406,7 +508,7 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     transport::cleanup_dead(&node);
     // Scans already queued are seen, so that they count (as unanswered if no mask came).
     while let Some(scan) = scan_sub.receive().context("receive scan")? {
-        stage.on_scan(scan.user_header());
+        stage.on_scan(scan.user_header(), scan.payload());
     }
     let table = stage.stats().table();
     let report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));
@@ -455,7 +557,7 @@ mod tests {
         let mut c = ConsumerStage::new(None, None, 0);
         // Producer run 1: scans 0..10; scans 3 and 4 never reach us (queue overflow).
         for s in (0..10).filter(|s| ![3, 4].contains(s)) {
-            c.on_scan(&scan(1, s));
+            c.on_scan(&scan(1, s), &[]);
         }
         // Segmenter A answers 0..=5 (5 rejected), then dies with 6 and 7 in its queue; B
         // answers 8, and a mask for the dropped scan 3 arrives (unmatched).
@@ -470,7 +572,7 @@ mod tests {
         c.on_mask(&mask(100, 1, 3, MaskStatus::OK), &[], 1);
         c.on_mask(&mask(200, 1, 8, MaskStatus::OK), &[], 1);
         // Producer run 2 starts over at sequence 0: not a gap.
-        c.on_scan(&scan(2, 0));
+        c.on_scan(&scan(2, 0), &[]);
         c.on_mask(&mask(200, 2, 0, MaskStatus::OK), &[], 1);
         let r = c.finish(1.0);
         let f = r.scan_fate;
@@ -488,8 +590,8 @@ mod tests {
         assert_eq!(sequence_gap(0, u64::MAX), u64::MAX - 1);
         assert_eq!(sequence_gap(u64::MAX - 1, u64::MAX), 0);
         let mut c = ConsumerStage::new(None, None, 0);
-        c.on_scan(&scan(1, u64::MAX));
-        c.on_scan(&scan(1, 0));
+        c.on_scan(&scan(1, u64::MAX), &[]);
+        c.on_scan(&scan(1, 0), &[]);
         c.on_mask(&mask(1, 1, u64::MAX, MaskStatus::OK), &[], 1);
         c.on_mask(&mask(1, 1, 0, MaskStatus::OK), &[], 1);
         let r = c.finish(0.0);
@@ -500,12 +602,78 @@ mod tests {
     }
 
     #[test]
+    fn a_recording_holds_each_segmented_scan_with_its_probabilities() {
+        let tmp = tempfile::tempdir().unwrap();
+        let path = tmp.path().join("sub/out.mcap");
+        let out = ConsumerOutput::create(&path).unwrap();
+        let mut c = ConsumerStage::new(None, Some(out), 0);
+        let points = |s: u64| {
+            (0..3)
+                .map(|i| ScanPoint {
+                    x: s as f32,
+                    y: i as f32,
+                    z: -1.5,
+                    intensity: 7.0,
+                })
+                .collect::<Vec<_>>()
+        };
+        let answer = |c: &mut ConsumerStage, s: u64, status: MaskStatus| {
+            let mut m = mask(1, 1, s, status);
+            m.point_count = 3;
+            m.sensor_timestamp_ns = 1_000 + s;
+            c.on_mask(&m, &[s as f32 / 8.0, 0.5, 1.0], 1);
+        };
+        // More scans than the window: the oldest ones are no longer held.
+        for s in 0..(RECORDING_WINDOW as u64 + 4) {
+            let mut h = scan(1, s);
+            h.point_count = 3;
+            c.on_scan(&h, &points(s));
+        }
+        answer(&mut c, 0, MaskStatus::OK); // not held any more: a write failure
+        answer(&mut c, 5, MaskStatus::OK);
+        answer(&mut c, 6, MaskStatus::EMPTY); // rejected: nothing to record
+        answer(&mut c, 7, MaskStatus::OK);
+        let r = c.finish(1.0);
+        assert_eq!((r.segmented, r.write_failures), (3, 1), "{r:?}");
+
+        let back: Vec<_> = groundwork_io::RecordingReader::open(&path, None, 100)
+            .unwrap()
+            .collect::<Result<_, _>>()
+            .unwrap();
+        assert_eq!(back.len(), 2);
+        for (b, s) in back.iter().zip([5u64, 7]) {
+            assert_eq!(b.topic, RECORDING_TOPIC);
+            assert_eq!(b.log_time_ns, 1_000 + s);
+            assert_eq!(b.scan.stamp_ns, Some(1_000 + s));
+            let want: Vec<_> = points(s)
+                .iter()
+                .map(|p| Point {
+                    x: p.x,
+                    y: p.y,
+                    z: p.z,
+                    intensity: p.intensity,
+                })
+                .collect();
+            assert_eq!(b.scan.points, want);
+        }
+        let data = std::fs::read(&path).unwrap();
+        let msg = mcap::MessageStream::new(&data)
+            .unwrap()
+            .nth(1)
+            .unwrap()
+            .unwrap();
+        let probs =
+            groundwork_io::pointcloud2::decode_probabilities(&path, &msg.data, 100).unwrap();
+        assert_eq!(probs, [0.875, 0.5, 1.0]);
+    }
+
+    #[test]
     fn the_pairing_window_and_the_label_cache_are_bounded() {
         let tmp = tempfile::tempdir().unwrap();
         std::fs::create_dir(tmp.path().join("labels")).unwrap();
         let mut c = ConsumerStage::new(Some(tmp.path().to_path_buf()), None, 0);
         for s in 0..(PAIRING_WINDOW as u64 + 50) {
-            c.on_scan(&scan(1, s));
+            c.on_scan(&scan(1, s), &[]);
         }
         assert_eq!(c.report().scan_fate.unanswered, 50);
         for s in 0..1000u64 {
