@@ -134,3 +134,31 @@ fn one_absurd_return_poisons_nothing() {
     }
     assert_eq!(poisoned.counters().out_of_bounds_points, 1);
 }
+
+/// The PseudoLabeler and RANSAC on the labeled frames, terraseg protocol (vegetation is
+/// non-ground). Measured: PseudoLabeler pooled mIoU 94.13 (98.62 ground IoU in the gmm
+/// protocol), RANSAC 90.49; for reference Patchwork++ 91.33 and an independent faithful
+/// PseudoLabeler 93.85 on these frames. The floor is 92.5.
+#[test]
+fn pseudolabeler_pooled_miou_on_frames_0_to_2() {
+    use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
+    let cfg = load_config(&hdl64e_preset()).unwrap();
+    let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
+    seq.poses = None;
+    seq.limit = Some(3);
+    let frame = GroundFrame::from_config(&cfg).unwrap();
+    let mut pl = PseudoLabeler::new(Default::default(), frame).unwrap();
+    let ts = evaluate(&seq, &mut pl, Protocol::Terraseg, |_| {}).unwrap();
+    let mut r = Ransac::new(Default::default(), frame).unwrap();
+    let rs = evaluate(&seq, &mut r, Protocol::Terraseg, |_| {}).unwrap();
+    let (p, rm) = (ts.pooled_metrics.miou, rs.pooled_metrics.miou);
+    eprintln!("terraseg mIoU: pseudolabeler {p:.2}, ransac {rm:.2}");
+    assert_eq!(ts.labeled_scans, 3);
+    assert!(p >= 92.5, "pooled mIoU {p:.2}");
+    assert!(p > rm, "PseudoLabeler {p:.2} vs RANSAC {rm:.2}");
+    // Every frame, not only the pool.
+    for s in &ts.scans {
+        let m = s.metrics.unwrap().miou;
+        assert!(m >= 92.0, "scan {}: mIoU {m:.2}", s.name);
+    }
+}

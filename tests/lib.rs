@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use groundwork_core::config::MountConfig;
-use groundwork_core::{Segmenter, SegmenterConfig, pose_from_matrix};
+use groundwork_core::{GroundMethod, Segmenter, SegmenterConfig, pose_from_matrix};
 use groundwork_eval::{Confusion, Protocol};
 use groundwork_io::{LabelClass, LabelMap, sensor_preset};
 pub use groundwork_synth::{Generator, SceneKind, SynthConfig};
@@ -63,9 +63,19 @@ pub fn synthetic(
 
 /// Segments every frame of `generator` in order with `cfg`, given `poses`.
 pub fn synthetic_run(generator: &Generator, cfg: SegmenterConfig, poses: Poses) -> SyntheticRun {
-    let map = LabelMap::semantickitti();
-    let thr = cfg.ground.ground_threshold;
     let mut seg = Segmenter::new(cfg).expect("config");
+    method_run(generator, &mut seg, poses, Protocol::Gmm)
+}
+
+/// Segments every frame of `generator` in order with any method, scored in `protocol`.
+pub fn method_run(
+    generator: &Generator,
+    seg: &mut dyn GroundMethod,
+    poses: Poses,
+    protocol: Protocol,
+) -> SyntheticRun {
+    let map = LabelMap::semantickitti();
+    let thr = seg.threshold();
     let mut run = SyntheticRun {
         pooled: Confusion::default(),
         frames: Vec::new(),
@@ -81,14 +91,14 @@ pub fn synthetic_run(generator: &Generator, cfg: SegmenterConfig, poses: Poses) 
         }
         .map(|m| pose_from_matrix(&m).expect("rigid pose"));
         let mut probs = vec![0.0; scan.points.len()];
-        seg.segment(&scan.points, pose.as_ref(), &mut probs)
+        seg.segment_scan(&scan.points, pose.as_ref(), &mut probs)
             .expect("segment");
         let classes: Vec<LabelClass> = scan
             .labels
             .iter()
             .map(|l| map.class((l & 0xffff) as u16))
             .collect();
-        let c = Confusion::from_predictions(&probs, &classes, Protocol::Gmm, thr);
+        let c = Confusion::from_predictions(&probs, &classes, protocol, thr);
         run.pooled.merge(&c);
         run.frames.push(c);
         run.probabilities.push(probs);

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
-use groundwork_core::{Segmenter, SegmenterConfig};
+use groundwork_core::SegmenterConfig;
 use groundwork_eval::{Protocol, Sequence, evaluate, median};
 use groundwork_io::{SENSOR_PRESETS, load_config_over, sensor_preset, write_outputs};
 use groundwork_service::{
@@ -14,6 +14,10 @@ use groundwork_service::{
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::{error, info};
+
+mod label;
+mod methods;
+use methods::MethodArg;
 
 /// The service defaults, likewise.
 const DEFAULT_SERVICE: &str = include_str!("../../../config/service.toml");
@@ -196,6 +200,9 @@ enum Command {
     Segment {
         #[command(flatten)]
         common: Common,
+        /// Method: gmm (online, history), pseudolabeler (offline, slow, accurate) or ransac.
+        #[arg(long, value_enum, default_value_t = MethodArg::Gmm)]
+        method: MethodArg,
         /// Output folder (created if missing).
         #[arg(long)]
         out: PathBuf,
@@ -207,6 +214,10 @@ enum Command {
     Eval {
         #[command(flatten)]
         common: Common,
+        /// Methods to score on the same scans (comma-separated or repeated): gmm,
+        /// pseudolabeler, ransac; several are printed side by side.
+        #[arg(long, value_enum, value_delimiter = ',', default_value = "gmm")]
+        method: Vec<MethodArg>,
         /// Sequence folder with velodyne/ and labels/ (poses.txt, calib.txt optional), a
         /// folder of scans, or an MCAP recording.
         sequence: PathBuf,
@@ -224,6 +235,30 @@ enum Command {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
+    },
+    /// Label a whole dataset offline (PseudoLabeler by default): <out>/<scan>.prob and
+    /// .ground per scan, in parallel across scans, resumable, shardable across machines
+    /// (`--shard i/n`), with a summary JSON.
+    Label {
+        #[command(flatten)]
+        common: Common,
+        /// Method: pseudolabeler or ransac (per-scan methods; gmm keeps history and is
+        /// labelled with segment).
+        #[arg(long, value_enum, default_value_t = MethodArg::Pseudolabeler)]
+        method: MethodArg,
+        /// Output folder (created if missing).
+        #[arg(long)]
+        out: PathBuf,
+        /// Label only shard i of n (0-based): scans whose place in the sorted list is i
+        /// modulo n. Every scan is in exactly one shard.
+        #[arg(long, value_parser = label::parse_shard)]
+        shard: Option<label::Shard>,
+        /// Label again even scans whose outputs are complete.
+        #[arg(long)]
+        overwrite: bool,
+        /// Scan files or folders of scans (a sequence folder with velodyne/ works too).
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
     },
 }
 
@@ -264,11 +299,28 @@ fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Segment {
             common,
+            method,
             out,
             inputs,
-        } => segment(&common, &out, &inputs),
+        } => segment(&common, method, &out, &inputs),
+        Command::Label {
+            common,
+            method,
+            out,
+            shard,
+            overwrite,
+            inputs,
+        } => label::run(
+            &load_methods(&common, None)?,
+            method,
+            &out,
+            shard.unwrap_or_default(),
+            overwrite,
+            &inputs,
+        ),
         Command::Eval {
             common,
+            method,
             sequence,
             labels,
             labels_format,
@@ -276,6 +328,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             json,
         } => eval(
             &common,
+            &method,
             &sequence,
             labels.as_deref(),
             &labels_format,
@@ -592,11 +645,19 @@ fn pipeline(
 /// The segmenter configuration: the named preset (`--sensor`, else the service's, else
 /// hdl64e), the `--config` file over it, then `--frames`.
 fn load(common: &Common, service_sensor: Option<&str>) -> Result<SegmenterConfig> {
+    Ok(load_methods(common, service_sensor)?.segmenter)
+}
+
+/// The whole configuration (segmenter and method sections) the common options describe.
+fn load_methods(
+    common: &Common,
+    service_sensor: Option<&str>,
+) -> Result<groundwork_io::MethodsConfig> {
     let sensor = common.sensor.as_deref().or(service_sensor);
-    let mut cfg = load_config_over(sensor, common.config.as_deref())?;
+    let mut cfg = groundwork_io::load_methods_config_over(sensor, common.config.as_deref())?;
     if let Some(n) = common.frames {
-        cfg.history.frames = n;
-        cfg.validate().context("--frames")?;
+        cfg.segmenter.history.frames = n;
+        cfg.segmenter.validate().context("--frames")?;
     }
     Ok(cfg)
 }
@@ -618,9 +679,18 @@ enum SegmentOutput {
     Recording(Box<groundwork_io::RecordingWriter>),
 }
 
-fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
-    let cfg = load(common, None)?;
-    let thr = cfg.ground.ground_threshold;
+fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
+    let methods_cfg = load_methods(common, None)?;
+    let cfg = methods_cfg.segmenter.clone();
+    // The GMM runs as the service's segmenter stage (same checks, same counters); the
+    // offline methods run as they are.
+    let mut offline = match method {
+        MethodArg::Gmm => None,
+        m => Some(methods::build(m, &methods_cfg)?),
+    };
+    let thr = offline
+        .as_ref()
+        .map_or(cfg.ground.ground_threshold, |m| m.threshold());
     let max = cfg.sensor.max_points;
     let mut output = if out
         .extension()
@@ -651,7 +721,7 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
             }
         }
     }
-    if cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
+    if offline.is_none() && cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
         info!("no poses found: scans are segmented single-frame");
     }
     // The same stage as the service's segmenter process: same checks, same counters.
@@ -683,17 +753,25 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
             let result = (|| -> Result<()> {
                 let scan = item.scan.as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
                 let header = offline_header(seq.pose(item.index), input, k, scan.points.len());
-                probs.resize(stage.mask_len(&header, &scan.points), 0.0);
                 let t = Instant::now();
-                let mask = stage.process(&header, &scan.points, 0, &mut probs);
-                if let Some(reason) = stage.last_rejection() {
-                    bail!("{}: {reason}", item.name);
-                }
+                let out_of_bounds = if let Some(m) = offline.as_mut() {
+                    probs.resize(scan.points.len(), 0.0);
+                    m.segment_scan(&scan.points, seq.pose(item.index), &mut probs)
+                        .map_err(|e| anyhow::anyhow!("{}: {e}", item.name))?;
+                    0
+                } else {
+                    probs.resize(stage.mask_len(&header, &scan.points), 0.0);
+                    let mask = stage.process(&header, &scan.points, 0, &mut probs);
+                    if let Some(reason) = stage.last_rejection() {
+                        bail!("{}: {reason}", item.name);
+                    }
+                    mask.out_of_bounds_points
+                };
                 times.push(t.elapsed().as_secs_f64() * 1e3);
-                if mask.out_of_bounds_points > 0 {
+                if out_of_bounds > 0 {
                     pb.suspend(|| {
                         tracing::warn!(
-                            points = mask.out_of_bounds_points,
+                            points = out_of_bounds,
                             "{}: points beyond the coordinate bound (probability 0)",
                             item.name
                         )
@@ -726,9 +804,12 @@ fn segment(common: &Common, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> 
     if let SegmentOutput::Recording(w) = output {
         w.finish()?;
     }
-    stage.segmenter().log_state();
+    if offline.is_none() {
+        stage.segmenter().log_state();
+    }
     let c = stage.segmenter().counters();
     info!(
+        method = ?method,
         scans,
         failed,
         sequence_resets,
@@ -770,13 +851,15 @@ fn offline_header(
 
 fn eval(
     common: &Common,
+    methods: &[MethodArg],
     dir: &Path,
     labels: Option<&Path>,
     labels_format: &str,
     protocol: ProtocolArg,
     json: bool,
 ) -> Result<ExitCode> {
-    let cfg = load(common, None)?;
+    let all = load_methods(common, None)?;
+    let cfg = &all.segmenter;
     let mut seq = Sequence::open(dir, common.poses.as_deref(), common.calib.as_deref())?
         .with_topic(common.topic.clone())
         .with_label_map(groundwork_io::LabelMap::load(labels_format)?);
@@ -787,24 +870,30 @@ fn eval(
     if cfg.history.frames > 1 && seq.poses.is_none() {
         info!("no poses.txt + calib.txt: multi-frame history is not used");
     }
-    let mut seg = Segmenter::new(cfg)?;
     let protocol = match protocol {
         ProtocolArg::Gmm => Protocol::Gmm,
         ProtocolArg::Terraseg => Protocol::Terraseg,
     };
-    let known = seq.len_hint();
-    let pb = progress(known.unwrap_or(0), "eval");
-    let report = evaluate(&seq, &mut seg, protocol, |_| {
-        if known.is_none() {
-            pb.inc_length(1);
-        }
-        pb.inc(1)
-    })?;
-    pb.finish_and_clear();
-    if json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", report.to_table());
+    // Every method on the same scans, through the same evaluator.
+    let mut reports = Vec::new();
+    for &m in methods {
+        let mut method = methods::build(m, &all)?;
+        let known = seq.len_hint();
+        let pb = progress(known.unwrap_or(0), method.name());
+        let report = evaluate(&seq, method.as_mut(), protocol, |_| {
+            if known.is_none() {
+                pb.inc_length(1);
+            }
+            pb.inc(1)
+        })?;
+        pb.finish_and_clear();
+        reports.push(report);
+    }
+    match (json, reports.as_slice()) {
+        (true, [one]) => println!("{}", serde_json::to_string_pretty(one)?),
+        (true, _) => println!("{}", serde_json::to_string_pretty(&reports)?),
+        (false, [one]) => print!("{}", one.to_table()),
+        (false, _) => print!("{}", groundwork_eval::side_by_side(&reports)),
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -491,3 +491,190 @@ fn synth_writes_a_labeled_sequence_that_segment_and_eval_read() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("urban, offroad, parking"));
 }
+
+fn summary(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// Shards split the inputs with no coordination: every scan lands in exactly one shard, and
+/// a bad scan is reported in its shard's summary while the others are labelled.
+#[test]
+fn label_shards_partition_the_inputs_and_bad_scans_are_reported() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    for n in 0..6 {
+        copy_scan(n, &input);
+    }
+    // A truncated scan (not a whole number of records).
+    fs::write(input.join("000009.bin"), [0u8; 30]).unwrap();
+    let out = tmp.path().join("out");
+    let mut labelled = Vec::new();
+    let mut failed = 0;
+    for i in 0..3 {
+        let o = bin()
+            .args([
+                "label",
+                "--method",
+                "ransac",
+                "--shard",
+                &format!("{i}/3"),
+                "--out",
+            ])
+            .arg(&out)
+            .arg(&input)
+            .output()
+            .unwrap();
+        let s = summary(&out.join(format!("label-summary-{i}-of-3.json")));
+        assert_eq!(s["scans_in_inputs"], 7, "{s}");
+        let f = s["failures"].as_array().unwrap();
+        failed += f.len();
+        // Exit code 1 exactly for the shard holding the bad scan.
+        assert_eq!(
+            o.status.code(),
+            Some(if f.is_empty() { 0 } else { 1 }),
+            "{s}"
+        );
+        for n in s["labelled_scans"].as_array().unwrap() {
+            labelled.push(n.as_str().unwrap().to_string());
+        }
+    }
+    assert_eq!(failed, 1);
+    labelled.sort();
+    let want: Vec<String> = (0..6).map(|n| format!("{n:06}")).collect();
+    assert_eq!(labelled, want, "each good scan in exactly one shard");
+    for n in &want {
+        let ground = fs::read(out.join(format!("{n}.ground"))).unwrap();
+        let prob = groundwork_io::read_prob(&out.join(format!("{n}.prob"))).unwrap();
+        assert_eq!(prob.len(), ground.len());
+        assert!(
+            prob.iter()
+                .zip(&ground)
+                .all(|(&p, &g)| (p >= 0.5) == (g == 1))
+        );
+    }
+    let bad = bin()
+        .args(["label", "--shard", "3/3", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(2));
+}
+
+/// A killed `label` leaves no output that looks complete but is not, and a rerun labels only
+/// what is missing, with the same result as an uninterrupted run (the fit is seeded).
+#[test]
+fn label_resumes_after_a_kill_with_identical_results() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    for n in 0..6 {
+        copy_scan(n, &input);
+    }
+    let clean = tmp.path().join("clean");
+    let o = bin()
+        .args(["label", "--out"])
+        .arg(&clean)
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s = summary(&clean.join("label-summary.json"));
+    assert_eq!(
+        (s["labelled"].as_u64(), s["skipped_complete"].as_u64()),
+        (Some(6), Some(0))
+    );
+    let fraction = s["ground_fraction"].as_f64().unwrap();
+    assert!((0.3..0.8).contains(&fraction), "{s}");
+
+    let out = tmp.path().join("out");
+    let mut child = bin()
+        .args(["label", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .spawn()
+        .unwrap();
+    let t = std::time::Instant::now();
+    while !out.join("000000.ground").exists() && !out.join("000001.ground").exists() {
+        assert!(t.elapsed().as_secs() < 120, "no output appeared");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    let complete: Vec<String> = (0..6)
+        .map(|n| format!("{n:06}"))
+        .filter(|n| out.join(format!("{n}.ground")).exists())
+        .collect();
+    for n in &complete {
+        assert!(
+            groundwork_io::outputs_complete(&out, n),
+            "{n} looks complete but is not"
+        );
+    }
+    assert!(
+        complete.len() < 6,
+        "the kill came too late to test anything"
+    );
+    let o = bin()
+        .args(["label", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s = summary(&out.join("label-summary.json"));
+    assert_eq!(
+        s["skipped_complete"].as_u64(),
+        Some(complete.len() as u64),
+        "{s}"
+    );
+    assert_eq!(
+        s["labelled"].as_u64(),
+        Some(6 - complete.len() as u64),
+        "{s}"
+    );
+    for n in 0..6 {
+        for ext in ["prob", "ground"] {
+            let name = format!("{n:06}.{ext}");
+            assert_eq!(
+                fs::read(out.join(&name)).unwrap(),
+                fs::read(clean.join(&name)).unwrap(),
+                "{name}"
+            );
+        }
+    }
+}
+
+/// `eval --method a,b,c` scores every method on the same scans, side by side.
+#[test]
+fn eval_scores_several_methods_side_by_side() {
+    let o = bin()
+        .args([
+            "eval",
+            "--frames",
+            "1",
+            "--protocol",
+            "terraseg",
+            "--method",
+            "gmm,ransac",
+        ])
+        .arg(data())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let table = String::from_utf8_lossy(&o.stdout);
+    let rows: Vec<&str> = table.lines().collect();
+    assert!(
+        rows[0].contains("Terraseg") && rows[0].contains("3 labeled"),
+        "{table}"
+    );
+    assert!(
+        rows[2].starts_with("gmm") && rows[3].starts_with("ransac"),
+        "{table}"
+    );
+    // mIoU column: both plausible, and they differ (two methods, not one twice).
+    let miou = |r: &str| r.split_whitespace().nth(8).unwrap().parse::<f64>().unwrap();
+    assert!(miou(rows[2]) > 85.0 && miou(rows[3]) > 80.0, "{table}");
+    assert_ne!(miou(rows[2]), miou(rows[3]));
+}

@@ -17,6 +17,7 @@ mod fastmath;
 pub mod gmm;
 pub mod height_filter;
 pub mod likelihood;
+pub mod method;
 pub mod model;
 pub mod point;
 pub mod query;
@@ -26,5 +27,6 @@ pub mod zones;
 
 pub use config::SegmenterConfig;
 pub use error::{ConfigError, SegmentError};
+pub use method::GroundMethod;
 pub use point::{Point, PointXyz, Pose, mount_transform, pose_from_matrix};
 pub use segmenter::{FrameReport, HistoryReset, Segmenter, SegmenterCounters};

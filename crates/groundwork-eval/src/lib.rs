@@ -5,4 +5,6 @@ pub mod metrics;
 pub mod sequence;
 
 pub use metrics::{Confusion, Metrics, Protocol};
-pub use sequence::{EvalReport, ScanResult, Sequence, SequenceError, evaluate, median};
+pub use sequence::{
+    EvalReport, ScanResult, Sequence, SequenceError, evaluate, median, side_by_side,
+};

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use groundwork_core::{FrameReport, Pose, Segmenter};
+use groundwork_core::{FrameReport, GroundMethod, Pose};
 use groundwork_io::{
     FormatError, LabelMap, ScanItem, ScanSource, lidar_poses, read_calib_tr, read_poses,
 };
@@ -186,6 +186,8 @@ pub struct ScanResult {
 /// A whole evaluation.
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
+    /// Method evaluated (`gmm`, `pseudolabeler`, `ransac`).
+    pub method: &'static str,
     /// Protocol used.
     pub protocol: Protocol,
     /// History length configured.
@@ -208,16 +210,16 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-/// Segments every scan of the sequence in order (so history builds up) and scores the
-/// labeled ones. `on_scan` is called after each scan (progress reporting).
+/// Segments every scan of the sequence in order (so history builds up) with any method and
+/// scores the labeled ones. `on_scan` is called after each scan (progress reporting).
 pub fn evaluate(
     seq: &Sequence,
-    segmenter: &mut Segmenter,
+    segmenter: &mut dyn GroundMethod,
     protocol: Protocol,
     mut on_scan: impl FnMut(&ScanResult),
 ) -> Result<EvalReport, SequenceError> {
-    let max = segmenter.config().sensor.max_points;
-    let thr = segmenter.config().ground.ground_threshold;
+    let max = segmenter.max_points();
+    let thr = segmenter.threshold();
     let mut scans = Vec::with_capacity(seq.len_hint().unwrap_or(0));
     let mut pooled = Confusion::default();
     let mut probs = Vec::new();
@@ -232,7 +234,7 @@ pub fn evaluate(
         let t = Instant::now();
         let report: FrameReport =
             segmenter
-                .segment(points, pose, &mut probs)
+                .segment_scan(points, pose, &mut probs)
                 .map_err(|source| SequenceError::Segment {
                     path: PathBuf::from(&item.name),
                     source,
@@ -271,7 +273,8 @@ pub fn evaluate(
     let median_ms = median(scans.iter().map(|s| s.total_ms).collect());
     Ok(EvalReport {
         protocol,
-        history_frames: segmenter.config().history.frames,
+        method: segmenter.name(),
+        history_frames: segmenter.history_frames(),
         pooled_metrics: pooled.metrics(),
         pooled,
         labeled_scans,
@@ -283,6 +286,44 @@ pub fn evaluate(
         },
         scans,
     })
+}
+
+/// Several methods' pooled figures on the same scans, one row each.
+pub fn side_by_side(reports: &[EvalReport]) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    if let Some(r) = reports.first() {
+        let _ = writeln!(
+            s,
+            "protocol {:?}, {} scans ({} labeled), pooled over labeled scans",
+            r.protocol,
+            r.scans.len(),
+            r.labeled_scans
+        );
+    }
+    let _ = writeln!(
+        s,
+        "{:<14} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>9}",
+        "method", "frames", "prec", "recall", "F1", "acc", "IoU_g", "IoU_ng", "mIoU", "ms/scan"
+    );
+    for r in reports {
+        let m = &r.pooled_metrics;
+        let _ = writeln!(
+            s,
+            "{:<14} {:>7} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>9.1}",
+            r.method,
+            r.history_frames,
+            m.precision,
+            m.recall,
+            m.f1,
+            m.accuracy,
+            m.iou_ground,
+            m.iou_nonground,
+            m.miou,
+            r.median_ms
+        );
+    }
+    s
 }
 
 /// Median of a list (mean of the middle two for even lengths); 0 for an empty list.
@@ -306,7 +347,8 @@ impl EvalReport {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "protocol {:?}, {} history frame(s), {} scans ({} labeled)",
+            "method {}, protocol {:?}, {} history frame(s), {} scans ({} labeled)",
+            self.method,
             self.protocol,
             self.history_frames,
             self.scans.len(),

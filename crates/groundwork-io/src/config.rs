@@ -5,6 +5,7 @@ use std::fs;
 use std::path::Path;
 
 use groundwork_core::SegmenterConfig;
+use groundwork_pseudolabel::{PseudoLabelerConfig, RansacConfig};
 
 use crate::error::FormatError;
 
@@ -77,6 +78,18 @@ pub fn sensor_preset(name: &str) -> Result<SegmenterConfig, FormatError> {
     parse_config(Path::new(&format!("config/sensors/{name}.toml")), text)
 }
 
+/// Everything a configuration file sets: the sensor and the GMM segmenter (top-level
+/// sections), and the offline methods' own sections `[pseudolabeler]` and `[ransac]`.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MethodsConfig {
+    /// Sensor, zones, GMM, ground, height filter, history.
+    pub segmenter: SegmenterConfig,
+    /// `[pseudolabeler]`.
+    pub pseudolabeler: PseudoLabelerConfig,
+    /// `[ransac]`.
+    pub ransac: RansacConfig,
+}
+
 /// A preset (`DEFAULT_SENSOR` if None) with a config file laid over it: every field the
 /// file gives replaces the preset's, tables merge key by key (a `mount` with `matrix`
 /// replaces the whole mount). Unknown keys in the file are errors naming it.
@@ -84,10 +97,18 @@ pub fn load_config_over(
     preset: Option<&str>,
     path: Option<&Path>,
 ) -> Result<SegmenterConfig, FormatError> {
+    Ok(load_methods_config_over(preset, path)?.segmenter)
+}
+
+/// [`load_config_over`] with the `[pseudolabeler]` and `[ransac]` sections too.
+pub fn load_methods_config_over(
+    preset: Option<&str>,
+    path: Option<&Path>,
+) -> Result<MethodsConfig, FormatError> {
     let name = preset.unwrap_or(DEFAULT_SENSOR);
     let base = sensor_preset_text(name)?;
     let Some(path) = path else {
-        return sensor_preset(name);
+        return parse_methods_config(Path::new(&format!("config/sensors/{name}.toml")), base);
     };
     let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
     let config_error = |e: &dyn std::fmt::Display| FormatError::Config {
@@ -99,9 +120,49 @@ pub fn load_config_over(
     merge(&mut merged, overlay);
     // Deserialise the merged table; errors still name the user's file (only its keys can
     // be unknown: the presets are tested).
-    let cfg: SegmenterConfig = merged.try_into().map_err(|e| config_error(&e))?;
-    cfg.validate().map_err(|e| config_error(&e))?;
-    Ok(cfg)
+    split_methods(path, merged)
+}
+
+/// Deserialises a whole configuration table: the two method sections apart, the rest as
+/// the segmenter's (every part rejects unknown keys).
+fn split_methods(path: &Path, mut table: toml::Table) -> Result<MethodsConfig, FormatError> {
+    let config_error = |e: &dyn std::fmt::Display| FormatError::Config {
+        path: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    };
+    fn section<T: serde::de::DeserializeOwned + Default>(
+        table: &mut toml::Table,
+        name: &str,
+    ) -> Result<T, String> {
+        match table.remove(name) {
+            None => Ok(T::default()),
+            Some(v) => v
+                .try_into()
+                .map_err(|e: toml::de::Error| format!("[{name}]: {}", e.to_string().trim_end())),
+        }
+    }
+    let pseudolabeler: PseudoLabelerConfig =
+        section(&mut table, "pseudolabeler").map_err(|e| config_error(&e))?;
+    pseudolabeler.validate().map_err(|e| config_error(&e))?;
+    let ransac: RansacConfig = section(&mut table, "ransac").map_err(|e| config_error(&e))?;
+    ransac.validate().map_err(|e| config_error(&e))?;
+    let segmenter: SegmenterConfig = table.try_into().map_err(|e| config_error(&e))?;
+    segmenter.validate().map_err(|e| config_error(&e))?;
+    Ok(MethodsConfig {
+        segmenter,
+        pseudolabeler,
+        ransac,
+    })
+}
+
+/// Parses a whole configuration text (sensor, segmenter and method sections); `path` is
+/// only used in error messages.
+pub fn parse_methods_config(path: &Path, text: &str) -> Result<MethodsConfig, FormatError> {
+    let table: toml::Table = toml::from_str(text).map_err(|e| FormatError::Config {
+        path: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })?;
+    split_methods(path, table)
 }
 
 fn merge(base: &mut toml::Table, overlay: toml::Table) {
@@ -124,17 +185,10 @@ pub fn load_config(path: &Path) -> Result<SegmenterConfig, FormatError> {
     parse_config(path, &text)
 }
 
-/// Parses configuration text; `path` is only used in error messages.
+/// Parses configuration text (method sections are checked, then set aside); `path` is only
+/// used in error messages.
 pub fn parse_config(path: &Path, text: &str) -> Result<SegmenterConfig, FormatError> {
-    let cfg: SegmenterConfig = toml::from_str(text).map_err(|e| FormatError::Config {
-        path: path.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
-    })?;
-    cfg.validate().map_err(|e| FormatError::Config {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    Ok(cfg)
+    Ok(parse_methods_config(path, text)?.segmenter)
 }
 
 #[cfg(test)]
@@ -159,6 +213,36 @@ mod tests {
         let c = parse_config(p, "[gmm]\nk_max = 4\n").unwrap();
         assert_eq!(c.gmm.k_max, 4);
         assert_eq!(c.gmm.n_min, 20, "unspecified fields keep their defaults");
+    }
+
+    #[test]
+    fn method_sections_are_read_and_checked_apart_from_the_segmenter() {
+        let p = Path::new("mine.toml");
+        let c = parse_methods_config(
+            p,
+            "[gmm]\nk_max = 4\n[pseudolabeler]\nseed = 7\nhidden = [16, 16]\n[ransac]\niterations = 50\n",
+        )
+        .unwrap();
+        assert_eq!(c.segmenter.gmm.k_max, 4);
+        assert_eq!(c.pseudolabeler.seed, 7);
+        assert_eq!(c.pseudolabeler.hidden, [16, 16]);
+        assert_eq!(
+            c.pseudolabeler.ground_distance, 0.40,
+            "paper's default kept"
+        );
+        assert_eq!(c.ransac.iterations, 50);
+        let e = parse_methods_config(p, "[pseudolabeler]\nhuber = 0.1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("mine.toml") && e.contains("huber"), "{e}");
+        let e = parse_methods_config(p, "[ransac]\nmax_tilt_deg = 120.0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("ransac.max_tilt_deg"), "{e}");
+        let e = parse_methods_config(p, "[pseudolabeler]\nprefilter_quantile = 0.5e2\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("pseudolabeler.prefilter_quantile"), "{e}");
     }
 
     #[test]

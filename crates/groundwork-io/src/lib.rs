@@ -16,7 +16,8 @@ pub mod recording;
 pub mod scan;
 
 pub use config::{
-    DEFAULT_SENSOR, SENSOR_PRESETS, load_config, load_config_over, parse_config, sensor_preset,
+    DEFAULT_SENSOR, MethodsConfig, SENSOR_PRESETS, load_config, load_config_over,
+    load_methods_config_over, parse_config, parse_methods_config, sensor_preset,
 };
 pub use error::FormatError;
 pub use input::{ScanItem, ScanIter, ScanSource};
@@ -24,6 +25,6 @@ pub use kitti::{
     lidar_poses, read_calib_tr, read_labels, read_poses, write_calib_tr, write_labels, write_poses,
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
-pub use output::{read_prob, write_outputs};
+pub use output::{outputs_complete, read_prob, write_outputs};
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::{InputKind, Scan, ScanFormat, list_scans, read_scan, scan_stem, write_kitti_bin};

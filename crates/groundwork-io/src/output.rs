@@ -6,7 +6,9 @@ use std::path::Path;
 
 use crate::error::FormatError;
 
-/// Writes `<dir>/<stem>.prob` and `<dir>/<stem>.ground`.
+/// Writes `<dir>/<stem>.prob` and `<dir>/<stem>.ground`, each first to a temporary name and
+/// then renamed, so that a crash never leaves a half-written file under the final name; the
+/// `.ground` file is renamed last, so its presence means both are complete.
 pub fn write_outputs(
     dir: &Path,
     stem: &str,
@@ -18,10 +20,27 @@ pub fn write_outputs(
         .iter()
         .map(|&p| u8::from(p >= threshold))
         .collect();
-    let pp = dir.join(format!("{stem}.prob"));
-    fs::write(&pp, prob).map_err(|e| FormatError::io(&pp, e))?;
-    let gp = dir.join(format!("{stem}.ground"));
-    fs::write(&gp, ground).map_err(|e| FormatError::io(&gp, e))
+    write_atomic(&dir.join(format!("{stem}.prob")), &prob)?;
+    write_atomic(&dir.join(format!("{stem}.ground")), &ground)
+}
+
+/// Writes `path` through `<path>.partial` and a rename.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".partial");
+    let tmp = std::path::PathBuf::from(tmp);
+    fs::write(&tmp, bytes).map_err(|e| FormatError::io(&tmp, e))?;
+    fs::rename(&tmp, path).map_err(|e| FormatError::io(path, e))
+}
+
+/// Whether `<dir>/<stem>.prob` and `.ground` are both complete outputs for one scan: present
+/// under their final names, 4 bytes per point and 1 byte per point for the same count.
+pub fn outputs_complete(dir: &Path, stem: &str) -> bool {
+    let len = |ext: &str| fs::metadata(dir.join(format!("{stem}.{ext}"))).map(|m| m.len());
+    match (len("prob"), len("ground")) {
+        (Ok(p), Ok(g)) => g > 0 && p == 4 * g,
+        _ => false,
+    }
 }
 
 /// Reads a `.prob` file.
@@ -54,5 +73,13 @@ mod tests {
             fs::read(dir.path().join("000007.ground")).unwrap(),
             [0, 0, 1, 1]
         );
+        assert!(outputs_complete(dir.path(), "000007"));
+        // No temporary file is left behind.
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 2);
+        // A missing or truncated half makes the pair incomplete.
+        fs::write(dir.path().join("000007.prob"), [0u8; 12]).unwrap();
+        assert!(!outputs_complete(dir.path(), "000007"));
+        fs::remove_file(dir.path().join("000007.ground")).unwrap();
+        assert!(!outputs_complete(dir.path(), "000007"));
     }
 }

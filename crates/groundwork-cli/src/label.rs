@@ -1,0 +1,359 @@
+//! `groundwork label`: a per-scan method over a whole dataset, offline.
+//!
+//! Parallel across scans on all cores; resumable (a scan whose `.prob` and `.ground` are both
+//! complete is skipped, and outputs are written under temporary names and renamed, `.ground`
+//! last); shardable with no coordination (`--shard i/n` keeps the scans whose place in the
+//! sorted list is i modulo n); a bad scan is reported in the summary and the job goes on.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Mutex;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use groundwork_core::{Point, SegmentError};
+use groundwork_io::{InputKind, MethodsConfig, outputs_complete, read_scan, scan_stem};
+use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use serde::Serialize;
+use tracing::{error, info};
+
+use crate::methods::MethodArg;
+
+/// Shard i of n.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    /// 0-based index.
+    pub index: u64,
+    /// Number of shards.
+    pub count: u64,
+}
+
+impl Default for Shard {
+    fn default() -> Self {
+        Self { index: 0, count: 1 }
+    }
+}
+
+impl Shard {
+    /// Whether the k-th scan of the sorted list is in this shard.
+    pub fn contains(&self, k: usize) -> bool {
+        k as u64 % self.count == self.index
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+/// Parses `i/n` with 0 ≤ i < n (a Slurm array's `$SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT`).
+pub fn parse_shard(s: &str) -> Result<Shard, String> {
+    let (i, n) = s
+        .split_once('/')
+        .ok_or_else(|| format!("{s:?}: expected i/n, e.g. 0/8"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u64>()
+            .map_err(|e| format!("{s:?}: {v:?} is not a count ({e})"))
+    };
+    let (index, count) = (parse(i)?, parse(n)?);
+    if count == 0 || index >= count {
+        return Err(format!("{s:?}: need 0 ≤ i < n"));
+    }
+    Ok(Shard { index, count })
+}
+
+/// The per-scan methods `label` runs (shared by all threads: labelling takes `&self`).
+enum PerScan {
+    PseudoLabeler(PseudoLabeler),
+    Ransac(Ransac),
+}
+
+impl PerScan {
+    fn label(&self, points: &[Point], out: &mut [f32]) -> Result<(), SegmentError> {
+        match self {
+            Self::PseudoLabeler(m) => m.label(points, out).map(|_| ()),
+            Self::Ransac(m) => m.label(points, out).map(|_| ()),
+        }
+    }
+}
+
+/// A scan that could not be labelled.
+#[derive(Debug, Clone, Serialize)]
+pub struct Failure {
+    /// The scan file.
+    pub scan: PathBuf,
+    /// Why.
+    pub reason: String,
+}
+
+/// What a `label` run did (written as JSON next to the outputs).
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    /// Method used.
+    pub method: String,
+    /// Shard `i/n`.
+    pub shard: String,
+    /// Scans in the inputs (all shards).
+    pub scans_in_inputs: usize,
+    /// Scans in this shard.
+    pub scans: usize,
+    /// Scans labelled by this run.
+    pub labelled: usize,
+    /// Stems of the scans labelled by this run, sorted.
+    pub labelled_scans: Vec<String>,
+    /// Scans skipped because their outputs were complete (a resumed run).
+    pub skipped_complete: usize,
+    /// Scans that could not be labelled.
+    pub failures: Vec<Failure>,
+    /// Points labelled.
+    pub points: u64,
+    /// Of which ground.
+    pub ground_points: u64,
+    /// ground_points / points.
+    pub ground_fraction: f64,
+    /// Wall time, s.
+    pub seconds: f64,
+    /// Scans labelled per second of wall time.
+    pub scans_per_second: f64,
+    /// Median time to label one scan, ms (several run at once).
+    pub median_ms_per_scan: f64,
+}
+
+/// The scan files of the inputs (a sequence folder's `velodyne/`, a folder's scans, or a
+/// file), sorted, with unique stems (outputs are named after them).
+pub fn collect_scans(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            let velodyne = input.join("velodyne");
+            let dir = if velodyne.is_dir() { &velodyne } else { input };
+            files.extend(groundwork_io::list_scans(dir)?);
+        } else {
+            if matches!(InputKind::detect(input)?, InputKind::Recording) {
+                bail!(
+                    "{}: label takes scan files and folders; a recording is labelled by \
+                     `groundwork segment --method pseudolabeler --out X.mcap`",
+                    input.display()
+                );
+            }
+            files.push(input.clone());
+        }
+    }
+    files.sort();
+    files.dedup();
+    let mut stems: Vec<(String, &PathBuf)> = files.iter().map(|f| (scan_stem(f), f)).collect();
+    stems.sort();
+    if let Some(w) = stems.windows(2).find(|w| w[0].0 == w[1].0) {
+        bail!(
+            "{} and {} would both write {}.prob: label one sequence per --out folder",
+            w[0].1.display(),
+            w[1].1.display(),
+            w[0].0
+        );
+    }
+    Ok(files)
+}
+
+enum Outcome {
+    Labelled {
+        stem: String,
+        points: u64,
+        ground: u64,
+        ms: f64,
+    },
+    Skipped,
+    Failed(Failure),
+}
+
+/// Runs the job; exit code 1 when some scan failed (all others are labelled).
+pub fn run(
+    cfg: &MethodsConfig,
+    method: MethodArg,
+    out: &Path,
+    shard: Shard,
+    overwrite: bool,
+    inputs: &[PathBuf],
+) -> Result<ExitCode> {
+    let frame = GroundFrame::from_config(&cfg.segmenter)?;
+    let labeler = match method {
+        MethodArg::Pseudolabeler => {
+            PerScan::PseudoLabeler(PseudoLabeler::new(cfg.pseudolabeler.clone(), frame)?)
+        }
+        MethodArg::Ransac => PerScan::Ransac(Ransac::new(cfg.ransac.clone(), frame)?),
+        MethodArg::Gmm => bail!(
+            "label runs per-scan methods (pseudolabeler, ransac); the GMM keeps a history \
+             over scans in order: use `groundwork segment`"
+        ),
+    };
+    let all = collect_scans(inputs)?;
+    let mine: Vec<&PathBuf> = all
+        .iter()
+        .enumerate()
+        .filter(|&(k, _)| shard.contains(k))
+        .map(|(_, f)| f)
+        .collect();
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    info!(
+        method = ?method,
+        shard = %shard,
+        scans = mine.len(),
+        of = all.len(),
+        out = %out.display(),
+        "labelling"
+    );
+    let pb = ProgressBar::new(mine.len() as u64);
+    pb.set_style(
+        ProgressStyle::with_template(
+            "label [{bar:30}] {pos}/{len} scans, {per_sec}, elapsed {elapsed}, eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    let max = cfg.segmenter.sensor.max_points;
+    let failures_logged = Mutex::new(());
+    let t = Instant::now();
+    // Scans in parallel; each scan's own fit is deterministic whatever the thread count.
+    let outcomes: Vec<Outcome> = mine
+        .par_iter()
+        .map(|&path| {
+            let stem = scan_stem(path);
+            let outcome = if !overwrite && outputs_complete(out, &stem) {
+                Outcome::Skipped
+            } else {
+                let t = Instant::now();
+                let result = (|| -> Result<(u64, u64), String> {
+                    let scan = read_scan(path, max).map_err(|e| e.to_string())?;
+                    let mut probs = vec![0.0f32; scan.points.len()];
+                    labeler
+                        .label(&scan.points, &mut probs)
+                        .map_err(|e| format!("{}: {e}", path.display()))?;
+                    // One value per record of the input (placeholders: 0).
+                    let all = scan.expand(&probs, 0.0);
+                    groundwork_io::write_outputs(out, &stem, &all, 0.5)
+                        .map_err(|e| e.to_string())?;
+                    let ground = all.iter().filter(|&&p| p >= 0.5).count() as u64;
+                    Ok((all.len() as u64, ground))
+                })();
+                match result {
+                    Ok((points, ground)) => Outcome::Labelled {
+                        stem,
+                        points,
+                        ground,
+                        ms: t.elapsed().as_secs_f64() * 1e3,
+                    },
+                    Err(reason) => {
+                        let _g = failures_logged.lock();
+                        pb.suspend(|| error!("skipped: {reason}"));
+                        Outcome::Failed(Failure {
+                            scan: path.to_path_buf(),
+                            reason,
+                        })
+                    }
+                }
+            };
+            pb.inc(1);
+            outcome
+        })
+        .collect();
+    pb.finish_and_clear();
+    let seconds = t.elapsed().as_secs_f64();
+
+    let mut s = Summary {
+        method: format!("{method:?}").to_lowercase(),
+        shard: shard.to_string(),
+        scans_in_inputs: all.len(),
+        scans: mine.len(),
+        labelled: 0,
+        labelled_scans: Vec::new(),
+        skipped_complete: 0,
+        failures: Vec::new(),
+        points: 0,
+        ground_points: 0,
+        ground_fraction: 0.0,
+        seconds,
+        scans_per_second: 0.0,
+        median_ms_per_scan: 0.0,
+    };
+    let mut times = Vec::new();
+    for o in outcomes {
+        match o {
+            Outcome::Labelled {
+                stem,
+                points,
+                ground,
+                ms,
+            } => {
+                s.labelled += 1;
+                s.labelled_scans.push(stem);
+                s.points += points;
+                s.ground_points += ground;
+                times.push(ms);
+            }
+            Outcome::Skipped => s.skipped_complete += 1,
+            Outcome::Failed(f) => s.failures.push(f),
+        }
+    }
+    s.labelled_scans.sort();
+    s.ground_fraction = if s.points > 0 {
+        s.ground_points as f64 / s.points as f64
+    } else {
+        0.0
+    };
+    s.scans_per_second = if seconds > 0.0 {
+        s.labelled as f64 / seconds
+    } else {
+        0.0
+    };
+    s.median_ms_per_scan = groundwork_eval::median(times);
+    let name = if shard.count == 1 {
+        "label-summary.json".to_string()
+    } else {
+        format!("label-summary-{}-of-{}.json", shard.index, shard.count)
+    };
+    let path = out.join(name);
+    let tmp = path.with_extension("json.partial");
+    std::fs::write(&tmp, serde_json::to_string_pretty(&s)?)
+        .and_then(|()| std::fs::rename(&tmp, &path))
+        .with_context(|| format!("{}: cannot write summary", path.display()))?;
+    println!(
+        "label ({}, shard {}): {} scans labelled, {} already complete, {} failed; {} points, {:.1} % ground; {:.1} s, {:.2} scans/s; summary {}",
+        s.method,
+        s.shard,
+        s.labelled,
+        s.skipped_complete,
+        s.failures.len(),
+        s.points,
+        100.0 * s.ground_fraction,
+        s.seconds,
+        s.scans_per_second,
+        path.display()
+    );
+    Ok(if s.failures.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shards_partition_any_list_exactly() {
+        for n in 1..=7u64 {
+            let shards: Vec<Shard> = (0..n).map(|index| Shard { index, count: n }).collect();
+            for k in 0..100 {
+                assert_eq!(shards.iter().filter(|s| s.contains(k)).count(), 1);
+            }
+        }
+        assert_eq!(parse_shard("2/8"), Ok(Shard { index: 2, count: 8 }));
+        for bad in ["8/8", "1/0", "x/2", "3", "-1/2"] {
+            assert!(parse_shard(bad).is_err(), "{bad}");
+        }
+    }
+}
