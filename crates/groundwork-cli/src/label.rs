@@ -7,7 +7,6 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -214,7 +213,6 @@ pub fn run(
         .progress_chars("=> "),
     );
     let max = cfg.segmenter.sensor.max_points;
-    let failures_logged = Mutex::new(());
     let t = Instant::now();
     // Scans in parallel; each scan's own fit is deterministic whatever the thread count.
     let outcomes: Vec<Outcome> = mine
@@ -246,7 +244,6 @@ pub fn run(
                         ms: t.elapsed().as_secs_f64() * 1e3,
                     },
                     Err(reason) => {
-                        let _g = failures_logged.lock();
                         pb.suspend(|| error!("skipped: {reason}"));
                         Outcome::Failed(Failure {
                             scan: path.to_path_buf(),
@@ -315,10 +312,7 @@ pub fn run(
         format!("label-summary-{}-of-{}.json", shard.index, shard.count)
     };
     let path = out.join(name);
-    let tmp = path.with_extension("json.partial");
-    std::fs::write(&tmp, serde_json::to_string_pretty(&s)?)
-        .and_then(|()| std::fs::rename(&tmp, &path))
-        .with_context(|| format!("{}: cannot write summary", path.display()))?;
+    groundwork_io::write_atomic(&path, serde_json::to_string_pretty(&s)?.as_bytes())?;
     println!(
         "label ({}, shard {}): {} scans labelled, {} already complete, {} failed; {} points, {:.1} % ground; {:.1} s, {:.2} scans/s; summary {}",
         s.method,

@@ -673,12 +673,6 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     pb
 }
 
-/// Where `segment` writes: `.prob`/`.ground` files in a folder, or one recording.
-enum SegmentOutput {
-    Files(PathBuf),
-    Recording(Box<groundwork_io::RecordingWriter>),
-}
-
 fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
     let methods_cfg = load_methods(common, None)?;
     let cfg = methods_cfg.segmenter.clone();
@@ -692,20 +686,7 @@ fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         .as_ref()
         .map_or(cfg.ground.ground_threshold, |m| m.threshold());
     let max = cfg.sensor.max_points;
-    let mut output = if out
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
-    {
-        if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("{}: cannot create", dir.display()))?;
-        }
-        SegmentOutput::Recording(Box::new(groundwork_io::RecordingWriter::create(out)?))
-    } else {
-        std::fs::create_dir_all(out)
-            .with_context(|| format!("{}: cannot create", out.display()))?;
-        SegmentOutput::Files(out.to_path_buf())
-    };
+    let mut output = groundwork_io::OutputTarget::create(out)?;
 
     // Each input is a scan file, a folder or a recording; a folder may carry poses for
     // history. An input that cannot be used is reported and counted, and the others
@@ -780,10 +761,10 @@ fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
                 placeholders += scan.skipped();
                 match &mut output {
                     // One value per record of the input: placeholders get 0.
-                    SegmentOutput::Files(dir) => {
+                    groundwork_io::OutputTarget::Files(dir) => {
                         write_outputs(dir, &item.name, &scan.expand(&probs, 0.0), thr)?
                     }
-                    SegmentOutput::Recording(w) => {
+                    groundwork_io::OutputTarget::Recording(w) => {
                         let topic = item.topic.as_deref().unwrap_or("/points");
                         // Files have no time: 10 Hz from 0, in processing order.
                         let t = item.log_time_ns.unwrap_or(k as u64 * 100_000_000);
@@ -801,7 +782,7 @@ fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         }
     }
     pb.finish_and_clear();
-    if let SegmentOutput::Recording(w) = output {
+    if let groundwork_io::OutputTarget::Recording(w) = output {
         w.finish()?;
     }
     if offline.is_none() {

@@ -28,5 +28,5 @@ pub mod zones;
 pub use config::SegmenterConfig;
 pub use error::{ConfigError, SegmentError};
 pub use method::GroundMethod;
-pub use point::{Point, PointXyz, Pose, mount_transform, pose_from_matrix};
+pub use point::{Point, PointXyz, Pose, check_finite, mount_transform, pose_from_matrix};
 pub use segmenter::{FrameReport, HistoryReset, Segmenter, SegmenterCounters};

@@ -59,6 +59,22 @@ impl PointXyz for [f32; 4] {
     }
 }
 
+/// Every coordinate finite, or the error naming the first point that is not (checked in
+/// parallel: it is a pass over the whole scan). Every method checks its input with this.
+pub fn check_finite<P: PointXyz + Sync>(points: &[P]) -> Result<(), SegmentError> {
+    use rayon::prelude::*;
+    match points
+        .par_iter()
+        .position_first(|p| p.xyz().iter().any(|v| !v.is_finite()))
+    {
+        Some(index) => {
+            let [x, y, z] = points[index].xyz();
+            Err(SegmentError::NonFinitePoint { index, x, y, z })
+        }
+        None => Ok(()),
+    }
+}
+
 /// A rigid transform (SE(3)), e.g. the world pose of a sensor (world from sensor).
 pub type Pose = Isometry3<f64>;
 

@@ -13,7 +13,7 @@ use crate::config::SegmenterConfig;
 use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
-use crate::point::{PointXyz, Pose, mount_transform};
+use crate::point::{PointXyz, Pose, check_finite, mount_transform};
 use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, query, segment_offsets};
 use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
@@ -444,13 +444,7 @@ impl Segmenter {
                 max: self.cfg.sensor.max_points,
             });
         }
-        if let Some(index) = points
-            .par_iter()
-            .position_first(|p| p.xyz().iter().any(|v| !v.is_finite()))
-        {
-            let [x, y, z] = points[index].xyz();
-            return Err(SegmentError::NonFinitePoint { index, x, y, z });
-        }
+        check_finite(points)?;
         if let Some(p) = pose {
             let ok = p.translation.vector.iter().all(|v| v.is_finite())
                 && p.rotation.coords.iter().all(|v| v.is_finite());

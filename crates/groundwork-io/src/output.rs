@@ -2,9 +2,43 @@
 //! `.ground` (u8 per point, 1 = ground), both in input point order.
 
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::error::FormatError;
+use crate::recording::RecordingWriter;
+
+/// Where per-scan results go: `.prob`/`.ground` files in a folder, or one MCAP recording
+/// (PointCloud2 with `ground_probability`) for a path ending in `.mcap`.
+#[derive(Debug)]
+pub enum OutputTarget {
+    /// A folder of `.prob` / `.ground` files.
+    Files(PathBuf),
+    /// One recording.
+    Recording(Box<RecordingWriter>),
+}
+
+impl OutputTarget {
+    /// A recording for a path ending in `.mcap`, a folder otherwise; missing folders (the
+    /// recording's parent) are created.
+    pub fn create(path: &Path) -> Result<Self, FormatError> {
+        let recording = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        let dir = if recording {
+            path.parent().filter(|d| !d.as_os_str().is_empty())
+        } else {
+            Some(path)
+        };
+        if let Some(dir) = dir {
+            fs::create_dir_all(dir).map_err(|e| FormatError::io(dir, e))?;
+        }
+        Ok(if recording {
+            Self::Recording(Box::new(RecordingWriter::create(path)?))
+        } else {
+            Self::Files(path.to_path_buf())
+        })
+    }
+}
 
 /// Writes `<dir>/<stem>.prob` and `<dir>/<stem>.ground`, each first to a temporary name and
 /// then renamed, so that a crash never leaves a half-written file under the final name; the
@@ -24,8 +58,8 @@ pub fn write_outputs(
     write_atomic(&dir.join(format!("{stem}.ground")), &ground)
 }
 
-/// Writes `path` through `<path>.partial` and a rename.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+/// Writes `path` through `<path>.partial` and a rename: a reader never sees it half-written.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(".partial");
     let tmp = std::path::PathBuf::from(tmp);

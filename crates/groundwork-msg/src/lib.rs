@@ -28,6 +28,17 @@ pub struct ScanPoint {
     pub intensity: f32,
 }
 
+impl From<&ScanPoint> for groundwork_core::Point {
+    fn from(p: &ScanPoint) -> Self {
+        Self {
+            x: p.x,
+            y: p.y,
+            z: p.z,
+            intensity: p.intensity,
+        }
+    }
+}
+
 /// Lets the segmenter read scans in place, straight from shared memory.
 impl groundwork_core::PointXyz for ScanPoint {
     #[inline]

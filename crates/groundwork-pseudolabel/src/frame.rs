@@ -82,13 +82,7 @@ impl GroundFrame {
                 got: out.len(),
             });
         }
-        if let Some(index) = points
-            .par_iter()
-            .position_first(|p| p.xyz().iter().any(|v| !v.is_finite()))
-        {
-            let [x, y, z] = points[index].xyz();
-            return Err(SegmentError::NonFinitePoint { index, x, y, z });
-        }
+        groundwork_core::check_finite(points)?;
         let xyz: Vec<[f32; 3]> = points
             .par_iter()
             .map(|p| {

@@ -76,23 +76,24 @@ pub struct ElevationMap {
 }
 
 impl ElevationMap {
-    fn inputs(&self, xy: &[[f32; 2]], out: &mut Vec<f32>) {
+    fn inputs(&self, xyz: &[[f32; 3]], out: &mut Vec<f32>) {
         out.clear();
-        for p in xy {
+        for p in xyz {
             out.push((p[0] - self.centre[0]) * self.inv_half_extent[0]);
             out.push((p[1] - self.centre[1]) * self.inv_half_extent[1]);
         }
     }
 
-    /// g(x, y) for every point, in parallel blocks (the result does not depend on them).
-    pub fn heights(&self, xy: &[[f32; 2]]) -> Vec<f32> {
-        let mut g = vec![0.0; xy.len()];
+    /// g(x, y) for every point (z is not read), in parallel blocks (the result does not
+    /// depend on them).
+    pub fn heights(&self, xyz: &[[f32; 3]]) -> Vec<f32> {
+        let mut g = vec![0.0; xyz.len()];
         g.par_chunks_mut(PREDICT_BLOCK)
-            .zip(xy.par_chunks(PREDICT_BLOCK))
+            .zip(xyz.par_chunks(PREDICT_BLOCK))
             .for_each_init(
                 || (Workspace::default(), Vec::new()),
-                |(ws, x), (g, xy)| {
-                    self.inputs(xy, x);
+                |(ws, x), (g, xyz)| {
+                    self.inputs(xyz, x);
                     self.net.predict(x, g, ws);
                     for v in g.iter_mut() {
                         *v += self.bias;
@@ -274,8 +275,7 @@ impl PseudoLabeler {
         }
         let map = self.fit(&p, &fit, &mut report);
         let t = Instant::now();
-        let xy: Vec<[f32; 2]> = p.xyz.iter().map(|q| [q[0], q[1]]).collect();
-        let g = map.heights(&xy);
+        let g = map.heights(&p.xyz);
         let w = cfg.probability_width;
         let d = cfg.ground_distance;
         for (i, o) in out.iter_mut().enumerate() {

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use groundwork_core::Point;
 use groundwork_eval::{Confusion, Metrics, Protocol};
-use groundwork_io::{LabelClass, LabelMap, RecordingWriter, Scan};
+use groundwork_io::{LabelClass, LabelMap, OutputTarget, Scan};
 use groundwork_msg::{MaskHeader, MaskStatus, ScanHeader, ScanPoint, monotonic_ns};
 use serde::Serialize;
 use tracing::{info, warn};
@@ -115,52 +115,14 @@ pub const RECORDING_WINDOW: usize = 16;
 /// The topic of the consumer's recording.
 pub const RECORDING_TOPIC: &str = "/points";
 
-/// Where the consumer writes what it receives.
-#[derive(Debug)]
-pub enum ConsumerOutput {
-    /// `<index>.prob` / `<index>.ground` per segmented scan.
-    Files(PathBuf),
-    /// One MCAP recording; the points of scans waiting for their masks are held here.
-    Recording {
-        /// The open recording.
-        writer: Box<RecordingWriter>,
-        /// (producer epoch, sequence) → the scan's points, at most [`RECORDING_WINDOW`].
-        scans: BTreeMap<(u64, u64), Vec<Point>>,
-    },
-}
-
-impl ConsumerOutput {
-    /// A recording for a path ending in `.mcap` (parent folders created), a folder
-    /// otherwise.
-    pub fn create(out: &Path) -> anyhow::Result<Self> {
-        let is_recording = out
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
-        let dir = if is_recording {
-            out.parent().filter(|d| !d.as_os_str().is_empty())
-        } else {
-            Some(out)
-        };
-        if let Some(dir) = dir {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("{}: cannot create", dir.display()))?;
-        }
-        Ok(if is_recording {
-            Self::Recording {
-                writer: Box::new(RecordingWriter::create(out)?),
-                scans: BTreeMap::new(),
-            }
-        } else {
-            Self::Files(out.to_path_buf())
-        })
-    }
-}
-
 /// The consumer stage: pairing, accounting, latency, accuracy, outputs. No IPC.
 #[derive(Debug, Default)]
 pub struct ConsumerStage {
     labels_dir: Option<PathBuf>,
-    out: Option<ConsumerOutput>,
+    out: Option<OutputTarget>,
+    /// Recording only: (producer epoch, sequence) → the points of a scan waiting for its
+    /// mask, at most [`RECORDING_WINDOW`].
+    held: BTreeMap<(u64, u64), Vec<Point>>,
     warmup: u64,
     /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
     pending: BTreeMap<(u64, u64), u64>,
@@ -177,7 +139,7 @@ pub struct ConsumerStage {
 
 impl ConsumerStage {
     /// A stage scoring against `labels` (a sequence folder) and writing to `out`.
-    pub fn new(labels: Option<PathBuf>, out: Option<ConsumerOutput>, warmup: u64) -> Self {
+    pub fn new(labels: Option<PathBuf>, out: Option<OutputTarget>, warmup: u64) -> Self {
         Self {
             labels_dir: labels,
             out,
@@ -188,19 +150,11 @@ impl ConsumerStage {
 
     /// A scan was read (its points are copied only when writing a recording).
     pub fn on_scan(&mut self, h: &ScanHeader, points: &[ScanPoint]) {
-        if let Some(ConsumerOutput::Recording { scans, .. }) = &mut self.out {
-            let p = points
-                .iter()
-                .map(|p| Point {
-                    x: p.x,
-                    y: p.y,
-                    z: p.z,
-                    intensity: p.intensity,
-                })
-                .collect();
-            scans.insert((h.producer_epoch, h.sequence), p);
-            if scans.len() > RECORDING_WINDOW {
-                scans.pop_first();
+        if let Some(OutputTarget::Recording(_)) = &self.out {
+            let p = points.iter().map(Point::from).collect();
+            self.held.insert((h.producer_epoch, h.sequence), p);
+            if self.held.len() > RECORDING_WINDOW {
+                self.held.pop_first();
             }
         }
         let r = &mut self.report;
@@ -237,12 +191,7 @@ impl ConsumerStage {
             r.segmenter_runs += 1;
         }
         let ok = h.status == MaskStatus::OK;
-        let held = match &mut self.out {
-            Some(ConsumerOutput::Recording { scans, .. }) => {
-                scans.remove(&(h.producer_epoch, h.scan_sequence))
-            }
-            _ => None,
-        };
+        let held = self.held.remove(&(h.producer_epoch, h.scan_sequence));
         match self.pending.remove(&(h.producer_epoch, h.scan_sequence)) {
             Some(_) if ok => r.scan_fate.masked += 1,
             Some(_) => r.scan_fate.rejected += 1,
@@ -278,11 +227,11 @@ impl ConsumerStage {
         }
         let written = match &mut self.out {
             None => Ok(()),
-            Some(ConsumerOutput::Files(dir)) => {
+            Some(OutputTarget::Files(dir)) => {
                 let stem = format!("{:06}", h.source_index);
                 groundwork_io::write_outputs(dir, &stem, probs, 0.5).map_err(|e| e.to_string())
             }
-            Some(ConsumerOutput::Recording { writer, .. }) => match held {
+            Some(OutputTarget::Recording(writer)) => match held {
                 Some(points) if points.len() == probs.len() => {
                     let mut scan = Scan::dense(points);
                     scan.stamp_ns = Some(h.sensor_timestamp_ns);
@@ -358,7 +307,7 @@ impl ConsumerStage {
 
     /// Ends the run: scans still waiting for a mask are unanswered; a recording is closed.
     pub fn finish(mut self, seconds: f64) -> ConsumerReport {
-        if let Some(ConsumerOutput::Recording { writer, .. }) = self.out.take() {
+        if let Some(OutputTarget::Recording(writer)) = self.out.take() {
             if let Err(e) = writer.finish() {
                 self.report.write_failures += 1;
                 warn!("{e}");
@@ -427,11 +376,7 @@ fn write_report(path: &Path, r: &ConsumerReport) -> anyhow::Result<()> {
 pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
     signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
-    let output = opts
-        .out
-        .as_deref()
-        .map(ConsumerOutput::create)
-        .transpose()?;
+    let output = opts.out.as_deref().map(OutputTarget::create).transpose()?;
     let node = transport::node(cfg, "consumer")?;
     signals::install(&node)?;
     let scans = transport::scan_service(&node, cfg)?;
@@ -605,7 +550,7 @@ mod tests {
     fn a_recording_holds_each_segmented_scan_with_its_probabilities() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("sub/out.mcap");
-        let out = ConsumerOutput::create(&path).unwrap();
+        let out = OutputTarget::create(&path).unwrap();
         let mut c = ConsumerStage::new(None, Some(out), 0);
         let points = |s: u64| {
             (0..3)
@@ -645,15 +590,7 @@ mod tests {
             assert_eq!(b.topic, RECORDING_TOPIC);
             assert_eq!(b.log_time_ns, 1_000 + s);
             assert_eq!(b.scan.stamp_ns, Some(1_000 + s));
-            let want: Vec<_> = points(s)
-                .iter()
-                .map(|p| Point {
-                    x: p.x,
-                    y: p.y,
-                    z: p.z,
-                    intensity: p.intensity,
-                })
-                .collect();
+            let want: Vec<_> = points(s).iter().map(Point::from).collect();
             assert_eq!(b.scan.points, want);
         }
         let data = std::fs::read(&path).unwrap();
