@@ -7,29 +7,24 @@ here=$(cd "$(dirname "$0")" && pwd)
 root=$(cd "$here/.." && pwd)
 repeat=${2:-20}
 [ "${1:-}" = "--repeat" ] || repeat=20
-venv="$here/.venv"
-if [ ! -x "$venv/bin/python" ]; then
-  python3 -m venv "$venv"
-  "$venv/bin/pip" install --quiet pypatchworkpp==1.4.1 numpy
-fi
+source "$here/patchwork_venv.sh"
 cargo build --release --quiet -p groundwork-benches --bin time-scans --manifest-path "$root/Cargo.toml"
 scans=("$root"/tests/data/semantickitti-00/velodyne/*.bin)
 # Alternate the two tools three times and take the median of medians, so that a noisy
 # neighbour on this shared 2-core machine hits both alike.
-gw=(); pw=(); pw_iou=""
+gw=(); pw=()
 for round in 1 2 3; do
   gw+=("$("$root/target/release/time-scans" --repeat "$repeat" "${scans[@]}" | python3 -c 'import json,sys; print(json.load(sys.stdin)["median_ms"])')")
   out=$("$venv/bin/python" "$here/patchwork_time.py" --repeat "$repeat" "${scans[@]}" | tail -n 1)
   pw+=("$(echo "$out" | python3 -c 'import json,sys; print(json.load(sys.stdin)["median_ms"])')")
-  pw_iou=$(echo "$out" | python3 -c 'import json,sys; print("%.2f" % json.load(sys.stdin)["pooled_ground_iou"])')
 done
-python3 - "${gw[@]}" "${pw[@]}" "$pw_iou" <<'PY'
+python3 - "${gw[@]}" "${pw[@]}" <<'PY'
 import statistics, sys
 v = sys.argv[1:]
 gw = statistics.median(map(float, v[0:3]))
 pw = statistics.median(map(float, v[3:6]))
 print(f"scans: 6 KITTI HDL-64E frames (~124k points), {len(v[0:3])} alternating rounds")
 print(f"groundwork    median {gw:7.2f} ms/scan  (fit + query, single frame)")
-print(f"Patchwork++   median {pw:7.2f} ms/scan  (pypatchworkpp 1.4.1; pooled ground IoU frames 0-2: {v[6]})")
+print(f"Patchwork++   median {pw:7.2f} ms/scan  (pypatchworkpp 1.4.1; accuracy: benches/compare_methods.sh)")
 print(f"ratio groundwork / Patchwork++ = {gw / pw:.2f}  (budget <= 1.33, goal <= 0.33)")
 PY
