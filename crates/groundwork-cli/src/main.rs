@@ -15,6 +15,7 @@ use groundwork_service::{
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::{error, info};
 
+mod detect;
 mod label;
 mod methods;
 use methods::MethodArg;
@@ -210,6 +211,23 @@ enum Command {
         #[arg(required = true)]
         inputs: Vec<PathBuf>,
     },
+    /// Object proposals (the fallback detector): segments each scan, removes the ground,
+    /// clusters the rest. Writes <out>/<scan>.proposals.json and <out>/<scan>.clusters (u32
+    /// proposal id per point, 0 = none); with instance labels beside the scans, reports the
+    /// labeled objects found.
+    Detect {
+        #[command(flatten)]
+        common: Common,
+        /// Ground segmentation method.
+        #[arg(long, value_enum, default_value_t = MethodArg::Gmm)]
+        method: MethodArg,
+        /// Output folder (created if missing).
+        #[arg(long)]
+        out: PathBuf,
+        /// Scan files, or folders of scans (a sequence folder with velodyne/ works too).
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+    },
     /// Evaluate against SemanticKITTI labels: per scan and pooled metrics, plus speed.
     Eval {
         #[command(flatten)]
@@ -303,6 +321,20 @@ fn run(cli: Cli) -> Result<ExitCode> {
             out,
             inputs,
         } => segment(&common, method, &out, &inputs),
+        Command::Detect {
+            common,
+            method,
+            out,
+            inputs,
+        } => detect::run(&detect::DetectJob {
+            config: &load_methods(&common, None)?,
+            method,
+            out: &out,
+            inputs: &inputs,
+            poses: common.poses.as_deref(),
+            calib: common.calib.as_deref(),
+            topic: common.topic.clone(),
+        }),
         Command::Label {
             common,
             method,

@@ -678,3 +678,56 @@ fn eval_scores_several_methods_side_by_side() {
     assert!(miou(rows[2]) > 85.0 && miou(rows[3]) > 80.0, "{table}");
     assert_ne!(miou(rows[2]), miou(rows[3]));
 }
+
+#[test]
+fn detect_writes_proposals_and_cluster_ids_that_agree_and_skips_bad_scans() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    let good = copy_scan(1, &input);
+    let bytes = fs::read(&good).unwrap();
+    fs::write(input.join("truncated.bin"), &bytes[..bytes.len() - 3]).unwrap();
+    let out = tmp.path().join("out");
+    let o = bin()
+        .args(["detect", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "a bad scan makes exit 1: {log}");
+    assert!(log.contains("truncated.bin"), "{log}");
+    assert!(!out.join("truncated.clusters").exists());
+
+    let clusters = groundwork_io::read_clusters(&out.join("000001.clusters")).unwrap();
+    assert_eq!(clusters.len() * 16, bytes.len(), "one id per input point");
+    let json: serde_json::Value =
+        serde_json::from_slice(&fs::read(out.join("000001.proposals.json")).unwrap()).unwrap();
+    assert!(json["frame"].as_str().unwrap().contains("x forward"));
+    let proposals = json["proposals"].as_array().unwrap();
+    assert!(proposals.len() > 20, "a street scene has many things");
+    let mut last_range = 0.0;
+    for (k, p) in proposals.iter().enumerate() {
+        let id = p["id"].as_u64().unwrap();
+        assert_eq!(id, k as u64 + 1, "ids are 1, 2, … in order");
+        let n = clusters.iter().filter(|&&c| u64::from(c) == id).count();
+        assert_eq!(n as u64, p["points"].as_u64().unwrap(), "proposal {id}");
+        let c = p["centroid"].as_array().unwrap();
+        let r = c[0].as_f64().unwrap().hypot(c[1].as_f64().unwrap());
+        assert!(r + 1e-3 >= last_range, "nearest first");
+        last_range = r;
+    }
+    assert!(clusters.iter().all(|&c| (c as usize) <= proposals.len()));
+
+    // On the labeled sequence the labeled objects are reported (frames 0–2: 35 cars
+    // within 40 m, all found).
+    let o = bin()
+        .args(["detect", "--out"])
+        .arg(tmp.path().join("seq"))
+        .arg(data())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("car") && table.contains("36/36"), "{table}");
+}

@@ -14,6 +14,7 @@ pub mod config;
 pub mod cpu;
 pub mod error;
 mod fastmath;
+pub mod frame;
 pub mod gmm;
 pub mod height_filter;
 pub mod likelihood;
@@ -27,6 +28,7 @@ pub mod zones;
 
 pub use config::SegmenterConfig;
 pub use error::{ConfigError, SegmentError};
+pub use frame::GroundFrame;
 pub use method::GroundMethod;
 pub use point::{Point, PointXyz, Pose, check_finite, mount_transform, pose_from_matrix};
 pub use segmenter::{FrameReport, HistoryReset, Segmenter, SegmenterCounters};

@@ -5,6 +5,7 @@ use std::fs;
 use std::path::Path;
 
 use groundwork_core::SegmenterConfig;
+use groundwork_detect::DetectorConfig;
 use groundwork_pseudolabel::{PseudoLabelerConfig, RansacConfig};
 
 use crate::error::FormatError;
@@ -79,7 +80,8 @@ pub fn sensor_preset(name: &str) -> Result<SegmenterConfig, FormatError> {
 }
 
 /// Everything a configuration file sets: the sensor and the GMM segmenter (top-level
-/// sections), and the offline methods' own sections `[pseudolabeler]` and `[ransac]`.
+/// sections), the offline methods' own sections `[pseudolabeler]` and `[ransac]`, and the
+/// fallback detector's `[detector]` (sensor presets tune it to their beam spacing).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MethodsConfig {
     /// Sensor, zones, GMM, ground, height filter, history.
@@ -88,6 +90,8 @@ pub struct MethodsConfig {
     pub pseudolabeler: PseudoLabelerConfig,
     /// `[ransac]`.
     pub ransac: RansacConfig,
+    /// `[detector]`.
+    pub detector: DetectorConfig,
 }
 
 /// A preset (`DEFAULT_SENSOR` if None) with a config file laid over it: every field the
@@ -123,7 +127,7 @@ pub fn load_methods_config_over(
     split_methods(path, merged)
 }
 
-/// Deserialises a whole configuration table: the two method sections apart, the rest as
+/// Deserialises a whole configuration table: the method and detector sections apart, the rest as
 /// the segmenter's (every part rejects unknown keys).
 fn split_methods(path: &Path, mut table: toml::Table) -> Result<MethodsConfig, FormatError> {
     let config_error = |e: &dyn std::fmt::Display| FormatError::Config {
@@ -146,12 +150,15 @@ fn split_methods(path: &Path, mut table: toml::Table) -> Result<MethodsConfig, F
     pseudolabeler.validate().map_err(|e| config_error(&e))?;
     let ransac: RansacConfig = section(&mut table, "ransac").map_err(|e| config_error(&e))?;
     ransac.validate().map_err(|e| config_error(&e))?;
+    let detector: DetectorConfig = section(&mut table, "detector").map_err(|e| config_error(&e))?;
+    detector.validate().map_err(|e| config_error(&e))?;
     let segmenter: SegmenterConfig = table.try_into().map_err(|e| config_error(&e))?;
     segmenter.validate().map_err(|e| config_error(&e))?;
     Ok(MethodsConfig {
         segmenter,
         pseudolabeler,
         ransac,
+        detector,
     })
 }
 
@@ -243,6 +250,19 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("pseudolabeler.prefilter_quantile"), "{e}");
+        let c = parse_methods_config(p, "[detector]\ncluster_distance = 0.4\n").unwrap();
+        assert_eq!(c.detector.cluster_distance, 0.4);
+        let e = parse_methods_config(p, "[detector]\nmin_points = 0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("detector.min_points"), "{e}");
+        let e = parse_methods_config(p, "[detector]\nradius = 1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("radius"), "{e}");
+        // The presets tune the detector to their beam spacing.
+        let vlp16 = load_methods_config_over(Some("vlp16"), None).unwrap();
+        assert_eq!(vlp16.detector.vertical_distance_per_metre, 0.05);
     }
 
     #[test]

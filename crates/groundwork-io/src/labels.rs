@@ -166,15 +166,26 @@ impl LabelMap {
     /// Reads a label file of `points` records and harmonises it. The size must match the
     /// scan (checked before reading).
     pub fn read(&self, path: &Path, points: usize) -> Result<Vec<LabelClass>, FormatError> {
+        Ok(self
+            .read_raw(path, points)?
+            .into_iter()
+            .map(|r| self.class(r as u16))
+            .collect())
+    }
+
+    /// Reads a label file of `points` records as they are: for the u32 layout the class id
+    /// in the low 16 bits and the instance id in the high 16 (SemanticKITTI), for the u8
+    /// layout the class id alone.
+    pub fn read_raw(&self, path: &Path, points: usize) -> Result<Vec<u32>, FormatError> {
         let bytes = read_records(path, self.record.size(), |labels| {
             label_count(path, labels, points)
         })?;
         Ok(match self.record {
             LabelRecord::U32 => bytes
                 .chunks_exact(4)
-                .map(|b| self.class(u16::from_le_bytes([b[0], b[1]])))
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
                 .collect(),
-            LabelRecord::U8 => bytes.iter().map(|&b| self.class(u16::from(b))).collect(),
+            LabelRecord::U8 => bytes.iter().map(|&b| u32::from(b)).collect(),
         })
     }
 }

@@ -25,6 +25,9 @@ pub use kitti::{
     lidar_poses, read_calib_tr, read_labels, read_poses, write_calib_tr, write_labels, write_poses,
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
-pub use output::{OutputTarget, outputs_complete, read_prob, write_atomic, write_outputs};
+pub use output::{
+    OutputTarget, PROPOSALS_FRAME, outputs_complete, read_clusters, read_prob, write_atomic,
+    write_detections, write_outputs,
+};
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::{InputKind, Scan, ScanFormat, list_scans, read_scan, scan_stem, write_kitti_bin};

@@ -1,8 +1,11 @@
 //! Per-scan outputs: `.prob` (little-endian f32 ground probability per point) and
-//! `.ground` (u8 per point, 1 = ground), both in input point order.
+//! `.ground` (u8 per point, 1 = ground), both in input point order; the detector's
+//! `.proposals.json` and `.clusters` (little-endian u32 proposal id per point, 0 = none).
 
 use std::fs;
 use std::path::{Path, PathBuf};
+
+use groundwork_detect::Proposal;
 
 use crate::error::FormatError;
 use crate::recording::RecordingWriter;
@@ -77,8 +80,50 @@ pub fn outputs_complete(dir: &Path, stem: &str) -> bool {
     }
 }
 
-/// Reads a `.prob` file.
-pub fn read_prob(path: &Path) -> Result<Vec<f32>, FormatError> {
+/// The frame and units `.proposals.json` states (and the README repeats).
+pub const PROPOSALS_FRAME: &str = "ground-aligned sensor frame: x forward, y left, z up, origin on the ground below the sensor (the sensor preset's mount); metres, radians";
+
+/// `<stem>.proposals.json`.
+#[derive(Debug, serde::Serialize)]
+struct ProposalsFile<'a> {
+    scan: &'a str,
+    frame: &'static str,
+    points: usize,
+    proposals: &'a [Proposal],
+}
+
+/// Writes `<dir>/<stem>.proposals.json` (the proposals, their frame and units) and
+/// `<dir>/<stem>.clusters` (one little-endian u32 per point: the proposal id, 0 for ground
+/// and unclustered points), each through a temporary name; `.clusters` is renamed last.
+pub fn write_detections(
+    dir: &Path,
+    stem: &str,
+    proposals: &[Proposal],
+    clusters: &[u32],
+) -> Result<(), FormatError> {
+    let file = ProposalsFile {
+        scan: stem,
+        frame: PROPOSALS_FRAME,
+        points: clusters.len(),
+        proposals,
+    };
+    let path = dir.join(format!("{stem}.proposals.json"));
+    let json = serde_json::to_vec_pretty(&file).map_err(|e| FormatError::Config {
+        path: path.clone(),
+        message: e.to_string(),
+    })?;
+    write_atomic(&path, &json)?;
+    let ids: Vec<u8> = clusters.iter().flat_map(|c| c.to_le_bytes()).collect();
+    write_atomic(&dir.join(format!("{stem}.clusters")), &ids)
+}
+
+/// Reads a `.clusters` file.
+pub fn read_clusters(path: &Path) -> Result<Vec<u32>, FormatError> {
+    read_words(path, u32::from_le_bytes)
+}
+
+/// Reads a file of 4-byte little-endian records.
+fn read_words<T>(path: &Path, decode: fn([u8; 4]) -> T) -> Result<Vec<T>, FormatError> {
     let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
     if bytes.len() % 4 != 0 {
         return Err(FormatError::Size {
@@ -89,8 +134,13 @@ pub fn read_prob(path: &Path) -> Result<Vec<f32>, FormatError> {
     }
     Ok(bytes
         .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .map(|b| decode([b[0], b[1], b[2], b[3]]))
         .collect())
+}
+
+/// Reads a `.prob` file.
+pub fn read_prob(path: &Path) -> Result<Vec<f32>, FormatError> {
+    read_words(path, f32::from_le_bytes)
 }
 
 #[cfg(test)]

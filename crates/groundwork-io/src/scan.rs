@@ -198,7 +198,7 @@ impl Scan {
     }
 
     /// Spreads one value per point back over the records, `fill` for left-out ones.
-    pub fn expand(&self, values: &[f32], fill: f32) -> Vec<f32> {
+    pub fn expand<T: Copy>(&self, values: &[T], fill: T) -> Vec<T> {
         match &self.source_index {
             None => values.to_vec(),
             Some(index) => {

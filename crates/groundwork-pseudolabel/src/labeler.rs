@@ -8,8 +8,9 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 use crate::config::PseudoLabelerConfig;
-use crate::frame::{GroundFrame, Prepared, below_half, sigmoid};
 use crate::mlp::{AdamW, Mlp, Workspace};
+use crate::prob::{below_half, sigmoid};
+use groundwork_core::frame::{GroundFrame, Prepared};
 
 /// Rows per gradient chunk. The mini-batch is always cut into chunks of this size and their
 /// gradients summed in chunk order, whatever the thread count: the result is the same on 1
@@ -429,7 +430,7 @@ mod tests {
 #[cfg(test)]
 mod determinism {
     use super::*;
-    use crate::frame::GroundFrame;
+    use groundwork_core::frame::GroundFrame;
 
     /// A hilly, cluttered scene: a tilted plane with a bump, boxes, and noise below.
     fn scene() -> Vec<[f32; 3]> {

@@ -9,13 +9,13 @@
 //! threads.
 
 pub mod config;
-pub mod frame;
 pub mod labeler;
 mod method;
 pub mod mlp;
+mod prob;
 pub mod ransac;
 
 pub use config::{PseudoLabelerConfig, RansacConfig};
-pub use frame::GroundFrame;
+pub use groundwork_core::frame::GroundFrame;
 pub use labeler::{FitReport, PseudoLabeler};
 pub use ransac::{Ransac, RansacReport};

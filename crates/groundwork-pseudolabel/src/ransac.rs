@@ -12,7 +12,8 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 use crate::config::RansacConfig;
-use crate::frame::{GroundFrame, below_half, sigmoid};
+use crate::prob::{below_half, sigmoid};
+use groundwork_core::GroundFrame;
 
 /// A plane n · p = d with |n| = 1 and n pointing up.
 #[derive(Debug, Clone, Copy, PartialEq)]

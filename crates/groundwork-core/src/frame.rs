@@ -1,9 +1,11 @@
 //! What every method here does before it looks at a scan: check it, and move it into the
 //! ground-aligned frame of the sensor's mount (x forward, y left, z up), leaving out the
-//! ego vehicle's own returns. The same sensor standardisation as the GMM segmenter's.
+//! ego vehicle's own returns. The same sensor standardisation as the GMM segmenter's, for
+//! the methods beside it (PseudoLabeler, RANSAC) and the detector.
 
+use crate::error::{ConfigError, SegmentError};
+use crate::point::{PointXyz, Pose, check_finite, mount_transform};
 use glam::{Affine3A, Vec3A};
-use groundwork_core::{PointXyz, Pose, SegmentError};
 use rayon::prelude::*;
 
 /// The frame a method works in.
@@ -38,10 +40,8 @@ impl GroundFrame {
     }
 
     /// The frame a segmenter configuration describes: its mount, ego radius and maximum.
-    pub fn from_config(
-        cfg: &groundwork_core::SegmenterConfig,
-    ) -> Result<Self, groundwork_core::ConfigError> {
-        let mount = groundwork_core::mount_transform(&cfg.sensor.mount)?;
+    pub fn from_config(cfg: &crate::SegmenterConfig) -> Result<Self, ConfigError> {
+        let mount = mount_transform(&cfg.sensor.mount)?;
         Ok(Self::new(
             &mount,
             cfg.sensor.ego_radius,
@@ -82,7 +82,7 @@ impl GroundFrame {
                 got: out.len(),
             });
         }
-        groundwork_core::check_finite(points)?;
+        check_finite(points)?;
         let xyz: Vec<[f32; 3]> = points
             .par_iter()
             .map(|p| {
@@ -97,19 +97,3 @@ impl GroundFrame {
         Ok(Prepared { xyz, usable })
     }
 }
-
-/// σ(x) = 1 / (1 + e^−x).
-#[inline]
-pub fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
-/// `p` if below 0.5, else the largest f32 below 0.5: a non-ground decision whose margin
-/// is too small for σ to show in f32 still reads as non-ground.
-#[inline]
-pub fn below_half(p: f32) -> f32 {
-    if p < 0.5 { p } else { BELOW_HALF }
-}
-
-/// The largest f32 below 0.5.
-const BELOW_HALF: f32 = f32::from_bits(0.5f32.to_bits() - 1);

@@ -1,0 +1,131 @@
+//! `groundwork detect`: ground segmentation, then the fallback detector, over scans offline.
+//! Per scan `<stem>.proposals.json` and `<stem>.clusters`; where the scans have instance
+//! labels (a SemanticKITTI-layout sequence), the labeled objects found are reported.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Result, anyhow};
+use groundwork_detect::{Detections, Detector};
+use groundwork_eval::{ObjectScore, Sequence, median, score_objects};
+use groundwork_io::{MethodsConfig, write_detections};
+use tracing::{error, info};
+
+use crate::methods::{self, MethodArg};
+
+/// Labeled objects with fewer points are not scored.
+const MIN_OBJECT_POINTS: usize = 20;
+
+/// Options of one run.
+#[derive(Debug)]
+pub struct DetectJob<'a> {
+    /// Configuration (segmenter, methods, `[detector]`).
+    pub config: &'a MethodsConfig,
+    /// Ground segmentation method.
+    pub method: MethodArg,
+    /// Output folder.
+    pub out: &'a Path,
+    /// Scan files or folders.
+    pub inputs: &'a [PathBuf],
+    /// Poses / calibration files for history (GMM).
+    pub poses: Option<&'a Path>,
+    /// See `poses`.
+    pub calib: Option<&'a Path>,
+    /// PointCloud2 topic of recordings.
+    pub topic: Option<String>,
+}
+
+pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
+    let mut detector = Detector::new(job.config.detector.clone(), &job.config.segmenter)?;
+    std::fs::create_dir_all(job.out)
+        .map_err(|e| anyhow!("{}: cannot create the folder: {e}", job.out.display()))?;
+    let max = job.config.segmenter.sensor.max_points;
+    let mut failed = 0usize;
+    let mut sequences = Vec::new();
+    for path in job.inputs {
+        match Sequence::open(path, job.poses, job.calib) {
+            Ok(seq) => sequences.push(seq.with_topic(job.topic.clone())),
+            Err(e) => {
+                failed += 1;
+                error!("skipped: {e}");
+            }
+        }
+    }
+    let known: Option<usize> = sequences.iter().map(Sequence::len_hint).sum();
+    let pb = crate::progress(known.unwrap_or(0), "detect");
+    let (mut scans, mut proposals) = (0usize, 0usize);
+    let (mut seg_ms, mut det_ms) = (Vec::new(), Vec::new());
+    let mut score: Option<ObjectScore> = None;
+    let mut out = Detections::default();
+    let mut probs = Vec::new();
+    for seq in &sequences {
+        // A fresh method per input: the history of one sequence says nothing of the next.
+        let mut method = methods::build(job.method, job.config)?;
+        for item in seq.scans(max) {
+            if known.is_none() {
+                pb.inc_length(1);
+            }
+            scans += 1;
+            let result = (|| -> Result<()> {
+                let scan = item.scan.as_ref().map_err(|e| anyhow!("{e}"))?;
+                probs.resize(scan.points.len(), 0.0);
+                let t = Instant::now();
+                method
+                    .segment_scan(&scan.points, seq.pose(item.index), &mut probs)
+                    .map_err(|e| anyhow!("{}: {e}", item.name))?;
+                seg_ms.push(t.elapsed().as_secs_f64() * 1e3);
+                let r = detector
+                    .detect(&scan.points, &probs, &mut out)
+                    .map_err(|e| anyhow!("{}: {e}", item.name))?;
+                det_ms.push(r.time.as_secs_f64() * 1e3);
+                proposals += out.proposals.len();
+                // One id per record of the input: placeholders get 0.
+                let clusters = scan.expand(&out.clusters, 0);
+                write_detections(job.out, &item.name, &out.proposals, &clusters)?;
+                if let Some(l) = seq.label_path(&item) {
+                    let labels = seq.label_map.read_raw(&l, scan.records)?;
+                    let xy: Vec<[f32; 2]> = scan.points.iter().map(|p| [p.x, p.y]).collect();
+                    let expanded_xy = scan.expand(&xy, [0.0, 0.0]);
+                    score.get_or_insert_default().merge(score_objects(
+                        &item.name,
+                        &labels,
+                        &clusters,
+                        &expanded_xy,
+                        &out.proposals,
+                        MIN_OBJECT_POINTS,
+                    ));
+                }
+                Ok(())
+            })();
+            if let Err(e) = result {
+                // One bad scan never costs the others.
+                failed += 1;
+                pb.suspend(|| error!("skipped: {e:#}"));
+            }
+            pb.inc(1);
+        }
+    }
+    pb.finish_and_clear();
+    info!(
+        method = ?job.method,
+        scans,
+        failed,
+        proposals,
+        segment_median_ms = median(seg_ms),
+        detect_median_ms = median(det_ms),
+        out = %job.out.display(),
+        "detect done"
+    );
+    if let Some(s) = score {
+        println!(
+            "labeled objects (≥ {MIN_OBJECT_POINTS} points) found by a proposal (point IoU > 0.5):"
+        );
+        print!("{}", s.table());
+    }
+    Ok(if failed > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}

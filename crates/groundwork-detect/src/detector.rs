@@ -1,0 +1,587 @@
+//! The detector: a scan and its ground probabilities in, proposals and a cluster id per
+//! point out.
+
+use std::time::{Duration, Instant};
+
+use groundwork_core::{ConfigError, GroundFrame, PointXyz, SegmentError, SegmenterConfig};
+use serde::{Serialize, Serializer};
+use thiserror::Error;
+
+use crate::bbox::min_area_rect;
+use crate::cluster::ClusterGrid;
+use crate::config::DetectorConfig;
+use crate::ground_map::GroundMap;
+
+/// Why a scan could not be processed (the detector's state is unchanged).
+#[derive(Debug, Error)]
+pub enum DetectError {
+    /// The points themselves (non-finite, too many).
+    #[error(transparent)]
+    Points(#[from] SegmentError),
+    /// Not one probability per point.
+    #[error("{got} ground probabilities for {expected} points")]
+    ProbabilityCount {
+        /// Points.
+        expected: usize,
+        /// Probabilities.
+        got: usize,
+    },
+    /// A probability outside [0, 1] (or NaN).
+    #[error("ground probability {value} of point {index} is not in [0, 1]")]
+    BadProbability {
+        /// The point.
+        index: usize,
+        /// Its value.
+        value: f32,
+    },
+}
+
+/// What makes a cluster plainly not an object (a bit set; 0: object-like).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct ProposalFlags(pub u32);
+
+impl ProposalFlags {
+    /// Long and thin: a wall, fence or hedge row (`wall_length`, `wall_width`).
+    pub const WALL: Self = Self(1);
+    /// Longer than `max_length`: building fronts, vegetation masses, merged rows.
+    pub const LARGE: Self = Self(2);
+    /// Taller than `max_object_height`: trees, poles, buildings.
+    pub const TALL: Self = Self(4);
+    /// Lowest point more than `floating_height` above the ground: crowns, signs.
+    pub const FLOATING: Self = Self(8);
+    /// More points than `max_points`.
+    pub const MANY_POINTS: Self = Self(16);
+    const NAMES: [(Self, &'static str); 5] = [
+        (Self::WALL, "wall"),
+        (Self::LARGE, "large"),
+        (Self::TALL, "tall"),
+        (Self::FLOATING, "floating"),
+        (Self::MANY_POINTS, "many_points"),
+    ];
+
+    /// Whether every flag of `f` is set.
+    pub fn contains(self, f: Self) -> bool {
+        self.0 & f.0 == f.0
+    }
+
+    /// No flag: the cluster looks like an object.
+    pub fn is_object_like(self) -> bool {
+        self.0 == 0
+    }
+
+    /// The names of the flags set.
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        Self::NAMES
+            .into_iter()
+            .filter(move |(f, _)| self.contains(*f))
+            .map(|(_, n)| n)
+    }
+}
+
+impl std::ops::BitOrAssign for ProposalFlags {
+    fn bitor_assign(&mut self, o: Self) {
+        self.0 |= o.0;
+    }
+}
+
+impl Serialize for ProposalFlags {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(self.names())
+    }
+}
+
+/// One object proposal. Lengths in metres, angles in radians, all in the sensor's
+/// ground-aligned frame: x forward, y left, z up, origin on the ground below the sensor.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Proposal {
+    /// 1, 2, … within the scan, nearest first (horizontal range of the centroid): the id
+    /// its points carry in the cluster ids.
+    pub id: u32,
+    /// Mean of its points.
+    pub centroid: [f32; 3],
+    /// Centre of the oriented box in the ground plane (x, y).
+    pub center: [f32; 2],
+    /// Heading of the box's long side from the x axis, in (−π/2, π/2].
+    pub yaw: f32,
+    /// Long side of the box.
+    pub length: f32,
+    /// Short side of the box.
+    pub width: f32,
+    /// Local ground height (z) below the box centre; the cluster's lowest point where no
+    /// ground was seen within `ground_search` cells.
+    pub ground_z: f32,
+    /// Lowest point above the local ground.
+    pub bottom: f32,
+    /// Highest point above the local ground: the object's height.
+    pub height: f32,
+    /// Points in the cluster.
+    pub points: u32,
+    /// Why it is plainly not an object, if it is not.
+    pub flags: ProposalFlags,
+}
+
+/// The output for one scan.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Detections {
+    /// Proposals, in id order.
+    pub proposals: Vec<Proposal>,
+    /// Per input point, in input order: its proposal's id, 0 for ground and unclustered
+    /// points.
+    pub clusters: Vec<u32>,
+}
+
+/// What one scan cost and held.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct DetectionReport {
+    /// Non-ground points clustered.
+    pub candidates: usize,
+    /// Uncertain ground points that joined a cluster.
+    pub joined: usize,
+    /// Clusters found before the size filter.
+    pub clusters: usize,
+    /// Clusters dropped for having fewer than `min_points`.
+    pub dropped_small: usize,
+    /// Wall time.
+    #[serde(skip)]
+    pub time: Duration,
+}
+
+/// A cluster being measured.
+#[derive(Debug, Clone, Copy)]
+struct Extent {
+    count: u32,
+    sum: [f64; 3],
+    z_min: f32,
+    z_max: f32,
+    first: usize,
+}
+
+/// The detector, with scratch reused from scan to scan.
+#[derive(Debug)]
+pub struct Detector {
+    cfg: DetectorConfig,
+    frame: GroundFrame,
+    threshold: f32,
+    min_range: f32,
+    grid: ClusterGrid,
+    ground: GroundMap,
+    candidates: Vec<u32>,
+    candidate_xyz: Vec<[f32; 3]>,
+    labels: Vec<u32>,
+    footprint: Vec<[f32; 2]>,
+    hull: (Vec<[f64; 2]>, Vec<[f64; 2]>),
+}
+
+impl Detector {
+    /// A detector for the sensor and segmenter `segmenter` describes (mount, ego radius,
+    /// threshold and minimum range where `cfg` leaves them open).
+    pub fn new(cfg: DetectorConfig, segmenter: &SegmenterConfig) -> Result<Self, ConfigError> {
+        cfg.validate()?;
+        let frame = GroundFrame::from_config(segmenter)?;
+        let threshold = cfg
+            .ground_threshold
+            .unwrap_or(segmenter.ground.ground_threshold);
+        let min_range = cfg
+            .min_range
+            .unwrap_or(segmenter.zones.min_range as f32)
+            .max(segmenter.sensor.ego_radius as f32);
+        Ok(Self {
+            grid: ClusterGrid::new(cfg.cell_size, cfg.max_range),
+            ground: GroundMap::new(cfg.ground_cell, cfg.max_range, cfg.ground_search),
+            cfg,
+            frame,
+            threshold,
+            min_range,
+            candidates: Vec::new(),
+            candidate_xyz: Vec::new(),
+            labels: Vec::new(),
+            footprint: Vec::new(),
+            hull: Default::default(),
+        })
+    }
+
+    /// Its configuration.
+    pub fn config(&self) -> &DetectorConfig {
+        &self.cfg
+    }
+
+    /// The probability at or above which a point is ground.
+    pub fn threshold(&self) -> f32 {
+        self.threshold
+    }
+
+    /// Proposals for one scan (sensor frame) and its ground probabilities (one per point,
+    /// input order), written into `out`.
+    pub fn detect<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        probabilities: &[f32],
+        out: &mut Detections,
+    ) -> Result<DetectionReport, DetectError> {
+        let t = Instant::now();
+        if probabilities.len() != points.len() {
+            return Err(DetectError::ProbabilityCount {
+                expected: points.len(),
+                got: probabilities.len(),
+            });
+        }
+        if let Some((index, &value)) = probabilities
+            .iter()
+            .enumerate()
+            .find(|(_, p)| !(0.0..=1.0).contains(*p))
+        {
+            return Err(DetectError::BadProbability { index, value });
+        }
+        let prepared = self.frame.prepare(points, probabilities)?;
+        let cfg = &self.cfg;
+        let (thr, join) = (self.threshold, cfg.join_probability);
+        let (min2, max2) = (self.min_range.powi(2), cfg.max_range.powi(2));
+        let in_range = |q: &[f32; 3]| {
+            let r2 = q[0] * q[0] + q[1] * q[1];
+            r2 >= min2 && r2 <= max2
+        };
+
+        // Local ground from the ground points.
+        self.ground.clear();
+        for ((q, &p), &usable) in prepared.xyz.iter().zip(probabilities).zip(&prepared.usable) {
+            if usable && p >= thr && in_range(q) {
+                self.ground.add(q[0], q[1], q[2]);
+            }
+        }
+
+        // Non-ground points to cluster, uncertain ground points that may join.
+        self.candidates.clear();
+        self.candidate_xyz.clear();
+        let mut joiners = Vec::new();
+        for (i, (q, &p)) in prepared.xyz.iter().zip(probabilities).enumerate() {
+            if !prepared.usable[i] || !in_range(q) || (p >= thr && p >= join) {
+                continue;
+            }
+            // Where the ground is unknown, the segmenter's word alone decides.
+            if let Some(g) = self.ground.height(q[0], q[1]) {
+                let h = q[2] - g;
+                if h < cfg.min_height || h > cfg.max_height {
+                    continue;
+                }
+            } else if p >= thr {
+                continue;
+            }
+            if p < thr {
+                self.candidates.push(i as u32);
+                self.candidate_xyz.push(*q);
+            } else {
+                joiners.push(i as u32);
+            }
+        }
+        let found = self
+            .grid
+            .cluster(&self.candidate_xyz, cfg, &mut self.labels);
+
+        // Cluster of every point (u32::MAX: none), small clusters dropped.
+        let mut sizes = vec![0u32; found];
+        for &l in &self.labels {
+            if l != u32::MAX {
+                sizes[l as usize] += 1;
+            }
+        }
+        let kept = |c: u32| sizes[c as usize] >= cfg.min_points;
+        let mut of_point = vec![u32::MAX; points.len()];
+        for (&i, &l) in self.candidates.iter().zip(&self.labels) {
+            if l != u32::MAX && kept(l) {
+                of_point[i as usize] = l;
+            }
+        }
+        let mut joined = 0;
+        for &i in &joiners {
+            let q = prepared.xyz[i as usize];
+            if let Some(c) = self.grid.touching(q, cfg)
+                && kept(c)
+            {
+                of_point[i as usize] = c;
+                joined += 1;
+            }
+        }
+
+        // Measure each kept cluster, then number them nearest first.
+        let mut extents: Vec<Option<Extent>> = vec![None; found];
+        for (i, &c) in of_point.iter().enumerate() {
+            if c == u32::MAX {
+                continue;
+            }
+            let q = prepared.xyz[i];
+            let e = extents[c as usize].get_or_insert(Extent {
+                count: 0,
+                sum: [0.0; 3],
+                z_min: f32::MAX,
+                z_max: f32::MIN,
+                first: i,
+            });
+            e.count += 1;
+            for (sum, v) in e.sum.iter_mut().zip(q) {
+                *sum += f64::from(v);
+            }
+            e.z_min = e.z_min.min(q[2]);
+            e.z_max = e.z_max.max(q[2]);
+        }
+        let mut order: Vec<(f32, usize, u32)> = extents
+            .iter()
+            .enumerate()
+            .filter_map(|(c, e)| {
+                let e = e.as_ref()?;
+                let n = f64::from(e.count);
+                let (x, y) = (e.sum[0] / n, e.sum[1] / n);
+                let r = (x * x + y * y).sqrt() as f32;
+                Some((r, e.first, c as u32))
+            })
+            .collect();
+        order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let mut id_of = vec![0u32; found];
+        for (k, &(_, _, c)) in order.iter().enumerate() {
+            id_of[c as usize] = k as u32 + 1;
+        }
+        out.clusters.clear();
+        out.clusters.extend(
+            of_point
+                .iter()
+                .map(|&c| if c == u32::MAX { 0 } else { id_of[c as usize] }),
+        );
+
+        // Footprints: the members of every cluster, grouped by id (counting sort).
+        let mut start = vec![0usize; order.len() + 1];
+        for &id in &out.clusters {
+            if id > 0 {
+                start[id as usize] += 1;
+            }
+        }
+        for k in 1..start.len() {
+            start[k] += start[k - 1];
+        }
+        let mut members = vec![0u32; start[order.len()]];
+        let mut fill = start.clone();
+        for (i, &id) in out.clusters.iter().enumerate() {
+            if id > 0 {
+                let slot = &mut fill[id as usize - 1];
+                members[*slot] = i as u32;
+                *slot += 1;
+            }
+        }
+        out.proposals.clear();
+        for (k, &(_, _, c)) in order.iter().enumerate() {
+            let Some(e) = extents[c as usize] else {
+                continue;
+            };
+            self.footprint.clear();
+            self.footprint
+                .extend(members[start[k]..start[k + 1]].iter().map(|&i| {
+                    let q = prepared.xyz[i as usize];
+                    [q[0], q[1]]
+                }));
+            let rect = min_area_rect(&self.footprint, &mut self.hull);
+            // Unknown ground: the cluster stands on its lowest point.
+            let ground_z = self
+                .ground
+                .height(rect.center[0], rect.center[1])
+                .unwrap_or(e.z_min);
+            let n = f64::from(e.count);
+            let mut p = Proposal {
+                id: k as u32 + 1,
+                centroid: [
+                    (e.sum[0] / n) as f32,
+                    (e.sum[1] / n) as f32,
+                    (e.sum[2] / n) as f32,
+                ],
+                center: rect.center,
+                yaw: rect.yaw,
+                length: rect.length,
+                width: rect.width,
+                ground_z,
+                bottom: e.z_min - ground_z,
+                height: e.z_max - ground_z,
+                points: e.count,
+                flags: ProposalFlags::default(),
+            };
+            p.flags = self.flags(&p);
+            out.proposals.push(p);
+        }
+        Ok(DetectionReport {
+            candidates: self.candidates.len(),
+            joined,
+            clusters: found,
+            dropped_small: sizes
+                .iter()
+                .filter(|&&s| s > 0 && s < cfg.min_points)
+                .count(),
+            time: t.elapsed(),
+        })
+    }
+
+    fn flags(&self, p: &Proposal) -> ProposalFlags {
+        let c = &self.cfg;
+        let mut f = ProposalFlags::default();
+        if p.length >= c.wall_length && p.width <= c.wall_width {
+            f |= ProposalFlags::WALL;
+        }
+        if p.length > c.max_length {
+            f |= ProposalFlags::LARGE;
+        }
+        if p.height > c.max_object_height {
+            f |= ProposalFlags::TALL;
+        }
+        if p.bottom > c.floating_height {
+            f |= ProposalFlags::FLOATING;
+        }
+        if p.points > c.max_points {
+            f |= ProposalFlags::MANY_POINTS;
+        }
+        f
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use groundwork_core::Point;
+    use proptest::prelude::*;
+
+    fn pt(x: f32, y: f32, z: f32) -> Point {
+        Point {
+            x,
+            y,
+            z,
+            intensity: 0.0,
+        }
+    }
+
+    /// A flat road (ground) with two boxes standing on it, 3 m apart.
+    fn street() -> (Vec<Point>, Vec<f32>) {
+        let (mut pts, mut probs) = (Vec::new(), Vec::new());
+        for i in 0..60 {
+            for j in 0..40 {
+                pts.push(pt(4.0 + 0.5 * i as f32, -10.0 + 0.5 * j as f32, 0.0));
+                probs.push(0.95);
+            }
+        }
+        for (cx, cy) in [(12.0f32, 0.0f32), (12.0, 4.0)] {
+            for a in 0..20 {
+                for b in 0..8 {
+                    // The near face and one side of a 4 × 1.8 × 1.5 m car.
+                    pts.push(pt(
+                        cx - 2.0 + 0.2 * a as f32,
+                        cy - 0.9,
+                        0.3 + 0.15 * b as f32,
+                    ));
+                    pts.push(pt(
+                        cx - 2.0,
+                        cy - 0.9 + 0.09 * a as f32,
+                        0.3 + 0.15 * b as f32,
+                    ));
+                    probs.extend([0.02, 0.02]);
+                }
+            }
+        }
+        (pts, probs)
+    }
+
+    #[test]
+    fn two_cars_on_a_road_are_two_proposals_with_their_points() {
+        let (pts, probs) = street();
+        let mut d = Detector::new(DetectorConfig::default(), &SegmenterConfig::default()).unwrap();
+        let mut out = Detections::default();
+        let r = d.detect(&pts, &probs, &mut out).unwrap();
+        assert_eq!(out.proposals.len(), 2, "{:?} {r:?}", out.proposals);
+        assert_eq!(out.clusters.len(), pts.len());
+        for p in &out.proposals {
+            assert_eq!(
+                out.clusters.iter().filter(|&&c| c == p.id).count(),
+                p.points as usize
+            );
+            assert!(
+                (p.height - 1.35).abs() < 0.01 && (p.bottom - 0.3).abs() < 0.01,
+                "{p:?}"
+            );
+            assert!((p.length - 4.0).abs() < 0.25 && p.yaw.abs() < 0.05, "{p:?}");
+            assert!(p.flags.is_object_like());
+        }
+        // Nearest first: the car on the x axis.
+        assert!(out.proposals[0].centroid[1].abs() < out.proposals[1].centroid[1].abs());
+        // Road points carry no id.
+        assert!(out.clusters[..2400].iter().all(|&c| c == 0));
+    }
+
+    #[test]
+    fn a_long_thin_cluster_is_flagged_a_wall() {
+        let mut pts = Vec::new();
+        for a in 0..100 {
+            for b in 0..10 {
+                pts.push(pt(10.0, -10.0 + 0.2 * a as f32, 0.3 + 0.2 * b as f32));
+            }
+        }
+        let probs = vec![0.0; pts.len()];
+        let mut d = Detector::new(DetectorConfig::default(), &SegmenterConfig::default()).unwrap();
+        let mut out = Detections::default();
+        d.detect(&pts, &probs, &mut out).unwrap();
+        assert_eq!(out.proposals.len(), 1);
+        assert!(out.proposals[0].flags.contains(ProposalFlags::WALL));
+        assert!(out.proposals[0].flags.contains(ProposalFlags::LARGE));
+        assert_eq!(
+            out.proposals[0].flags.names().collect::<Vec<_>>(),
+            ["wall", "large"]
+        );
+    }
+
+    #[test]
+    fn bad_input_is_an_error_naming_the_problem() {
+        let mut d = Detector::new(DetectorConfig::default(), &SegmenterConfig::default()).unwrap();
+        let mut out = Detections::default();
+        let pts = vec![pt(5.0, 0.0, 0.0), pt(6.0, 0.0, f32::NAN)];
+        let e = d.detect(&pts, &[0.0, 0.0], &mut out).unwrap_err();
+        assert!(matches!(e, DetectError::Points(_)), "{e}");
+        let pts = vec![pt(5.0, 0.0, 0.0), pt(6.0, 0.0, 1.0)];
+        let e = d.detect(&pts, &[0.0], &mut out).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("1 ground probabilities for 2 points")
+        );
+        let e = d.detect(&pts, &[0.0, f32::NAN], &mut out).unwrap_err();
+        assert!(e.to_string().contains("point 1"), "{e}");
+        let e = d.detect(&pts, &[0.0, 1.5], &mut out).unwrap_err();
+        assert!(matches!(e, DetectError::BadProbability { index: 1, .. }));
+        // An empty scan is no error: nothing to propose.
+        d.detect::<Point>(&[], &[], &mut out).unwrap();
+        assert!(out.proposals.is_empty() && out.clusters.is_empty());
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        #[test]
+        fn every_point_gets_one_id_and_proposals_match_their_points(
+            raw in prop::collection::vec((-30.0f32..30.0, -30.0f32..30.0, -1.0f32..3.0, 0.0f32..=1.0), 0..400)
+        ) {
+            let pts: Vec<Point> = raw.iter().map(|&(x, y, z, _)| pt(x, y, z)).collect();
+            let probs: Vec<f32> = raw.iter().map(|r| r.3).collect();
+            let cfg = DetectorConfig { min_points: 2, ..Default::default() };
+            let mut d = Detector::new(cfg, &SegmenterConfig::default()).unwrap();
+            let mut out = Detections::default();
+            d.detect(&pts, &probs, &mut out).unwrap();
+            prop_assert_eq!(out.clusters.len(), pts.len());
+            let n = out.proposals.len() as u32;
+            prop_assert!(out.clusters.iter().all(|&c| c <= n));
+            for (k, p) in out.proposals.iter().enumerate() {
+                prop_assert_eq!(p.id, k as u32 + 1);
+                prop_assert_eq!(out.clusters.iter().filter(|&&c| c == p.id).count(), p.points as usize);
+                prop_assert!(p.points >= 2 && p.length >= p.width && p.width >= 0.0);
+            }
+            // Sure ground never joins anything.
+            for (c, &p) in out.clusters.iter().zip(&probs) {
+                prop_assert!(p < 0.8 || *c == 0);
+            }
+            // Nearest first.
+            let r: Vec<f32> = out.proposals.iter().map(|p| p.centroid[0].hypot(p.centroid[1])).collect();
+            prop_assert!(r.windows(2).all(|w| w[0] <= w[1]));
+            // Deterministic: the same scan again gives the same output.
+            let mut again = Detections::default();
+            d.detect(&pts, &probs, &mut again).unwrap();
+            prop_assert_eq!(&out, &again);
+        }
+    }
+}
