@@ -208,6 +208,60 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
 }
 
 #[test]
+fn killed_detector_is_replaced_and_rejected_masks_are_skipped_and_counted() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prefix("kill-det");
+    let (mut consumer, json) = consumer(tmp.path(), "consumer", &p, &["--idle-timeout", "3"]);
+    let mut seg = Proc::start(tmp.path(), "segmenter", &p, &["--frames", "1"]);
+    let mut det_a = Proc::start(tmp.path(), "detector-a", &p, &[]);
+    sleep(0.5);
+    // Every 4th scan is malformed: the segmenter rejects it, the detector skips its mask.
+    let mut producer = Proc::start(
+        tmp.path(),
+        "producer",
+        &p,
+        &["--rate", "10", "--malformed-every", "4"],
+    );
+    sleep(3.0);
+    det_a.kill9();
+    sleep(1.0);
+    let mut det_b = Proc::start(tmp.path(), "detector-b", &p, &[]);
+    sleep(3.0);
+    assert!(
+        producer.alive() && consumer.alive() && seg.alive(),
+        "nothing else restarted"
+    );
+    producer.term();
+    assert!(producer.wait(Duration::from_secs(5)).success());
+    consumer.wait(Duration::from_secs(10));
+    for s in [&mut seg, &mut det_b] {
+        s.term();
+        assert!(s.wait(Duration::from_secs(5)).success());
+    }
+    let r = report(&json);
+    let d = &r["detections"];
+    assert_eq!(d["detector_runs"], 2, "{r}");
+    assert!(
+        d["messages"].as_u64().unwrap() >= 25 && d["proposals"].as_u64().unwrap() > 1000,
+        "proposals from both detectors: {r}"
+    );
+    // The segmenter was not disturbed: every scan got its mask.
+    assert_eq!(r["unmatched_masks"], 0, "{r}");
+    // (What the killed detector left is swept by whichever stage looks first: the others'
+    // periodic sweep, or the new detector at start.)
+    let log = det_b.log();
+    assert!(
+        log.contains("detector stopped") && log.contains("mask_rejected"),
+        "{log}"
+    );
+    assert!(
+        log.contains("no proposals: the segmenter rejected scan"),
+        "{log}"
+    );
+}
+
+#[test]
 fn killed_producer_leaves_the_others_serving_and_a_new_one_resumes() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
@@ -429,6 +483,11 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
     assert!(!stderr.contains(" WARN "), "{stderr}");
     assert!(
         stdout.contains("end to end") && stdout.contains("live accuracy"),
+        "{stdout}"
+    );
+    // The detector stage ran beside them: its proposals and its latency rows.
+    assert!(
+        stdout.contains("detector: ") && stdout.contains("\ndetect "),
         "{stdout}"
     );
     // Outputs written by the consumer, one value per point.
@@ -739,7 +798,7 @@ fn the_pipeline_fails_when_a_stage_dies_and_restarts_it_when_asked() {
     let tmp = tempfile::tempdir().unwrap();
     use rustix::process::Signal;
     // Without --restart: a supervisor sees a failure.
-    for stage in ["segmenter", "producer", "consumer"] {
+    for stage in ["segmenter", "detector", "producer", "consumer"] {
         let p = prefix(&format!("die-{stage}"));
         let mut pl = pipeline(tmp.path(), &p, &[], false);
         let pid = stage_pid(&p, stage);

@@ -97,6 +97,9 @@ enum Command {
         /// pipeline, which then exits non-zero.
         #[arg(long, default_value_t = 0)]
         restart: u32,
+        /// Leave out the detector stage (object proposals on <prefix>/proposals).
+        #[arg(long)]
+        no_detector: bool,
     },
     /// Stage: publish scans from a folder (looping) or synthetic scans.
     Producer {
@@ -133,6 +136,16 @@ enum Command {
         /// Transport benchmark: answer with masks of the right size without segmenting.
         #[arg(long)]
         echo: bool,
+    },
+    /// Stage: turn scans and masks into object proposals on <prefix>/proposals.
+    Detector {
+        #[command(flatten)]
+        common: Common,
+        #[command(flatten)]
+        service: ServiceArgs,
+        /// Stop after this many masks.
+        #[arg(long)]
+        count: Option<u64>,
     },
     /// Stage: read scans and masks, report latency, accuracy and counters.
     Consumer {
@@ -375,7 +388,19 @@ fn run(cli: Cli) -> Result<ExitCode> {
             rate,
             out,
             restart,
-        } => pipeline(&common, &service, data, count, rate, out, restart),
+            no_detector,
+        } => pipeline(
+            &common,
+            &service,
+            &PipelineRun {
+                data,
+                count,
+                rate,
+                out,
+                restart,
+                detector: !no_detector,
+            },
+        ),
         Command::Producer {
             service,
             count,
@@ -442,6 +467,23 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     segmenter: load(&common, cfg.sensor.as_deref())?,
                     count,
                     echo,
+                },
+            )?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Detector {
+            common,
+            service,
+            count,
+        } => {
+            let cfg = load_service(&service)?;
+            let methods = load_methods(&common, cfg.sensor.as_deref())?;
+            groundwork_service::detector::run(
+                &cfg,
+                &groundwork_service::detector::DetectorOptions {
+                    segmenter: methods.segmenter,
+                    detector: methods.detector,
+                    count,
                 },
             )?;
             Ok(ExitCode::SUCCESS)
@@ -571,15 +613,28 @@ fn load_service(args: &ServiceArgs) -> Result<ServiceConfig> {
     Ok(cfg)
 }
 
-fn pipeline(
-    common: &Common,
-    service: &ServiceArgs,
+/// What `pipeline` runs, beyond the common and service options.
+#[derive(Debug)]
+struct PipelineRun {
     data: Option<PathBuf>,
     count: Option<u64>,
     rate: Option<f64>,
     out: Option<PathBuf>,
     restart: u32,
-) -> Result<ExitCode> {
+    /// Start the detector stage too.
+    detector: bool,
+}
+
+fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result<ExitCode> {
+    let PipelineRun {
+        data,
+        count,
+        rate,
+        out,
+        restart,
+        detector,
+    } = run;
+    let (count, rate, restart) = (*count, *rate, *restart);
     // Validate everything here, before any process starts.
     let cfg = load_service(service)?;
     let seg_cfg = load(common, cfg.sensor.as_deref())?;
@@ -591,7 +646,7 @@ fn pipeline(
         cfg.max_points
     );
     check_shared_memory(&cfg)?;
-    let data = data.unwrap_or_else(|| BUNDLED_DATA.into());
+    let data = data.clone().unwrap_or_else(|| BUNDLED_DATA.into());
     anyhow::ensure!(
         data.exists(),
         "{}: no such folder or recording",
@@ -606,13 +661,18 @@ fn pipeline(
         }
         c
     };
-    let mut seg = stage("segmenter");
-    if let Some(name) = &common.sensor {
-        seg.arg("--sensor").arg(name);
-    }
-    if let Some(c) = &common.config {
-        seg.arg("--config").arg(c);
-    }
+    // The segmenter and the detector read the same sensor and configuration.
+    let configured = |name: &'static str| {
+        let mut c = stage(name);
+        if let Some(s) = &common.sensor {
+            c.arg("--sensor").arg(s);
+        }
+        if let Some(f) = &common.config {
+            c.arg("--config").arg(f);
+        }
+        c
+    };
+    let mut seg = configured("segmenter");
     if let Some(f) = common.frames {
         seg.arg("--frames").arg(f.to_string());
     }
@@ -640,25 +700,25 @@ fn pipeline(
         prod.arg("--topic").arg(t);
     }
     prod.arg(&data);
-    let outcome = launcher::run(
-        &cfg,
-        vec![
-            launcher::Stage {
-                name: "segmenter",
-                command: seg,
-            },
-            launcher::Stage {
-                name: "consumer",
-                command: con,
-            },
-            launcher::Stage {
-                name: "producer",
-                command: prod,
-            },
-        ],
-        "consumer",
-        restart,
-    )?;
+    let mut stages = vec![launcher::Stage {
+        name: "segmenter",
+        command: seg,
+    }];
+    if *detector {
+        stages.push(launcher::Stage {
+            name: "detector",
+            command: configured("detector"),
+        });
+    }
+    stages.push(launcher::Stage {
+        name: "consumer",
+        command: con,
+    });
+    stages.push(launcher::Stage {
+        name: "producer",
+        command: prod,
+    });
+    let outcome = launcher::run(&cfg, stages, "consumer", restart)?;
     for s in &outcome.stages {
         match &s.failure {
             Some(f) => error!(stage = s.name, restarts = s.restarts, "failed: {f}"),

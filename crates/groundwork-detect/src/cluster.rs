@@ -44,17 +44,12 @@ pub struct ClusterGrid {
     scan: u32,
     /// Occupied cells of the current scan, in grid order.
     occupied: Vec<u32>,
-    keys: Vec<(u64, u32)>,
+    /// Scratch: each point's cell, and the points bucketed by cell.
+    cell_of_point: Vec<u32>,
+    order: Vec<u32>,
     segments: Vec<Segment>,
     parent: Vec<u32>,
     component: Vec<u32>,
-}
-
-/// Sorts f32 like the numbers they are (for finite values).
-#[inline]
-fn ordered(z: f32) -> u32 {
-    let b = z.to_bits();
-    if b >> 31 == 1 { !b } else { b | 0x8000_0000 }
 }
 
 impl ClusterGrid {
@@ -139,56 +134,88 @@ impl ClusterGrid {
             self.cells.fill(Cell::default());
             self.scan = 1;
         }
-        let mut keys = std::mem::take(&mut self.keys);
-        keys.clear();
-        for (k, p) in points.iter().enumerate() {
-            if let Some((i, j)) = self.grid.cell_of(p[0], p[1]) {
-                let cell = self.grid.index(i, j) as u64;
-                keys.push(((cell << 32) | u64::from(ordered(p[2])), k as u32));
-            }
-        }
-        keys.sort_unstable();
-
-        // Column segments, and the point → segment map (in `labels` for now).
-        labels.clear();
-        labels.resize(points.len(), u32::MAX);
-        self.segments.clear();
+        // Clear the previous scan's occupancy bits.
         for &c in &self.occupied {
             let (i, j) = self.grid.ij(c);
             self.occupancy[i as usize * self.words_per_row + j as usize / 64] = 0;
         }
         self.occupied.clear();
-        let mut prev_cell = u64::MAX;
-        let mut gap = 0.0f32;
-        for &(key, k) in &keys {
-            let cell = key >> 32;
-            let z = points[k as usize][2];
-            let new_cell = cell != prev_cell;
-            if new_cell {
-                let (i, j) = self.grid.ij(cell as u32);
-                gap = cfg.vertical_distance_at(self.grid.range(i, j));
-                self.cells[cell as usize] = Cell {
+
+        // Bucket the points by cell (a counting sort: `len` counts, then `first` is the
+        // bucket's offset), cells in grid order, each bucket sorted by height.
+        let mut cell_of = std::mem::take(&mut self.cell_of_point);
+        cell_of.clear();
+        for p in points {
+            let Some((i, j)) = self.grid.cell_of(p[0], p[1]) else {
+                cell_of.push(u32::MAX);
+                continue;
+            };
+            let c = self.grid.index(i, j);
+            let cell = &mut self.cells[c];
+            if cell.scan != self.scan {
+                *cell = Cell {
                     scan: self.scan,
-                    first: self.segments.len() as u32,
+                    first: 0,
                     len: 0,
                 };
-                self.occupied.push(cell as u32);
+                self.occupied.push(c as u32);
                 self.occupancy[i as usize * self.words_per_row + j as usize / 64] |= 1 << (j % 64);
-                prev_cell = cell;
             }
-            let split = match self.segments.last() {
-                Some(s) if !new_cell => z - s.z_max > gap,
-                _ => true,
-            };
-            if split {
-                self.cells[cell as usize].len += 1;
-                self.segments.push(Segment { z_min: z, z_max: z });
-            } else if let Some(s) = self.segments.last_mut() {
-                s.z_max = z;
-            }
-            labels[k as usize] = self.segments.len() as u32 - 1;
+            cell.len += 1;
+            cell_of.push(c as u32);
         }
-        self.keys = keys;
+        self.occupied.sort_unstable();
+        let mut offset = 0u32;
+        for &c in &self.occupied {
+            let cell = &mut self.cells[c as usize];
+            cell.first = offset;
+            offset += cell.len;
+            cell.len = 0;
+        }
+        let mut order = std::mem::take(&mut self.order);
+        order.clear();
+        order.resize(offset as usize, 0);
+        for (k, &c) in cell_of.iter().enumerate() {
+            if c != u32::MAX {
+                let cell = &mut self.cells[c as usize];
+                order[(cell.first + cell.len) as usize] = k as u32;
+                cell.len += 1;
+            }
+        }
+        self.cell_of_point = cell_of;
+
+        // Column segments, and the point → segment map (in `labels` for now); each cell's
+        // record then names its segments instead of its points.
+        labels.clear();
+        labels.resize(points.len(), u32::MAX);
+        self.segments.clear();
+        for &c in &self.occupied {
+            let (i, j) = self.grid.ij(c);
+            let gap = cfg.vertical_distance_at(self.grid.range(i, j));
+            let cell = self.cells[c as usize];
+            let bucket = &mut order[cell.first as usize..(cell.first + cell.len) as usize];
+            bucket.sort_unstable_by(|&a, &b| {
+                points[a as usize][2]
+                    .total_cmp(&points[b as usize][2])
+                    .then(a.cmp(&b))
+            });
+            let first = self.segments.len() as u32;
+            for &k in bucket.iter() {
+                let z = points[k as usize][2];
+                let in_cell = self.segments.len() as u32 > first;
+                match self.segments.last_mut() {
+                    Some(s) if in_cell && z - s.z_max <= gap => s.z_max = z,
+                    _ => self.segments.push(Segment { z_min: z, z_max: z }),
+                }
+                labels[k as usize] = self.segments.len() as u32 - 1;
+            }
+            self.cells[c as usize] = Cell {
+                scan: self.scan,
+                first,
+                len: self.segments.len() as u32 - first,
+            };
+        }
+        self.order = order;
 
         // Join segments of neighbouring cells (each pair of cells looked at once).
         let n = self.segments.len();

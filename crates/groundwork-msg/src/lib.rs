@@ -7,7 +7,10 @@
 //! Topics (service names are `<prefix>/scans`, `<prefix>/masks`):
 //! - `scans`: payload `[ScanPoint]`, user header [`ScanHeader`];
 //! - `masks`: payload `[f32]` (ground probability per point, scan order), header
-//!   [`MaskHeader`].
+//!   [`MaskHeader`];
+//! - `proposals`: payload `[u32]` (the detector's proposal id per point, scan order, 0 for
+//!   none), header [`ProposalsHeader`] with up to [`MAX_PROPOSALS`] fixed-size
+//!   [`ProposalRecord`]s.
 
 use iceoryx2::prelude::ZeroCopySend;
 
@@ -200,6 +203,122 @@ impl Default for MaskHeader {
     }
 }
 
+/// Proposals one message carries; farther ones are dropped (counted in the header, and
+/// their points' ids published as 0). A street scan holds 100–200.
+pub const MAX_PROPOSALS: usize = 512;
+
+/// One object proposal (see `groundwork_detect::Proposal`): ground-aligned sensor frame,
+/// metres, radians.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+pub struct ProposalRecord {
+    /// 1, 2, … nearest first: the id its points carry in the payload.
+    pub id: u32,
+    /// Points in the cluster.
+    pub points: u32,
+    /// `groundwork_detect::ProposalFlags` bits (0: object-like).
+    pub flags: u32,
+    /// Local ground height below the box centre.
+    pub ground_z: f32,
+    /// Mean of the points.
+    pub centroid: [f32; 3],
+    /// Box centre in the ground plane.
+    pub center: [f32; 2],
+    /// Heading of the box's long side, (−π/2, π/2].
+    pub yaw: f32,
+    /// Long side.
+    pub length: f32,
+    /// Short side.
+    pub width: f32,
+    /// Lowest point above the local ground.
+    pub bottom: f32,
+    /// Highest point above the local ground.
+    pub height: f32,
+}
+
+impl From<&groundwork_detect::Proposal> for ProposalRecord {
+    fn from(p: &groundwork_detect::Proposal) -> Self {
+        Self {
+            id: p.id,
+            points: p.points,
+            flags: p.flags.0,
+            ground_z: p.ground_z,
+            centroid: p.centroid,
+            center: p.center,
+            yaw: p.yaw,
+            length: p.length,
+            width: p.width,
+            bottom: p.bottom,
+            height: p.height,
+        }
+    }
+}
+
+/// Header of a proposals message.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+pub struct ProposalsHeader {
+    /// Must equal [`SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Ids in the payload (the scan's points).
+    pub point_count: u32,
+    /// Sequence number of the scan.
+    pub scan_sequence: u64,
+    /// Producer epoch of that scan.
+    pub producer_epoch: u64,
+    /// The scan's sensor timestamp.
+    pub sensor_timestamp_ns: u64,
+    /// The scan's source index.
+    pub source_index: u64,
+    /// The mask's stamps (producer and segmenter).
+    pub stamps: StageStamps,
+    /// Detector, on receipt of the mask.
+    pub detector_received_ns: u64,
+    /// Detector, just before `send`.
+    pub detector_published_ns: u64,
+    /// Identifies the detector run (changes when a detector restarts).
+    pub detector_epoch: u64,
+    /// Detection time (ground removal, clustering, boxes), µs.
+    pub detect_us: u32,
+    /// Valid entries of `records`.
+    pub proposal_count: u32,
+    /// Proposals beyond [`MAX_PROPOSALS`] left out (farthest first).
+    pub dropped_proposals: u32,
+    /// Reserved, keeps `records` aligned.
+    pub reserved: u32,
+    /// The proposals, nearest first.
+    pub records: [ProposalRecord; MAX_PROPOSALS],
+}
+
+impl Default for ProposalsHeader {
+    fn default() -> Self {
+        Self {
+            schema_version: SCHEMA_VERSION,
+            point_count: 0,
+            scan_sequence: 0,
+            producer_epoch: 0,
+            sensor_timestamp_ns: 0,
+            source_index: 0,
+            stamps: StageStamps::default(),
+            detector_received_ns: 0,
+            detector_published_ns: 0,
+            detector_epoch: 0,
+            detect_us: 0,
+            proposal_count: 0,
+            dropped_proposals: 0,
+            reserved: 0,
+            records: [ProposalRecord::default(); MAX_PROPOSALS],
+        }
+    }
+}
+
+impl ProposalsHeader {
+    /// The valid records.
+    pub fn proposals(&self) -> &[ProposalRecord] {
+        &self.records[..(self.proposal_count as usize).min(MAX_PROPOSALS)]
+    }
+}
+
 /// `CLOCK_MONOTONIC` in ns: the one clock all stages stamp with.
 pub fn monotonic_ns() -> u64 {
     let t = rustix::time::clock_gettime(rustix::time::ClockId::Monotonic);
@@ -226,6 +345,11 @@ mod tests {
         // 4 + 4 + 8 × 4 + 32 + 4 + 4 + 128
         assert_eq!(std::mem::size_of::<ScanHeader>(), 208);
         assert_eq!(ScanHeader::default().schema_version, SCHEMA_VERSION);
+        assert_eq!(std::mem::size_of::<ProposalRecord>(), 56);
+        assert_eq!(
+            std::mem::size_of::<ProposalsHeader>(),
+            4 + 4 + 8 * 4 + 32 + 8 * 3 + 4 * 4 + 56 * MAX_PROPOSALS
+        );
     }
 
     #[test]

@@ -109,15 +109,20 @@ impl ServiceConfig {
         Ok(())
     }
 
-    /// Shared memory the scan publisher may need at worst (bytes): chunk size × (subscribers
-    /// × (queue + borrowed) + loans), plus the same for masks.
+    /// Shared memory the publishers may need at worst (bytes): per topic, chunk size ×
+    /// (subscribers × (queue + borrowed) + loans), for scans, masks and proposals.
     pub fn shared_memory_estimate(&self) -> u64 {
         let scan_chunk = (self.max_points * 16 + 4096) as u64;
         let mask_chunk = (self.max_points * 4 + 4096) as u64;
+        let proposals_chunk =
+            mask_chunk + std::mem::size_of::<groundwork_msg::ProposalsHeader>() as u64;
         let subs = self.max_subscribers as u64;
         let loans = 2;
-        scan_chunk * (subs * (self.scan_queue + self.max_borrowed) as u64 + loans)
-            + mask_chunk * (subs * (self.mask_queue + self.max_borrowed) as u64 + loans)
+        let per_topic =
+            |chunk: u64, queue: usize| chunk * (subs * (queue + self.max_borrowed) as u64 + loans);
+        per_topic(scan_chunk, self.scan_queue)
+            + per_topic(mask_chunk, self.mask_queue)
+            + per_topic(proposals_chunk, self.mask_queue)
     }
 }
 

@@ -11,16 +11,18 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use groundwork_core::Point;
 use groundwork_eval::{Confusion, Metrics, Protocol};
 use groundwork_io::{LabelClass, LabelMap, OutputTarget, Scan};
-use groundwork_msg::{MaskHeader, MaskStatus, ScanHeader, ScanPoint, monotonic_ns};
+use groundwork_msg::{
+    MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint, monotonic_ns,
+};
 use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::{ServiceConfig, check_shared_memory};
 use crate::segmenter::sequence_gap;
 use crate::stats::{LatencyStats, Percentiles};
+use crate::window::ScanWindow;
 use crate::{signals, transport};
 
 /// Consumer options beyond the shared configuration.
@@ -70,6 +72,19 @@ impl ScanFate {
     }
 }
 
+/// Proposals messages read from the detector stage.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct DetectionsSeen {
+    /// Messages (one per detected scan).
+    pub messages: u64,
+    /// Proposals in them.
+    pub proposals: u64,
+    /// Proposals the detector left out for the message's capacity.
+    pub dropped_proposals: u64,
+    /// Distinct detector runs seen (a restarted detector is a new run).
+    pub detector_runs: u64,
+}
+
 /// The consumer's final report.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct ConsumerReport {
@@ -94,6 +109,8 @@ pub struct ConsumerReport {
     pub segmenter_runs: u64,
     /// Points the segmenter found beyond its coordinate bound (corrupted returns).
     pub out_of_bounds_points: u64,
+    /// What the detector stage published (zero without one).
+    pub detections: DetectionsSeen,
     /// Latency percentiles per stage, µs.
     pub latency_us: Vec<Percentiles>,
     /// Pooled live accuracy over labeled scans.
@@ -108,10 +125,8 @@ pub struct ConsumerReport {
 pub const PAIRING_WINDOW: usize = 256;
 /// Label files kept in memory (a replay loops over a few; a long drive never repeats).
 const LABEL_CACHE: usize = 32;
-/// Scans whose points are held for a recording until their mask comes. A mask normally
-/// follows its scan within a frame or two; a stalled segmenter must not make the consumer
-/// hold 256 scans of 200 000 points each.
-pub const RECORDING_WINDOW: usize = 16;
+/// Scans whose points are held for a recording until their mask comes.
+pub const RECORDING_WINDOW: usize = crate::window::SCAN_WINDOW;
 /// The topic of the consumer's recording.
 pub const RECORDING_TOPIC: &str = "/points";
 
@@ -122,13 +137,14 @@ pub struct ConsumerStage {
     out: Option<OutputTarget>,
     /// Recording only: (producer epoch, sequence) → the points of a scan waiting for its
     /// mask, at most [`RECORDING_WINDOW`].
-    held: BTreeMap<(u64, u64), Vec<Point>>,
+    held: ScanWindow,
     warmup: u64,
     /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
     pending: BTreeMap<(u64, u64), u64>,
     last_scan: Option<(u64, u64)>,
     last_mask: Option<(u64, u64, u64)>,
     segmenter_epochs: HashSet<u64>,
+    detector_epochs: HashSet<u64>,
     labels: HashMap<u64, Option<Vec<LabelClass>>>,
     label_map: LabelMap,
     label_order: VecDeque<u64>,
@@ -151,11 +167,7 @@ impl ConsumerStage {
     /// A scan was read (its points are copied only when writing a recording).
     pub fn on_scan(&mut self, h: &ScanHeader, points: &[ScanPoint]) {
         if let Some(OutputTarget::Recording(_)) = &self.out {
-            let p = points.iter().map(Point::from).collect();
-            self.held.insert((h.producer_epoch, h.sequence), p);
-            if self.held.len() > RECORDING_WINDOW {
-                self.held.pop_first();
-            }
+            self.held.hold(h.producer_epoch, h.sequence, points);
         }
         let r = &mut self.report;
         r.scans += 1;
@@ -191,7 +203,7 @@ impl ConsumerStage {
             r.segmenter_runs += 1;
         }
         let ok = h.status == MaskStatus::OK;
-        let held = self.held.remove(&(h.producer_epoch, h.scan_sequence));
+        let held = self.held.take(h.producer_epoch, h.scan_sequence);
         match self.pending.remove(&(h.producer_epoch, h.scan_sequence)) {
             Some(_) if ok => r.scan_fate.masked += 1,
             Some(_) => r.scan_fate.rejected += 1,
@@ -255,6 +267,26 @@ impl ConsumerStage {
         if let Err(e) = written {
             self.report.write_failures += 1;
             warn!("{e}");
+        }
+    }
+
+    /// A proposals message was read: counted, and its stamps give the detector's latency.
+    pub fn on_proposals(&mut self, h: &ProposalsHeader) {
+        let d = &mut self.report.detections;
+        d.messages += 1;
+        d.proposals += u64::from(h.proposal_count);
+        d.dropped_proposals += u64::from(h.dropped_proposals);
+        if self.detector_epochs.insert(h.detector_epoch) {
+            d.detector_runs += 1;
+        }
+        if d.messages > self.warmup {
+            let s = h.stamps;
+            self.stats.record_proposals(
+                s.produced_ns,
+                s.segmenter_published_ns,
+                h.detector_received_ns,
+                h.detector_published_ns,
+            );
         }
     }
 
@@ -331,7 +363,10 @@ impl ConsumerStage {
             dropped_masks = r.dropped_masks,
             rejected = r.rejected.values().sum::<u64>(),
             pending = self.pending.len(),
-            e2e_p50_us = p.last().map(|p| p.p50).unwrap_or(0.0),
+            e2e_p50_us = p
+                .iter()
+                .find(|p| p.stage == "end to end")
+                .map_or(0.0, |p| p.p50),
             iou = self.confusion.map(|c| c.metrics().iou_ground),
             "consumer state"
         );
@@ -357,6 +392,13 @@ pub fn summary(r: &ConsumerReport, stats: &str) -> String {
         r.unmatched_masks,
         r.segmenter_runs
     );
+    let d = r.detections;
+    if d.messages > 0 {
+        s.push_str(&format!(
+            "detector: {} proposals messages, {} proposals ({} left out for capacity), {} detector run(s)\n",
+            d.messages, d.proposals, d.dropped_proposals, d.detector_runs
+        ));
+    }
     s.push_str(stats);
     if let Some(m) = r.accuracy {
         s.push_str(&format!(
@@ -383,6 +425,10 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     let masks = transport::mask_service(&node, cfg)?;
     let scan_sub = transport::scan_subscriber(&scans, cfg)?;
     let mask_sub = transport::mask_subscriber(&masks, cfg)?;
+    // Proposals (if a detector runs) are read whenever masks wake us; their latency comes
+    // from their own stamps, not from when we read them.
+    let proposals = transport::proposals_service(&node, cfg)?;
+    let proposals_sub = transport::proposals_subscriber(&proposals, cfg)?;
     // Only masks wake the consumer: it reads the scans it pairs them with from its queue at
     // that moment. Waking on scans as well would put a third process on the CPU exactly
     // when the segmenter needs it, and cost the pipeline latency. It blocks on the mask
@@ -406,6 +452,9 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
             let now = monotonic_ns();
             while let Some(scan) = scan_sub.receive().context("receive scan")? {
                 stage.on_scan(scan.user_header(), scan.payload());
+            }
+            while let Some(p) = proposals_sub.receive().context("receive proposals")? {
+                stage.on_proposals(p.user_header());
             }
             let Some(mask) = next else {
                 return Ok(());
@@ -454,6 +503,9 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     // Scans already queued are seen, so that they count (as unanswered if no mask came).
     while let Some(scan) = scan_sub.receive().context("receive scan")? {
         stage.on_scan(scan.user_header(), scan.payload());
+    }
+    while let Some(p) = proposals_sub.receive().context("receive proposals")? {
+        stage.on_proposals(p.user_header());
     }
     let table = stage.stats().table();
     let report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));
@@ -590,7 +642,7 @@ mod tests {
             assert_eq!(b.topic, RECORDING_TOPIC);
             assert_eq!(b.log_time_ns, 1_000 + s);
             assert_eq!(b.scan.stamp_ns, Some(1_000 + s));
-            let want: Vec<_> = points(s).iter().map(Point::from).collect();
+            let want: Vec<_> = points(s).iter().map(groundwork_core::Point::from).collect();
             assert_eq!(b.scan.points, want);
         }
         let data = std::fs::read(&path).unwrap();

@@ -1,9 +1,11 @@
 //! groundwork-service: the zero-copy shared-memory service. Three stages — producer,
 //! segmenter, consumer — each its own process, exchanging scans and masks over iceoryx2
-//! publish-subscribe topics (see `groundwork-msg`), woken by iceoryx2 events.
+//! publish-subscribe topics (see `groundwork-msg`), woken by iceoryx2 events; the detector
+//! stage ([`detector`]) turns scans and masks into object proposals.
 
 pub mod config;
 pub mod consumer;
+pub mod detector;
 pub mod launcher;
 pub mod producer;
 pub mod segmenter;
@@ -11,5 +13,6 @@ pub mod signals;
 pub mod stats;
 pub mod synthetic;
 pub mod transport;
+pub mod window;
 
 pub use config::{OverflowPolicy, ServiceConfig, check_shared_memory};

@@ -5,8 +5,9 @@ use std::fmt::Write;
 use hdrhistogram::Histogram;
 use serde::Serialize;
 
-/// Stages a message passes, in order.
-pub const STAGES: [&str; 7] = [
+/// Stages a message passes, in order; the last three are the detector's, from the stamps of
+/// its proposals (rows without samples are left out of the table).
+pub const STAGES: [&str; 10] = [
     "producer fill",
     "scan transport",
     "segment",
@@ -15,7 +16,13 @@ pub const STAGES: [&str; 7] = [
     "transport",
     "scan published to mask received",
     "end to end",
+    "mask to detector",
+    "detect",
+    "produced to proposals published",
 ];
+
+/// Index of the first detector row of [`STAGES`].
+const DETECTOR_ROWS: usize = 7;
 
 /// Percentiles of one stage, µs.
 #[derive(Debug, Clone, Serialize)]
@@ -82,6 +89,24 @@ impl LatencyStats {
         }
     }
 
+    /// Records one proposals message from its stamps (ns): the segmenter's publication, the
+    /// detector's receipt and publication, and the producer's fill.
+    pub fn record_proposals(&mut self, produced: u64, seg_out: u64, det_in: u64, det_out: u64) {
+        let d = [
+            det_in.saturating_sub(seg_out),
+            det_out.saturating_sub(det_in),
+            det_out.saturating_sub(produced),
+        ];
+        for (h, v) in self.hist[DETECTOR_ROWS..].iter_mut().zip(d) {
+            h.saturating_record(v.max(1));
+        }
+    }
+
+    /// The percentiles of one stage by name.
+    pub fn stage(&self, name: &str) -> Option<Percentiles> {
+        self.percentiles().into_iter().find(|p| p.stage == name)
+    }
+
     /// Percentiles per stage.
     pub fn percentiles(&self) -> Vec<Percentiles> {
         STAGES
@@ -117,13 +142,13 @@ impl LatencyStats {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "{:<16} {:>7} {:>10} {:>10} {:>10} {:>10} {:>10}",
+            "{:<32} {:>7} {:>10} {:>10} {:>10} {:>10} {:>10}",
             "stage (µs)", "n", "p50", "p90", "p99", "p99.9", "max"
         );
-        for p in self.percentiles() {
+        for p in self.percentiles().into_iter().filter(|p| p.count > 0) {
             let _ = writeln!(
                 s,
-                "{:<16} {:>7} {:>10.1} {:>10.1} {:>10.1} {:>10.1} {:>10.1}",
+                "{:<32} {:>7} {:>10.1} {:>10.1} {:>10.1} {:>10.1} {:>10.1}",
                 p.stage, p.count, p.p50, p.p90, p.p99, p.p999, p.max
             );
         }
@@ -150,5 +175,15 @@ mod tests {
         assert!((p[5].max - 9.099).abs() < 0.02, "{:?}", p[5]);
         assert!((p[6].max - 10.099).abs() < 0.02, "{:?}", p[6]);
         assert!(s.table().contains("end to end"));
+        assert!(
+            !s.table().contains("detect"),
+            "no detector, no detector rows"
+        );
+        s.record_proposals(1000, 10_000, 10_500, 14_500);
+        let d = s.stage("detect").unwrap();
+        assert!((d.p50 - 4.0).abs() < 0.01 && d.count == 1, "{d:?}");
+        assert!((s.stage("mask to detector").unwrap().p50 - 0.5).abs() < 0.01);
+        assert!((s.stage("produced to proposals published").unwrap().p50 - 13.5).abs() < 0.02);
+        assert!(s.table().contains("detect"));
     }
 }

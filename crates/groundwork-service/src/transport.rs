@@ -10,7 +10,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
 
-use groundwork_msg::{MaskHeader, ScanHeader, ScanPoint};
+use groundwork_msg::{MaskHeader, ProposalsHeader, ScanHeader, ScanPoint};
 
 use crate::config::{OverflowPolicy, ServiceConfig};
 
@@ -18,6 +18,8 @@ use crate::config::{OverflowPolicy, ServiceConfig};
 pub type ScanService = PortFactory<ipc::Service, [ScanPoint], ScanHeader>;
 /// The mask topic's service.
 pub type MaskService = PortFactory<ipc::Service, [f32], MaskHeader>;
+/// The proposals topic's service.
+pub type ProposalsService = PortFactory<ipc::Service, [u32], ProposalsHeader>;
 /// A publisher of scans.
 pub type ScanPublisher = Publisher<ipc::Service, [ScanPoint], ScanHeader>;
 /// The wake-up side of a topic's publisher.
@@ -71,7 +73,7 @@ pub fn pipeline_nodes(cfg: &ServiceConfig) -> Vec<(String, bool, i32)> {
 pub fn node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Service>> {
     let name = node_name(cfg, stage);
     let before = pipeline_nodes(cfg);
-    if matches!(stage, "producer" | "segmenter") {
+    if matches!(stage, "producer" | "segmenter" | "detector") {
         if let Some((_, _, pid)) = before.iter().find(|(s, alive, _)| s == stage && *alive) {
             anyhow::bail!(
                 "another {stage} of pipeline \"{}\" is running (pid {pid}): refusing to start a \
@@ -169,6 +171,14 @@ pub fn mask_service(node: &Node<ipc::Service>, cfg: &ServiceConfig) -> anyhow::R
     topic(node, cfg, "masks", cfg.mask_queue)
 }
 
+/// Opens (or creates) the proposals topic.
+pub fn proposals_service(
+    node: &Node<ipc::Service>,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<ProposalsService> {
+    topic(node, cfg, "proposals", cfg.mask_queue)
+}
+
 /// Opens (or creates) a topic's event service.
 fn event_service(
     node: &Node<ipc::Service>,
@@ -262,6 +272,22 @@ pub fn mask_publisher(
     cfg: &ServiceConfig,
 ) -> anyhow::Result<Publisher<ipc::Service, [f32], MaskHeader>> {
     publisher(svc, cfg, "mask")
+}
+
+/// The proposals publisher.
+pub fn proposals_publisher(
+    svc: &ProposalsService,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<Publisher<ipc::Service, [u32], ProposalsHeader>> {
+    publisher(svc, cfg, "proposal")
+}
+
+/// A proposals subscriber.
+pub fn proposals_subscriber(
+    svc: &ProposalsService,
+    cfg: &ServiceConfig,
+) -> anyhow::Result<Subscriber<ipc::Service, [u32], ProposalsHeader>> {
+    subscriber(svc, cfg.mask_queue, "proposal")
 }
 
 /// A scan subscriber.
