@@ -18,6 +18,7 @@ use tracing::{error, info};
 mod detect;
 mod label;
 mod methods;
+mod render;
 use methods::MethodArg;
 
 /// The service defaults, likewise.
@@ -241,6 +242,45 @@ enum Command {
         #[arg(required = true)]
         inputs: Vec<PathBuf>,
     },
+    /// A bird's-eye PNG of one scan: ground by height or probability (or errors against
+    /// labels with --compare), non-ground grey, proposals as boxes with ids, scale bar,
+    /// sensor.
+    Render {
+        #[command(flatten)]
+        common: Common,
+        /// The scan.
+        scan: PathBuf,
+        /// Its .prob file (default: segment it with --method).
+        #[arg(long)]
+        mask: Option<PathBuf>,
+        /// Method when no mask is given.
+        #[arg(long, value_enum, default_value_t = MethodArg::Gmm)]
+        method: MethodArg,
+        /// Its .proposals.json, drawn as boxes.
+        #[arg(long, conflicts_with = "detect")]
+        proposals: Option<PathBuf>,
+        /// Run the detector and draw its proposals.
+        #[arg(long)]
+        detect: bool,
+        /// Colour true/false ground and missed ground against labels (gmm protocol).
+        #[arg(long)]
+        compare: bool,
+        /// Label file for --compare (default: labels/<stem>.label beside velodyne/).
+        #[arg(long)]
+        labels: Option<PathBuf>,
+        /// Ground colouring.
+        #[arg(long, value_enum, default_value_t = render::ColourArg::Height)]
+        colour: render::ColourArg,
+        /// Half the picture's side, metres.
+        #[arg(long, default_value_t = 40.0)]
+        range: f32,
+        /// Metres per pixel.
+        #[arg(long, default_value_t = 0.08)]
+        resolution: f32,
+        /// The PNG to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Evaluate against SemanticKITTI labels: per scan and pooled metrics, plus speed.
     Eval {
         #[command(flatten)]
@@ -348,6 +388,35 @@ fn run(cli: Cli) -> Result<ExitCode> {
             calib: common.calib.as_deref(),
             topic: common.topic.clone(),
         }),
+        Command::Render {
+            common,
+            scan,
+            mask,
+            method,
+            proposals,
+            detect,
+            compare,
+            labels,
+            colour,
+            range,
+            resolution,
+            out,
+        } => {
+            render::run(&render::RenderJob {
+                config: &load_methods(&common, None)?,
+                scan: &scan,
+                mask: mask.as_deref(),
+                method,
+                proposals: proposals.as_deref(),
+                detect,
+                compare,
+                labels: labels.as_deref(),
+                colour,
+                view: groundwork_viz::View { range, resolution },
+                out: &out,
+            })?;
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Label {
             common,
             method,

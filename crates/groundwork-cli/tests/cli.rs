@@ -731,3 +731,80 @@ fn detect_writes_proposals_and_cluster_ids_that_agree_and_skips_bad_scans() {
     let table = String::from_utf8_lossy(&o.stdout);
     assert!(table.contains("car") && table.contains("36/36"), "{table}");
 }
+
+#[test]
+fn render_draws_a_png_of_the_scan_and_refuses_compare_without_labels() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scan = data().join("velodyne/000000.bin");
+    let png = tmp.path().join("pics/a.png");
+    let o = bin()
+        .args([
+            "render",
+            "--detect",
+            "--range",
+            "30",
+            "--resolution",
+            "0.1",
+            "--out",
+        ])
+        .arg(&png)
+        .arg(&scan)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bytes = fs::read(&png).unwrap();
+    assert_eq!(&bytes[1..4], b"PNG");
+    let width = u32::from_be_bytes(bytes[16..20].try_into().unwrap());
+    let height = u32::from_be_bytes(bytes[20..24].try_into().unwrap());
+    assert_eq!((width, height), (600, 600), "±30 m at 0.1 m per pixel");
+    // --compare finds labels/ beside velodyne/; a lone scan has none.
+    let o = bin()
+        .args(["render", "--compare", "--out"])
+        .arg(tmp.path().join("b.png"))
+        .arg(&scan)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let lone = copy_scan(1, tmp.path());
+    let o = bin()
+        .args(["render", "--compare", "--out"])
+        .arg(tmp.path().join("c.png"))
+        .arg(&lone)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--compare needs labels"));
+    // The files `detect` writes draw as they are.
+    let det = tmp.path().join("det");
+    let o = bin()
+        .args(["detect", "--out"])
+        .arg(&det)
+        .arg(&lone)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = bin()
+        .args(["render", "--proposals"])
+        .arg(det.join("000001.proposals.json"))
+        .arg("--out")
+        .arg(tmp.path().join("e.png"))
+        .arg(&lone)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+    assert!(!log.contains("proposals=0"), "{log}");
+    // A mask of the wrong size is an error naming it.
+    let bad = tmp.path().join("bad.prob");
+    fs::write(&bad, [0u8; 40]).unwrap();
+    let o = bin()
+        .args(["render", "--mask"])
+        .arg(&bad)
+        .arg("--out")
+        .arg(tmp.path().join("d.png"))
+        .arg(&scan)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("bad.prob"));
+}

@@ -4,7 +4,7 @@
 use std::time::{Duration, Instant};
 
 use groundwork_core::{ConfigError, GroundFrame, PointXyz, SegmentError, SegmenterConfig};
-use serde::{Serialize, Serializer};
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use thiserror::Error;
 
 use crate::bbox::min_area_rect;
@@ -90,9 +90,24 @@ impl Serialize for ProposalFlags {
     }
 }
 
+impl<'de> Deserialize<'de> for ProposalFlags {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let names = Vec::<String>::deserialize(d)?;
+        let mut f = Self::default();
+        for n in &names {
+            let (flag, _) = Self::NAMES
+                .into_iter()
+                .find(|(_, name)| name == n)
+                .ok_or_else(|| serde::de::Error::custom(format!("unknown flag {n:?}")))?;
+            f |= flag;
+        }
+        Ok(f)
+    }
+}
+
 /// One object proposal. Lengths in metres, angles in radians, all in the sensor's
 /// ground-aligned frame: x forward, y left, z up, origin on the ground below the sensor.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Proposal {
     /// 1, 2, … within the scan, nearest first (horizontal range of the centroid): the id
     /// its points carry in the cluster ids.

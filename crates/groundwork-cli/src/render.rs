@@ -1,0 +1,159 @@
+//! `groundwork render`: a bird's-eye PNG of one scan, its ground and its proposals.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, anyhow, bail};
+use groundwork_core::GroundFrame;
+use groundwork_detect::{Detections, Detector, Proposal};
+use groundwork_io::{LabelMap, MethodsConfig, read_prob, read_scan, scan_stem, write_atomic};
+use groundwork_viz::{Colouring, Scene, View, render};
+
+use crate::methods::{self, MethodArg};
+
+/// How ground points are coloured.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ColourArg {
+    /// Ground by height.
+    Height,
+    /// Ground by probability.
+    Probability,
+}
+
+/// Options of one picture.
+#[derive(Debug)]
+pub struct RenderJob<'a> {
+    /// Configuration (sensor mount, methods, detector).
+    pub config: &'a MethodsConfig,
+    /// The scan.
+    pub scan: &'a Path,
+    /// A `.prob` file for it (else `method` segments it).
+    pub mask: Option<&'a Path>,
+    /// Method when no mask is given.
+    pub method: MethodArg,
+    /// A `.proposals.json` (else the detector runs when `detect` is set).
+    pub proposals: Option<&'a Path>,
+    /// Run the detector for the boxes.
+    pub detect: bool,
+    /// Colour errors against labels instead.
+    pub compare: bool,
+    /// Label file (default: `<sequence>/labels/<stem>.label` beside `velodyne/`).
+    pub labels: Option<&'a Path>,
+    /// Ground colouring.
+    pub colour: ColourArg,
+    /// Window.
+    pub view: View,
+    /// The PNG.
+    pub out: &'a Path,
+}
+
+/// The label file SemanticKITTI keeps beside a scan: `<seq>/velodyne/x.bin` →
+/// `<seq>/labels/x.label`.
+fn sibling_labels(scan: &Path) -> Option<PathBuf> {
+    let seq = scan.parent()?.parent()?;
+    let l = seq
+        .join("labels")
+        .join(format!("{}.label", scan_stem(scan)));
+    l.is_file().then_some(l)
+}
+
+pub fn run(job: &RenderJob<'_>) -> Result<()> {
+    let cfg = &job.config.segmenter;
+    let scan = read_scan(job.scan, cfg.sensor.max_points)?;
+    let n = scan.points.len();
+    let probs: Vec<f32> = match job.mask {
+        Some(m) => {
+            let all = read_prob(m)?;
+            if all.len() != scan.records {
+                bail!(
+                    "{}: {} probabilities for a scan of {} records ({})",
+                    m.display(),
+                    all.len(),
+                    scan.records,
+                    job.scan.display()
+                );
+            }
+            match &scan.source_index {
+                Some(index) => index.iter().map(|&i| all[i as usize]).collect(),
+                None => all,
+            }
+        }
+        None => {
+            let mut method = methods::build(job.method, job.config)?;
+            let mut p = vec![0.0; n];
+            method
+                .segment_scan(&scan.points, None, &mut p)
+                .map_err(|e| anyhow!("{}: {e}", job.scan.display()))?;
+            p
+        }
+    };
+    let proposals: Vec<Proposal> = match job.proposals {
+        Some(p) => {
+            #[derive(serde::Deserialize)]
+            struct File {
+                proposals: Vec<Proposal>,
+            }
+            let text = std::fs::read(p).with_context(|| format!("{}", p.display()))?;
+            serde_json::from_slice::<File>(&text)
+                .with_context(|| format!("{}: not a proposals file", p.display()))?
+                .proposals
+        }
+        None if job.detect => {
+            let mut d = Detector::new(job.config.detector.clone(), cfg)?;
+            let mut out = Detections::default();
+            d.detect(&scan.points, &probs, &mut out)
+                .map_err(|e| anyhow!("{}: {e}", job.scan.display()))?;
+            out.proposals
+        }
+        None => Vec::new(),
+    };
+    let frame = GroundFrame::from_config(cfg)?;
+    let xyz = frame
+        .prepare(&scan.points, &probs)
+        .map_err(|e| anyhow!("{}: {e}", job.scan.display()))?
+        .xyz;
+    let truth: Vec<Option<bool>>;
+    let colouring = if job.compare {
+        let path = job
+            .labels
+            .map(Path::to_path_buf)
+            .or_else(|| sibling_labels(job.scan))
+            .ok_or_else(|| {
+                anyhow!(
+                    "{}: --compare needs labels (--labels F, or a labels/ folder beside velodyne/)",
+                    job.scan.display()
+                )
+            })?;
+        let map = LabelMap::semantickitti();
+        let classes = map.read(&path, scan.records)?;
+        let protocol = groundwork_eval::Protocol::Gmm;
+        let per_record: Vec<Option<bool>> = classes.iter().map(|&c| protocol.truth(c)).collect();
+        truth = match &scan.source_index {
+            Some(index) => index.iter().map(|&i| per_record[i as usize]).collect(),
+            None => per_record,
+        };
+        Colouring::Errors(&truth)
+    } else {
+        match job.colour {
+            ColourArg::Height => Colouring::Height,
+            ColourArg::Probability => Colouring::Probability,
+        }
+    };
+    let scene = Scene {
+        points: &xyz,
+        probabilities: &probs,
+        threshold: cfg.ground.ground_threshold,
+        proposals: &proposals,
+    };
+    let png = render(&scene, colouring, job.view)?.to_png()?;
+    if let Some(dir) = job.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("{}", dir.display()))?;
+    }
+    write_atomic(job.out, &png)?;
+    tracing::info!(
+        out = %job.out.display(),
+        points = n,
+        proposals = proposals.len(),
+        "picture written"
+    );
+    Ok(())
+}
