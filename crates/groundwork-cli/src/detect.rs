@@ -41,17 +41,8 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
     std::fs::create_dir_all(job.out)
         .map_err(|e| anyhow!("{}: cannot create the folder: {e}", job.out.display()))?;
     let max = job.config.segmenter.sensor.max_points;
-    let mut failed = 0usize;
-    let mut sequences = Vec::new();
-    for path in job.inputs {
-        match Sequence::open(path, job.poses, job.calib) {
-            Ok(seq) => sequences.push(seq.with_topic(job.topic.clone())),
-            Err(e) => {
-                failed += 1;
-                error!("skipped: {e}");
-            }
-        }
-    }
+    let (sequences, mut failed) =
+        crate::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref());
     let known: Option<usize> = sequences.iter().map(Sequence::len_hint).sum();
     let pb = crate::progress(known.unwrap_or(0), "detect");
     let (mut scans, mut proposals) = (0usize, 0usize);

@@ -823,6 +823,29 @@ fn load_methods(
     Ok(cfg)
 }
 
+/// Opens each input (a scan file, a folder or a recording; a folder may carry poses for
+/// history) as a sequence. An input that cannot be used is reported and counted, and the
+/// others still run: the sequences, and how many inputs were skipped.
+fn open_inputs(
+    inputs: &[PathBuf],
+    poses: Option<&Path>,
+    calib: Option<&Path>,
+    topic: Option<&str>,
+) -> (Vec<Sequence>, usize) {
+    let mut skipped = 0;
+    let mut sequences = Vec::new();
+    for path in inputs {
+        match Sequence::open(path, poses, calib) {
+            Ok(seq) => sequences.push(seq.with_topic(topic.map(str::to_owned))),
+            Err(e) => {
+                skipped += 1;
+                error!("skipped: {e}");
+            }
+        }
+    }
+    (sequences, skipped)
+}
+
 fn progress(len: usize, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(len as u64);
     pb.set_style(
@@ -849,20 +872,12 @@ fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
     let max = cfg.sensor.max_points;
     let mut output = groundwork_io::OutputTarget::create(out)?;
 
-    // Each input is a scan file, a folder or a recording; a folder may carry poses for
-    // history. An input that cannot be used is reported and counted, and the others
-    // still run.
-    let mut failed = 0usize;
-    let mut sequences = Vec::new();
-    for path in inputs {
-        match Sequence::open(path, common.poses.as_deref(), common.calib.as_deref()) {
-            Ok(seq) => sequences.push(seq.with_topic(common.topic.clone())),
-            Err(e) => {
-                failed += 1;
-                error!("skipped: {e}");
-            }
-        }
-    }
+    let (sequences, mut failed) = open_inputs(
+        inputs,
+        common.poses.as_deref(),
+        common.calib.as_deref(),
+        common.topic.as_deref(),
+    );
     if offline.is_none() && cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
         info!("no poses found: scans are segmented single-frame");
     }

@@ -72,10 +72,7 @@ pub fn run(job: &RenderJob<'_>) -> Result<()> {
                     job.scan.display()
                 );
             }
-            match &scan.source_index {
-                Some(index) => index.iter().map(|&i| all[i as usize]).collect(),
-                None => all,
-            }
+            scan.select(all)
         }
         None => {
             let mut method = methods::build(job.method, job.config)?;
@@ -126,11 +123,7 @@ pub fn run(job: &RenderJob<'_>) -> Result<()> {
         let map = LabelMap::semantickitti();
         let classes = map.read(&path, scan.records)?;
         let protocol = groundwork_eval::Protocol::Gmm;
-        let per_record: Vec<Option<bool>> = classes.iter().map(|&c| protocol.truth(c)).collect();
-        truth = match &scan.source_index {
-            Some(index) => index.iter().map(|&i| per_record[i as usize]).collect(),
-            None => per_record,
-        };
+        truth = scan.select(classes.iter().map(|&c| protocol.truth(c)).collect());
         Colouring::Errors(&truth)
     } else {
         match job.colour {

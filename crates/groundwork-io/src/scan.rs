@@ -210,6 +210,16 @@ impl Scan {
             }
         }
     }
+
+    /// The inverse of [`Scan::expand`]: from one value per record (a `.prob` or `.label`
+    /// file) the values of the points, in point order. `per_record` must hold
+    /// [`Scan::records`] values.
+    pub fn select<T: Copy>(&self, per_record: Vec<T>) -> Vec<T> {
+        match &self.source_index {
+            None => per_record,
+            Some(index) => index.iter().map(|&i| per_record[i as usize]).collect(),
+        }
+    }
 }
 
 /// Reads a single-scan file of any supported format (see the module documentation).
@@ -349,6 +359,24 @@ pub fn scan_stem(path: &Path) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn select_is_the_inverse_of_expand() {
+        let scan = Scan {
+            points: vec![Point::default(); 3],
+            source_index: Some(vec![0, 2, 3]),
+            records: 5,
+            organized: None,
+            stamp_ns: None,
+            frame_id: None,
+        };
+        let per_point = [1.0f32, 2.0, 3.0];
+        let per_record = scan.expand(&per_point, 0.0);
+        assert_eq!(per_record, [1.0, 0.0, 2.0, 3.0, 0.0]);
+        assert_eq!(scan.select(per_record), per_point);
+        let dense = Scan::dense(vec![Point::default(); 2]);
+        assert_eq!(dense.select(vec![7u32, 8]), [7, 8]);
+    }
 
     #[test]
     fn round_trip_and_errors_name_the_file() {
