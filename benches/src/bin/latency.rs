@@ -7,7 +7,8 @@
 //! - `pipeline-echo`: producer → segmenter (`--echo`: answers with a mask of the right size
 //!   without computing) → consumer, three processes; transport = scan hop + mask hop, per
 //!   message, and scan publication → mask receipt (the path the relay measures);
-//! - `pipeline-full`: the same with real segmentation.
+//! - `pipeline-full`: the same with real segmentation, and the detector stage beside it
+//!   (its detect time, and scan production to proposals published).
 //!
 //! The machine is shared and noisy, so every method runs `--rounds` times, interleaved, and
 //! each percentile is the median over the rounds. Prints p50/p90/p99/p99.9/max per method
@@ -338,8 +339,8 @@ fn ping_uds(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
     Ok(h)
 }
 
-/// Runs the real three-process pipeline on synthetic scans and returns the consumer's
-/// report (per-stage percentiles, µs).
+/// Runs the real pipeline (three processes; four with the detector) on synthetic scans
+/// and returns the consumer's report (per-stage percentiles, µs).
 fn pipeline(
     groundwork: &Path,
     n: usize,
@@ -375,6 +376,12 @@ fn pipeline(
         seg.arg("--echo");
     }
     let mut seg = seg.spawn()?;
+    // The full pipeline has its detector beside it, as `groundwork pipeline` does.
+    let mut det = if echo {
+        None
+    } else {
+        Some(stage("detector").spawn()?)
+    };
     let mut con = stage("consumer")
         .args([
             "--count",
@@ -400,11 +407,13 @@ fn pipeline(
         .spawn()?;
     prod.wait()?;
     con.wait()?;
-    let _ = rustix::process::kill_process(
-        rustix::process::Pid::from_child(&seg),
-        rustix::process::Signal::TERM,
-    );
-    seg.wait()?;
+    for child in std::iter::once(&mut seg).chain(det.as_mut()) {
+        let _ = rustix::process::kill_process(
+            rustix::process::Pid::from_child(child),
+            rustix::process::Signal::TERM,
+        );
+        child.wait()?;
+    }
     let text = std::fs::read_to_string(&json).context("consumer report")?;
     Ok(serde_json::from_str(&text)?)
 }
@@ -470,6 +479,13 @@ fn round(args: &Args, exe: &Path, groundwork: &Path, n: usize) -> Result<Vec<Row
             stage_row("pipeline-full transport", bytes, &full, "transport"),
             stage_row("pipeline-full segment", bytes, &full, "segment"),
             stage_row("pipeline-full end-to-end", bytes, &full, "end to end"),
+            stage_row("pipeline-full detect", bytes, &full, "detect"),
+            stage_row(
+                "pipeline-full proposals",
+                bytes,
+                &full,
+                "produced to proposals published",
+            ),
         ]);
     }
     Ok(rows)

@@ -63,6 +63,23 @@ impl GroundFrame {
         }
     }
 
+    /// Checks a scan: finite coordinates, at most the maximum.
+    pub fn check<P: PointXyz + Sync>(&self, points: &[P]) -> Result<(), SegmentError> {
+        if points.len() > self.max_points {
+            return Err(SegmentError::TooManyPoints {
+                points: points.len(),
+                max: self.max_points,
+            });
+        }
+        check_finite(points)
+    }
+
+    /// A point (sensor frame) in the ground-aligned frame.
+    #[inline]
+    pub fn to_ground(&self, [x, y, z]: [f32; 3]) -> [f32; 3] {
+        self.mount.transform_point3a(Vec3A::new(x, y, z)).to_array()
+    }
+
     /// Checks a scan (finite coordinates, size, one output slot per point) and transforms
     /// it. Rejected scans leave `out` untouched.
     pub fn prepare<P: PointXyz + Sync>(
@@ -70,26 +87,14 @@ impl GroundFrame {
         points: &[P],
         out: &[f32],
     ) -> Result<Prepared, SegmentError> {
-        if points.len() > self.max_points {
-            return Err(SegmentError::TooManyPoints {
-                points: points.len(),
-                max: self.max_points,
-            });
-        }
         if out.len() != points.len() {
             return Err(SegmentError::OutputSize {
                 expected: points.len(),
                 got: out.len(),
             });
         }
-        check_finite(points)?;
-        let xyz: Vec<[f32; 3]> = points
-            .par_iter()
-            .map(|p| {
-                let [x, y, z] = p.xyz();
-                self.mount.transform_point3a(Vec3A::new(x, y, z)).to_array()
-            })
-            .collect();
+        self.check(points)?;
+        let xyz: Vec<[f32; 3]> = points.par_iter().map(|p| self.to_ground(p.xyz())).collect();
         let usable = xyz
             .iter()
             .map(|q| q[0] * q[0] + q[1] * q[1] >= self.ego_radius_sq)

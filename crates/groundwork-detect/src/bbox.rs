@@ -87,8 +87,26 @@ fn discard_interior(pts: &mut Vec<[f64; 2]>) {
     if poly.len() < 3 {
         return;
     }
+    // Eight edges always (a short polygon repeats its last edge), tested without branches
+    // so the test vectorises; the same products as `cross`, so the octagon's own vertices
+    // give exactly 0 and stay.
     let m = poly.len();
-    pts.retain(|&p| (0..m).any(|e| cross(poly[e], poly[(e + 1) % m], p) <= 0.0));
+    let edge = |e: usize| {
+        let e = e.min(m - 1);
+        (poly[e], poly[(e + 1) % m])
+    };
+    let (mut ox, mut oy, mut ax, mut ay) = ([0.0; 8], [0.0; 8], [0.0; 8], [0.0; 8]);
+    for e in 0..8 {
+        let (o, a) = edge(e);
+        (ox[e], oy[e], ax[e], ay[e]) = (o[0], o[1], a[0] - o[0], a[1] - o[1]);
+    }
+    pts.retain(|p| {
+        let mut inside = true;
+        for e in 0..8 {
+            inside &= ax[e] * (p[1] - oy[e]) - ay[e] * (p[0] - ox[e]) > 0.0;
+        }
+        !inside
+    });
 }
 
 /// The minimum-area rectangle around `pts` (x, y). `scratch` is reused between calls.

@@ -7,10 +7,11 @@ use groundwork_core::{ConfigError, GroundFrame, PointXyz, SegmentError, Segmente
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use thiserror::Error;
 
-use crate::bbox::min_area_rect;
+use crate::bbox::{Rect, min_area_rect};
 use crate::cluster::ClusterGrid;
 use crate::config::DetectorConfig;
 use crate::ground_map::GroundMap;
+use rayon::prelude::*;
 
 /// Why a scan could not be processed (the detector's state is unchanged).
 #[derive(Debug, Error)]
@@ -168,7 +169,16 @@ struct Extent {
     sum: [f64; 3],
     z_min: f32,
     z_max: f32,
-    first: usize,
+    /// Its lowest input index (the tie-break of the id order).
+    first: u32,
+}
+
+/// A point that may belong to a cluster: its index, where it is, whether it is ground.
+#[derive(Debug, Clone, Copy)]
+struct Maybe {
+    index: u32,
+    xyz: [f32; 3],
+    ground: bool,
 }
 
 /// The detector, with scratch reused from scan to scan.
@@ -180,11 +190,15 @@ pub struct Detector {
     min_range: f32,
     grid: ClusterGrid,
     ground: GroundMap,
-    candidates: Vec<u32>,
-    candidate_xyz: Vec<[f32; 3]>,
+    maybe: Vec<Maybe>,
+    candidates: Vec<Maybe>,
+    joiners: Vec<Maybe>,
+    xyz: Vec<[f32; 3]>,
     labels: Vec<u32>,
+    touched: Vec<Option<u32>>,
+    members: Vec<(u32, Maybe)>,
     footprint: Vec<[f32; 2]>,
-    hull: (Vec<[f64; 2]>, Vec<[f64; 2]>),
+    rects: Vec<Rect>,
 }
 
 impl Detector {
@@ -207,11 +221,15 @@ impl Detector {
             frame,
             threshold,
             min_range,
+            maybe: Vec::new(),
             candidates: Vec::new(),
-            candidate_xyz: Vec::new(),
+            joiners: Vec::new(),
+            xyz: Vec::new(),
             labels: Vec::new(),
+            touched: Vec::new(),
+            members: Vec::new(),
             footprint: Vec::new(),
-            hull: Default::default(),
+            rects: Vec::new(),
         })
     }
 
@@ -240,105 +258,115 @@ impl Detector {
                 got: probabilities.len(),
             });
         }
-        if let Some((index, &value)) = probabilities
+        // A branch-free pass first; the search for the culprit only when there is one.
+        if !probabilities
             .iter()
-            .enumerate()
-            .find(|(_, p)| !(0.0..=1.0).contains(*p))
+            .fold(true, |ok, p| ok & (0.0..=1.0).contains(p))
+            && let Some((index, &value)) = probabilities
+                .iter()
+                .enumerate()
+                .find(|(_, p)| !(0.0..=1.0).contains(*p))
         {
             return Err(DetectError::BadProbability { index, value });
         }
-        let prepared = self.frame.prepare(points, probabilities)?;
+        self.frame.check(points)?;
         let cfg = &self.cfg;
         let (thr, join) = (self.threshold, cfg.join_probability);
         let (min2, max2) = (self.min_range.powi(2), cfg.max_range.powi(2));
-        let in_range = |q: &[f32; 3]| {
-            let r2 = q[0] * q[0] + q[1] * q[1];
-            r2 >= min2 && r2 <= max2
-        };
 
-        // Local ground from the ground points.
+        // One pass over the scan: into the ground-aligned frame, ground points into the
+        // local ground map, the others (and uncertain ground) kept for the next step.
         self.ground.clear();
-        for ((q, &p), &usable) in prepared.xyz.iter().zip(probabilities).zip(&prepared.usable) {
-            if usable && p >= thr && in_range(q) {
+        self.maybe.clear();
+        for (i, (p, &prob)) in points.iter().zip(probabilities).enumerate() {
+            let q = self.frame.to_ground(p.xyz());
+            let r2 = q[0] * q[0] + q[1] * q[1];
+            if !(min2..=max2).contains(&r2) {
+                continue;
+            }
+            let ground = prob >= thr;
+            if ground {
                 self.ground.add(q[0], q[1], q[2]);
+            }
+            if !ground || prob < join {
+                self.maybe.push(Maybe {
+                    index: i as u32,
+                    xyz: q,
+                    ground,
+                });
             }
         }
 
-        // Non-ground points to cluster, uncertain ground points that may join.
+        // Non-ground points within the height band above the local ground are clustered;
+        // uncertain ground points there may join a cluster they touch. Where the ground is
+        // unknown, the segmenter's word alone decides.
         self.candidates.clear();
-        self.candidate_xyz.clear();
-        let mut joiners = Vec::new();
-        for (i, (q, &p)) in prepared.xyz.iter().zip(probabilities).enumerate() {
-            if !prepared.usable[i] || !in_range(q) || (p >= thr && p >= join) {
-                continue;
-            }
-            // Where the ground is unknown, the segmenter's word alone decides.
-            if let Some(g) = self.ground.height(q[0], q[1]) {
-                let h = q[2] - g;
+        self.joiners.clear();
+        for m in &self.maybe {
+            if let Some(g) = self.ground.height(m.xyz[0], m.xyz[1]) {
+                let h = m.xyz[2] - g;
                 if h < cfg.min_height || h > cfg.max_height {
                     continue;
                 }
-            } else if p >= thr {
+            } else if m.ground {
                 continue;
             }
-            if p < thr {
-                self.candidates.push(i as u32);
-                self.candidate_xyz.push(*q);
+            if m.ground {
+                self.joiners.push(*m);
             } else {
-                joiners.push(i as u32);
+                self.candidates.push(*m);
             }
         }
-        let found = self
-            .grid
-            .cluster(&self.candidate_xyz, cfg, &mut self.labels);
+        self.xyz.clear();
+        self.xyz.extend(self.candidates.iter().map(|m| m.xyz));
+        let found = self.grid.cluster(&self.xyz, cfg, &mut self.labels);
 
-        // Cluster of every point (u32::MAX: none), small clusters dropped.
+        // The members of the clusters kept (small ones dropped), as (cluster, point).
         let mut sizes = vec![0u32; found];
         for &l in &self.labels {
             if l != u32::MAX {
                 sizes[l as usize] += 1;
             }
         }
-        let kept = |c: u32| sizes[c as usize] >= cfg.min_points;
-        let mut of_point = vec![u32::MAX; points.len()];
-        for (&i, &l) in self.candidates.iter().zip(&self.labels) {
-            if l != u32::MAX && kept(l) {
-                of_point[i as usize] = l;
+        let kept = |c: u32| c != u32::MAX && sizes[c as usize] >= cfg.min_points;
+        self.members.clear();
+        for (m, &l) in self.candidates.iter().zip(&self.labels) {
+            if kept(l) {
+                self.members.push((l, *m));
             }
         }
-        let mut joined = 0;
-        for &i in &joiners {
-            let q = prepared.xyz[i as usize];
-            if let Some(c) = self.grid.touching(q, cfg)
+        self.xyz.clear();
+        self.xyz.extend(self.joiners.iter().map(|m| m.xyz));
+        self.grid.touching(&self.xyz, cfg, &mut self.touched);
+        let before = self.members.len();
+        for (m, &c) in self.joiners.iter().zip(&self.touched) {
+            if let Some(c) = c
                 && kept(c)
             {
-                of_point[i as usize] = c;
-                joined += 1;
+                self.members.push((c, *m));
             }
         }
+        let joined = self.members.len() - before;
 
-        // Measure each kept cluster, then number them nearest first.
+        // Measure each kept cluster, then number them nearest first (ties: the first point).
         let mut extents: Vec<Option<Extent>> = vec![None; found];
-        for (i, &c) in of_point.iter().enumerate() {
-            if c == u32::MAX {
-                continue;
-            }
-            let q = prepared.xyz[i];
+        for &(c, m) in &self.members {
             let e = extents[c as usize].get_or_insert(Extent {
                 count: 0,
                 sum: [0.0; 3],
                 z_min: f32::MAX,
                 z_max: f32::MIN,
-                first: i,
+                first: m.index,
             });
             e.count += 1;
-            for (sum, v) in e.sum.iter_mut().zip(q) {
+            for (sum, v) in e.sum.iter_mut().zip(m.xyz) {
                 *sum += f64::from(v);
             }
-            e.z_min = e.z_min.min(q[2]);
-            e.z_max = e.z_max.max(q[2]);
+            e.z_min = e.z_min.min(m.xyz[2]);
+            e.z_max = e.z_max.max(m.xyz[2]);
+            e.first = e.first.min(m.index);
         }
-        let mut order: Vec<(f32, usize, u32)> = extents
+        let mut order: Vec<(f32, u32, u32)> = extents
             .iter()
             .enumerate()
             .filter_map(|(c, e)| {
@@ -355,43 +383,40 @@ impl Detector {
             id_of[c as usize] = k as u32 + 1;
         }
         out.clusters.clear();
-        out.clusters.extend(
-            of_point
-                .iter()
-                .map(|&c| if c == u32::MAX { 0 } else { id_of[c as usize] }),
-        );
+        out.clusters.resize(points.len(), 0);
+        for &(c, m) in &self.members {
+            out.clusters[m.index as usize] = id_of[c as usize];
+        }
 
-        // Footprints: the members of every cluster, grouped by id (counting sort).
-        let mut start = vec![0usize; order.len() + 1];
-        for &id in &out.clusters {
-            if id > 0 {
-                start[id as usize] += 1;
-            }
+        // Footprints: the members' (x, y) grouped by id (a counting sort), one box each.
+        let mut start = vec![0usize; order.len() + 2];
+        for &(c, _) in &self.members {
+            start[id_of[c as usize] as usize + 1] += 1;
         }
         for k in 1..start.len() {
             start[k] += start[k - 1];
         }
-        let mut members = vec![0u32; start[order.len()]];
-        let mut fill = start.clone();
-        for (i, &id) in out.clusters.iter().enumerate() {
-            if id > 0 {
-                let slot = &mut fill[id as usize - 1];
-                members[*slot] = i as u32;
-                *slot += 1;
-            }
+        self.footprint.clear();
+        self.footprint.resize(self.members.len(), [0.0; 2]);
+        for &(c, m) in &self.members {
+            let slot = &mut start[id_of[c as usize] as usize];
+            self.footprint[*slot] = [m.xyz[0], m.xyz[1]];
+            *slot += 1;
         }
+        // `start[id]` is now the end of id's group (and the start of id + 1's). Boxes are
+        // independent: both cores share them (a wall's box costs as much as a hundred cars').
+        let footprint = &self.footprint;
+        (0..order.len())
+            .into_par_iter()
+            .map_init(Default::default, |scratch, k| {
+                min_area_rect(&footprint[start[k]..start[k + 1]], scratch)
+            })
+            .collect_into_vec(&mut self.rects);
         out.proposals.clear();
-        for (k, &(_, _, c)) in order.iter().enumerate() {
+        for (k, (&(_, _, c), rect)) in order.iter().zip(&self.rects).enumerate() {
             let Some(e) = extents[c as usize] else {
                 continue;
             };
-            self.footprint.clear();
-            self.footprint
-                .extend(members[start[k]..start[k + 1]].iter().map(|&i| {
-                    let q = prepared.xyz[i as usize];
-                    [q[0], q[1]]
-                }));
-            let rect = min_area_rect(&self.footprint, &mut self.hull);
             // Unknown ground: the cluster stands on its lowest point.
             let ground_z = self
                 .ground
