@@ -2,7 +2,7 @@
 //! `config/sensors/`), and config files laid over a preset field by field.
 
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use groundwork_core::SegmenterConfig;
 use groundwork_detect::DetectorConfig;
@@ -109,22 +109,42 @@ pub fn load_methods_config_over(
     preset: Option<&str>,
     path: Option<&Path>,
 ) -> Result<MethodsConfig, FormatError> {
+    load_methods_config_layers(preset, path, None)
+}
+
+/// [`load_methods_config_over`] with one more layer over the file: a table built in code
+/// (the Python API's keyword arguments), named `source` in errors.
+pub fn load_methods_config_layers(
+    preset: Option<&str>,
+    path: Option<&Path>,
+    overlay: Option<(&str, toml::Table)>,
+) -> Result<MethodsConfig, FormatError> {
     let name = preset.unwrap_or(DEFAULT_SENSOR);
     let base = sensor_preset_text(name)?;
-    let Some(path) = path else {
-        return parse_methods_config(Path::new(&format!("config/sensors/{name}.toml")), base);
-    };
-    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
-    let config_error = |e: &dyn std::fmt::Display| FormatError::Config {
+    let preset_path = PathBuf::from(format!("config/sensors/{name}.toml"));
+    if path.is_none() && overlay.is_none() {
+        return parse_methods_config(&preset_path, base);
+    }
+    let config_error = |path: &Path, e: &dyn std::fmt::Display| FormatError::Config {
         path: path.to_path_buf(),
         message: e.to_string().trim_end().to_string(),
     };
-    let mut merged: toml::Table = toml::from_str(base).map_err(|e| config_error(&e))?;
-    let overlay: toml::Table = toml::from_str(&text).map_err(|e| config_error(&e))?;
-    merge(&mut merged, overlay);
-    // Deserialise the merged table; errors still name the user's file (only its keys can
-    // be unknown: the presets are tested).
-    split_methods(path, merged)
+    let mut merged: toml::Table =
+        toml::from_str(base).map_err(|e| config_error(&preset_path, &e))?;
+    // Errors name the last layer given (only its keys can be unknown: the presets are
+    // tested).
+    let mut named = preset_path;
+    if let Some(path) = path {
+        let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+        let overlay: toml::Table = toml::from_str(&text).map_err(|e| config_error(path, &e))?;
+        merge(&mut merged, overlay);
+        named = path.to_path_buf();
+    }
+    if let Some((source, table)) = overlay {
+        merge(&mut merged, table);
+        named = PathBuf::from(source);
+    }
+    split_methods(&named, merged)
 }
 
 /// Deserialises a whole configuration table: the method and detector sections apart, the rest as
@@ -307,5 +327,25 @@ mod tests {
         fs::write(&p, "[sensor]\nheight = 0.6\n").unwrap();
         let e = load_config_over(None, Some(&p)).unwrap_err().to_string();
         assert!(e.contains("mine.toml") && e.contains("height"), "{e}");
+    }
+
+    #[test]
+    fn a_table_in_code_is_laid_over_the_file_and_names_itself_in_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("mine.toml");
+        fs::write(&p, "[gmm]\nk_max = 4\n[ground]\nground_threshold = 0.7\n").unwrap();
+        let overlay: toml::Table = toml::from_str("[ground]\nground_threshold = 0.6\n").unwrap();
+        let c = load_methods_config_layers(Some("vlp16"), Some(&p), Some(("kwargs", overlay)))
+            .unwrap()
+            .segmenter;
+        // The last layer wins; the file's other keys and the preset's stay.
+        assert_eq!(c.ground.ground_threshold, 0.6);
+        assert_eq!(c.gmm.k_max, 4);
+        assert_eq!(c.zones, sensor_preset("vlp16").unwrap().zones);
+        let bad: toml::Table = toml::from_str("[gmm]\nk_maxx = 3\n").unwrap();
+        let e = load_methods_config_layers(None, Some(&p), Some(("kwargs", bad)))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("kwargs") && e.contains("k_maxx"), "{e}");
     }
 }

@@ -17,7 +17,8 @@ pub mod scan;
 
 pub use config::{
     DEFAULT_SENSOR, MethodsConfig, SENSOR_PRESETS, load_config, load_config_over,
-    load_methods_config_over, parse_config, parse_methods_config, sensor_preset,
+    load_methods_config_layers, load_methods_config_over, parse_config, parse_methods_config,
+    sensor_preset,
 };
 pub use error::FormatError;
 pub use input::{ScanItem, ScanIter, ScanSource};

@@ -1,0 +1,635 @@
+//! groundwork from Python (`import groundwork`): the GMM segmenter with its multi-frame
+//! history, the offline methods (PseudoLabeler, RANSAC), the scan readers, evaluation and
+//! the fallback detector, on numpy arrays. A thin layer: arrays in, the library's calls,
+//! arrays out; every error of the library is a Python exception with its message.
+//!
+//! Points are read without a copy when they are a C-contiguous float32 (N, 3) or (N, 4)
+//! array (x, y, z[, intensity], metres, sensor frame); anything else numpy can convert is
+//! converted once. The GIL is released while a scan is processed, so Python threads with
+//! one `Segmenter` each run in parallel. The typed interface is `groundwork.pyi`.
+
+use std::path::PathBuf;
+
+use groundwork_core::{
+    FrameReport, GroundMethod, Point, Pose, SegmentError, Segmenter, pose_from_matrix,
+};
+use groundwork_detect::{Detections, Detector};
+use groundwork_eval::{Confusion, Protocol};
+use groundwork_io::{FormatError, LabelMap, MethodsConfig, SENSOR_PRESETS};
+use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2,
+    PyUntypedArrayMethods,
+};
+use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{IntoPyDict, PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
+
+fn value_error(e: impl std::fmt::Display) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+/// A file that cannot be read is an `OSError`; a file that reads but is wrong, a
+/// `ValueError` (both with the library's message, which names the file).
+fn format_error(e: FormatError) -> PyErr {
+    match e {
+        FormatError::Io { .. } => PyOSError::new_err(e.to_string()),
+        e => value_error(e),
+    }
+}
+
+/// A keyword argument's value as TOML (bool, int, float, str, dict, list).
+fn to_toml(v: &Bound<'_, PyAny>) -> PyResult<toml::Value> {
+    // bool before int: Python's bool is an int.
+    Ok(if v.is_instance_of::<PyBool>() {
+        toml::Value::Boolean(v.extract()?)
+    } else if v.is_instance_of::<PyInt>() {
+        toml::Value::Integer(v.extract()?)
+    } else if v.is_instance_of::<PyFloat>() {
+        toml::Value::Float(v.extract()?)
+    } else if v.is_instance_of::<PyString>() {
+        toml::Value::String(v.extract()?)
+    } else if let Ok(d) = v.cast::<PyDict>() {
+        toml::Value::Table(to_table(d)?)
+    } else if v.is_instance_of::<PyList>() || v.is_instance_of::<PyTuple>() {
+        toml::Value::Array(
+            v.try_iter()?
+                .map(|x| to_toml(&x?))
+                .collect::<PyResult<_>>()?,
+        )
+    } else {
+        return Err(value_error(format!(
+            "configuration values are bool, int, float, str, dict or list, not {}",
+            v.get_type().name()?
+        )));
+    })
+}
+
+fn to_table(d: &Bound<'_, PyDict>) -> PyResult<toml::Table> {
+    d.iter()
+        .map(|(k, v)| Ok((k.extract::<String>()?, to_toml(&v)?)))
+        .collect()
+}
+
+/// The configuration: the sensor preset (default hdl64e), the TOML file over it, then the
+/// keyword arguments (sections as dicts, e.g. `history={"frames": 3}`), then `frames`.
+fn load_config(
+    sensor: Option<&str>,
+    config: Option<PathBuf>,
+    frames: Option<u32>,
+    overrides: Option<&Bound<'_, PyDict>>,
+) -> PyResult<MethodsConfig> {
+    let overlay = match overrides {
+        Some(d) if !d.is_empty() => Some(("keyword arguments", to_table(d)?)),
+        _ => None,
+    };
+    let mut cfg = groundwork_io::load_methods_config_layers(sensor, config.as_deref(), overlay)
+        .map_err(format_error)?;
+    if let Some(n) = frames {
+        cfg.segmenter.history.frames = n;
+        cfg.segmenter
+            .validate()
+            .map_err(|e| value_error(format!("frames: {e}")))?;
+    }
+    Ok(cfg)
+}
+
+/// `v` as a C-contiguous numpy array of `dtype` (float32, uint32, …): `v` itself when it
+/// already is one, else converted by numpy.
+fn contiguous<'py>(v: &Bound<'py, PyAny>, dtype: &str) -> PyResult<Bound<'py, PyAny>> {
+    let np = v.py().import("numpy")?;
+    let kwargs = PyDict::new(v.py());
+    kwargs.set_item("dtype", np.getattr(dtype)?)?;
+    np.call_method("ascontiguousarray", (v,), Some(&kwargs))
+}
+
+/// Points as float32, C-contiguous, (N, 3) or (N, 4): the caller's array itself when it
+/// already is one.
+fn points_array<'py>(points: &Bound<'py, PyAny>) -> PyResult<PyReadonlyArray2<'py, f32>> {
+    let arr = contiguous(points, "float32")?;
+    let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
+    if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
+        return Err(value_error(format!(
+            "points must be an (N, 3) or (N, 4) array (x, y, z[, intensity]), got shape {shape:?}"
+        )));
+    }
+    arr.extract()
+}
+
+/// A 1-D C-contiguous array of `dtype` (converted if need be); `what` names it in errors.
+fn vector<'py, T: numpy::Element>(
+    v: &Bound<'py, PyAny>,
+    dtype: &str,
+    what: &str,
+) -> PyResult<numpy::PyReadonlyArray1<'py, T>> {
+    let arr = contiguous(v, dtype)?;
+    let ndim: usize = arr.getattr("ndim")?.extract()?;
+    if ndim != 1 {
+        return Err(value_error(format!(
+            "{what} must be a 1-D array, got {ndim} dimensions"
+        )));
+    }
+    arr.extract()
+}
+
+/// A scan's points viewed in place.
+#[derive(Clone, Copy)]
+enum Points<'a> {
+    Xyz(&'a [[f32; 3]]),
+    Xyzi(&'a [[f32; 4]]),
+}
+
+impl<'a> Points<'a> {
+    fn of(arr: &'a PyReadonlyArray2<'_, f32>) -> PyResult<Self> {
+        let flat = arr.as_slice().map_err(value_error)?;
+        Ok(if arr.shape()[1] == 3 {
+            Self::Xyz(flat.as_chunks().0)
+        } else {
+            Self::Xyzi(flat.as_chunks().0)
+        })
+    }
+
+    fn len(self) -> usize {
+        match self {
+            Self::Xyz(p) => p.len(),
+            Self::Xyzi(p) => p.len(),
+        }
+    }
+
+    /// As the library's point records (a copy: the offline methods take `Point`s).
+    fn to_vec(self) -> Vec<Point> {
+        let point = |x, y, z, intensity| Point { x, y, z, intensity };
+        match self {
+            Self::Xyz(p) => p.iter().map(|&[x, y, z]| point(x, y, z, 0.0)).collect(),
+            Self::Xyzi(p) => p.iter().map(|&[x, y, z, i]| point(x, y, z, i)).collect(),
+        }
+    }
+}
+
+/// A 4 × 4 pose (world from sensor) from anything numpy reads as one.
+fn pose_arg(pose: &Bound<'_, PyAny>) -> PyResult<Pose> {
+    let np = pose.py().import("numpy")?;
+    let m = np.call_method1("asarray", (pose, np.getattr("float64")?))?;
+    let shape: Vec<usize> = m.getattr("shape")?.extract()?;
+    if shape != [4, 4] {
+        return Err(value_error(format!(
+            "pose must be a 4 × 4 matrix (world from sensor), got shape {shape:?}"
+        )));
+    }
+    let rows: [[f64; 4]; 4] = m.call_method0("tolist")?.extract()?;
+    pose_from_matrix(&rows).map_err(value_error)
+}
+
+fn segment_error(e: SegmentError) -> PyErr {
+    value_error(e)
+}
+
+/// The GMM ground segmenter (Gaussian mixture per polar segment, multi-frame history).
+///
+/// Keeps state between calls: the history of the last `frames` scans (used when poses are
+/// given) and the zone-1 height filter. One instance per sensor stream; feed it scans in
+/// time order. Not shared between threads (use one per thread).
+#[pyclass(module = "groundwork", name = "Segmenter")]
+struct PySegmenter {
+    /// Boxed: the segmenter holds 32-byte aligned SIMD vectors, and Python allocates its
+    /// objects 16-byte aligned (unboxed, an aligned AVX load of them faulted).
+    inner: Box<Segmenter>,
+    sensor: String,
+    last: Option<FrameReport>,
+}
+
+#[pymethods]
+impl PySegmenter {
+    #[new]
+    #[pyo3(signature = (sensor=None, config=None, frames=None, **overrides))]
+    fn new(
+        sensor: Option<&str>,
+        config: Option<PathBuf>,
+        frames: Option<u32>,
+        overrides: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
+        let cfg = load_config(sensor, config, frames, overrides)?;
+        Ok(Self {
+            inner: Box::new(Segmenter::new(cfg.segmenter).map_err(value_error)?),
+            sensor: sensor.unwrap_or(groundwork_io::DEFAULT_SENSOR).to_string(),
+            last: None,
+        })
+    }
+
+    /// Ground probability per point, in input order.
+    #[pyo3(signature = (points, pose=None))]
+    fn segment<'py>(
+        &mut self,
+        points: &Bound<'py, PyAny>,
+        pose: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        let py = points.py();
+        let arr = points_array(points)?;
+        let pose = pose.map(pose_arg).transpose()?;
+        let pts = Points::of(&arr)?;
+        let mut out = vec![0.0f32; pts.len()];
+        let seg = &mut self.inner;
+        let report = py
+            .detach(|| match pts {
+                Points::Xyz(p) => seg.segment(p, pose.as_ref(), &mut out),
+                Points::Xyzi(p) => seg.segment(p, pose.as_ref(), &mut out),
+            })
+            .map_err(segment_error)?;
+        self.last = Some(report);
+        Ok(out.into_pyarray(py))
+    }
+
+    /// Ground mask: probability ≥ `threshold` (default: the configuration's).
+    #[pyo3(signature = (points, pose=None, threshold=None))]
+    fn ground<'py>(
+        &mut self,
+        points: &Bound<'py, PyAny>,
+        pose: Option<&Bound<'py, PyAny>>,
+        threshold: Option<f32>,
+    ) -> PyResult<Bound<'py, PyArray1<bool>>> {
+        let thr = threshold.unwrap_or(self.inner.config().ground.ground_threshold);
+        let probs = self.segment(points, pose)?;
+        let mask: Vec<bool> = probs
+            .readonly()
+            .as_slice()?
+            .iter()
+            .map(|&p| p >= thr)
+            .collect();
+        Ok(mask.into_pyarray(points.py()))
+    }
+
+    /// Forgets the history and the height filter (a new sequence).
+    fn reset(&mut self) -> bool {
+        self.inner.reset()
+    }
+
+    /// Probability at or above which a point is ground.
+    #[getter]
+    fn threshold(&self) -> f32 {
+        self.inner.config().ground.ground_threshold
+    }
+
+    /// Frames of history queried (1: single frame).
+    #[getter]
+    fn frames(&self) -> u32 {
+        self.inner.config().history.frames
+    }
+
+    /// Past frames held for multi-frame queries now.
+    #[getter]
+    fn history_len(&self) -> usize {
+        self.inner.history_len()
+    }
+
+    /// The sensor preset it was built from.
+    #[getter]
+    fn sensor(&self) -> &str {
+        &self.sensor
+    }
+
+    /// Scans segmented and rejected, history resets by reason, out-of-bounds points.
+    #[getter]
+    fn counters<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let c = self.inner.counters();
+        [
+            ("scans", c.scans),
+            ("rejected", c.rejected),
+            ("without_pose", c.without_pose),
+            ("history_resets", c.history_resets),
+            ("resets_pose_jump", c.resets_pose_jump),
+            ("resets_time_gap", c.resets_time_gap),
+            ("resets_requested", c.resets_requested),
+            ("out_of_bounds_points", c.out_of_bounds_points),
+            ("non_finite_outputs", c.non_finite_outputs),
+        ]
+        .into_py_dict(py)
+    }
+
+    /// The zone-1 height filter: a summary and, per segment, the running mean height (m,
+    /// ground-aligned frame), its variance (m²) and the frames seen.
+    #[getter]
+    fn height_filter<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let f = self.inner.height_filter();
+        let s = f.summary();
+        let d = PyDict::new(py);
+        d.set_item("active_segments", s.active_segments)?;
+        d.set_item("mean_height", s.mean_height)?;
+        d.set_item("mean_std", s.mean_std)?;
+        let segs = f.segments();
+        d.set_item(
+            "mean",
+            segs.iter()
+                .map(|x| x.mean)
+                .collect::<Vec<_>>()
+                .into_pyarray(py),
+        )?;
+        d.set_item(
+            "variance",
+            segs.iter()
+                .map(|x| x.variance)
+                .collect::<Vec<_>>()
+                .into_pyarray(py),
+        )?;
+        d.set_item(
+            "frames",
+            segs.iter()
+                .map(|x| x.frames)
+                .collect::<Vec<_>>()
+                .into_pyarray(py),
+        )?;
+        Ok(d)
+    }
+
+    /// The last scan segmented: points, ground_points, frames_queried, posed,
+    /// history_cleared, em_iterations, fit_ms and query_ms (the library's own time); None
+    /// before the first.
+    #[getter]
+    fn last_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(r) = &self.last else {
+            return Ok(None);
+        };
+        let d = PyDict::new(py);
+        d.set_item("points", r.points)?;
+        d.set_item("ground_points", r.ground_points)?;
+        d.set_item("frames_queried", r.frames_queried)?;
+        d.set_item("posed", r.posed)?;
+        d.set_item("history_cleared", r.history_cleared)?;
+        d.set_item("em_iterations", r.em_iterations)?;
+        d.set_item("fit_ms", r.fit_time.as_secs_f64() * 1e3)?;
+        d.set_item("query_ms", r.query_time.as_secs_f64() * 1e3)?;
+        Ok(Some(d))
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Segmenter(sensor={:?}, frames={}, threshold={})",
+            self.sensor,
+            self.frames(),
+            self.threshold()
+        )
+    }
+}
+
+/// Runs an offline method on one scan with the GIL released.
+fn run_method<'py>(
+    py: Python<'py>,
+    method: &mut (dyn GroundMethod + Send),
+    points: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyArray1<f32>>> {
+    let arr = points_array(points)?;
+    let pts = Points::of(&arr)?.to_vec();
+    let mut out = vec![0.0f32; pts.len()];
+    py.detach(|| method.segment_scan(&pts, None, &mut out))
+        .map_err(segment_error)?;
+    Ok(out.into_pyarray(py))
+}
+
+/// TerraSeg's PseudoLabeler on one scan: ground probability per point.
+#[pyfunction]
+#[pyo3(signature = (points, seed=0, sensor=None, config=None, **overrides))]
+fn pseudo_label<'py>(
+    points: &Bound<'py, PyAny>,
+    seed: u64,
+    sensor: Option<&str>,
+    config: Option<PathBuf>,
+    overrides: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyArray1<f32>>> {
+    let cfg = load_config(sensor, config, None, overrides)?;
+    let frame = GroundFrame::from_config(&cfg.segmenter).map_err(value_error)?;
+    let mut pl_cfg = cfg.pseudolabeler.clone();
+    pl_cfg.seed = seed;
+    let mut m = PseudoLabeler::new(pl_cfg, frame).map_err(value_error)?;
+    run_method(points.py(), &mut m, points)
+}
+
+/// The RANSAC plane baseline on one scan: ground probability per point.
+#[pyfunction]
+#[pyo3(signature = (points, sensor=None, config=None, **overrides))]
+fn ransac<'py>(
+    points: &Bound<'py, PyAny>,
+    sensor: Option<&str>,
+    config: Option<PathBuf>,
+    overrides: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyArray1<f32>>> {
+    let cfg = load_config(sensor, config, None, overrides)?;
+    let frame = GroundFrame::from_config(&cfg.segmenter).map_err(value_error)?;
+    let mut m = Ransac::new(cfg.ransac.clone(), frame).map_err(value_error)?;
+    run_method(points.py(), &mut m, points)
+}
+
+/// One object proposal of [`detect`]: lengths in metres, angles in radians, in the
+/// sensor's ground-aligned frame (x forward, y left, z up, origin on the ground below the
+/// sensor).
+#[pyclass(module = "groundwork", name = "Proposal", frozen, get_all)]
+struct PyProposal {
+    id: u32,
+    centroid: (f32, f32, f32),
+    center: (f32, f32),
+    yaw: f32,
+    length: f32,
+    width: f32,
+    ground_z: f32,
+    bottom: f32,
+    height: f32,
+    points: u32,
+    flags: Vec<&'static str>,
+}
+
+#[pymethods]
+impl PyProposal {
+    fn __repr__(&self) -> String {
+        format!(
+            "Proposal(id={}, center=({:.2}, {:.2}), yaw={:.3}, length={:.2}, width={:.2}, height={:.2}, points={}, flags={:?})",
+            self.id,
+            self.center.0,
+            self.center.1,
+            self.yaw,
+            self.length,
+            self.width,
+            self.height,
+            self.points,
+            self.flags
+        )
+    }
+}
+
+/// The fallback detector: proposals (nearest first) and a cluster id per point (0: none).
+#[pyfunction]
+#[pyo3(signature = (points, probabilities, sensor=None, config=None, **overrides))]
+fn detect<'py>(
+    points: &Bound<'py, PyAny>,
+    probabilities: &Bound<'py, PyAny>,
+    sensor: Option<&str>,
+    config: Option<PathBuf>,
+    overrides: Option<&Bound<'py, PyDict>>,
+) -> PyResult<(Vec<PyProposal>, Bound<'py, PyArray1<u32>>)> {
+    let py = points.py();
+    let cfg = load_config(sensor, config, None, overrides)?;
+    let mut det = Detector::new(cfg.detector, &cfg.segmenter).map_err(value_error)?;
+    let arr = points_array(points)?;
+    let probs = vector::<f32>(probabilities, "float32", "probabilities")?;
+    let probs = probs.as_slice().map_err(value_error)?;
+    let pts = Points::of(&arr)?;
+    let mut out = Detections::default();
+    py.detach(|| match pts {
+        Points::Xyz(p) => det.detect(p, probs, &mut out),
+        Points::Xyzi(p) => det.detect(p, probs, &mut out),
+    })
+    .map_err(value_error)?;
+    let proposals = out
+        .proposals
+        .iter()
+        .map(|p| PyProposal {
+            id: p.id,
+            centroid: p.centroid.into(),
+            center: p.center.into(),
+            yaw: p.yaw,
+            length: p.length,
+            width: p.width,
+            ground_z: p.ground_z,
+            bottom: p.bottom,
+            height: p.height,
+            points: p.points,
+            flags: p.flags.names().collect(),
+        })
+        .collect();
+    Ok((proposals, out.clusters.into_pyarray(py)))
+}
+
+/// Reads a scan file (KITTI .bin, nuScenes .pcd.bin, PCD, PLY): an (N, 4) float32 array of
+/// x, y, z, intensity (metres, sensor frame). Records with non-finite coordinates
+/// (placeholders of organised clouds) are left out.
+#[pyfunction]
+#[pyo3(signature = (path, max_points=10_000_000))]
+fn read_scan<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    max_points: usize,
+) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    let scan = py
+        .detach(|| groundwork_io::read_scan(&path, max_points))
+        .map_err(format_error)?;
+    let flat: Vec<f32> = scan
+        .points
+        .iter()
+        .flat_map(|p| [p.x, p.y, p.z, p.intensity])
+        .collect();
+    flat.into_pyarray(py).reshape([scan.points.len(), 4])
+}
+
+/// The sensor's world poses of a KITTI sequence (world from sensor, (N, 4, 4) float64),
+/// from the camera poses and the calibration's `Tr`, as `groundwork segment` computes them.
+#[pyfunction]
+fn read_poses<'py>(
+    py: Python<'py>,
+    poses: PathBuf,
+    calib: PathBuf,
+) -> PyResult<Bound<'py, PyArray3<f64>>> {
+    let cam = groundwork_io::read_poses(&poses).map_err(format_error)?;
+    let tr = groundwork_io::read_calib_tr(&calib).map_err(format_error)?;
+    let lidar = groundwork_io::lidar_poses(&cam, &tr);
+    let flat: Vec<f64> = lidar
+        .iter()
+        .flat_map(|p| {
+            let m = p.to_homogeneous();
+            (0..16).map(move |k| m[(k / 4, k % 4)])
+        })
+        .collect();
+    flat.into_pyarray(py).reshape([lidar.len(), 4, 4])
+}
+
+/// Ground-truth labels of a scan (SemanticKITTI `.label`: u32 per point, class in the low
+/// 16 bits, instance in the high 16), checked against the scan's point count.
+#[pyfunction]
+#[pyo3(signature = (path, points, label_format="semantickitti"))]
+fn read_labels<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    points: usize,
+    label_format: &str,
+) -> PyResult<Bound<'py, PyArray1<u32>>> {
+    let map = LabelMap::load(label_format).map_err(format_error)?;
+    let raw = map.read_raw(&path, points).map_err(format_error)?;
+    Ok(raw.into_pyarray(py))
+}
+
+/// Scores ground probabilities against labels as `groundwork eval` does: a point is ground
+/// when its probability is at least `threshold`; `protocol` "gmm" ignores vegetation,
+/// "terraseg" counts it as non-ground. Metrics in percent, and the counts.
+#[pyfunction]
+#[pyo3(signature = (probabilities, labels, protocol="gmm", threshold=0.5, label_format="semantickitti"))]
+fn evaluate<'py>(
+    py: Python<'py>,
+    probabilities: &Bound<'py, PyAny>,
+    labels: &Bound<'py, PyAny>,
+    protocol: &str,
+    threshold: f32,
+    label_format: &str,
+) -> PyResult<Bound<'py, PyDict>> {
+    let protocol = match protocol {
+        "gmm" => Protocol::Gmm,
+        "terraseg" => Protocol::Terraseg,
+        p => {
+            return Err(value_error(format!(
+                "protocol must be \"gmm\" or \"terraseg\", not {p:?}"
+            )));
+        }
+    };
+    let probs = vector::<f32>(probabilities, "float32", "probabilities")?;
+    let probs = probs.as_slice().map_err(value_error)?;
+    let labels = vector::<u32>(labels, "uint32", "labels")?;
+    let labels = labels.as_slice().map_err(value_error)?;
+    if labels.len() != probs.len() {
+        return Err(value_error(format!(
+            "{} labels for {} probabilities",
+            labels.len(),
+            probs.len()
+        )));
+    }
+    let map = LabelMap::load(label_format).map_err(format_error)?;
+    let classes: Vec<_> = labels.iter().map(|&l| map.class(l as u16)).collect();
+    let c = Confusion::from_predictions(probs, &classes, protocol, threshold);
+    let m = c.metrics();
+    let d = [
+        ("precision", m.precision),
+        ("recall", m.recall),
+        ("f1", m.f1),
+        ("accuracy", m.accuracy),
+        ("iou_ground", m.iou_ground),
+        ("iou_nonground", m.iou_nonground),
+        ("miou", m.miou),
+    ]
+    .into_py_dict(py)?;
+    let counts = [
+        ("tp", c.tp),
+        ("fp", c.fp),
+        ("fn", c.fn_),
+        ("tn", c.tn),
+        ("ignored", c.ignored),
+    ]
+    .into_py_dict(py)?;
+    d.update(counts.as_mapping())?;
+    Ok(d)
+}
+
+/// The sensor presets (`sensor=` of every call).
+#[pyfunction]
+fn sensors() -> Vec<&'static str> {
+    SENSOR_PRESETS.iter().map(|(n, _)| *n).collect()
+}
+
+#[pymodule]
+fn groundwork(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<PySegmenter>()?;
+    m.add_class::<PyProposal>()?;
+    m.add_function(wrap_pyfunction!(pseudo_label, m)?)?;
+    m.add_function(wrap_pyfunction!(ransac, m)?)?;
+    m.add_function(wrap_pyfunction!(detect, m)?)?;
+    m.add_function(wrap_pyfunction!(read_scan, m)?)?;
+    m.add_function(wrap_pyfunction!(read_poses, m)?)?;
+    m.add_function(wrap_pyfunction!(read_labels, m)?)?;
+    m.add_function(wrap_pyfunction!(evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(sensors, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,250 @@
+"""The Python package against the CLI on the bundled KITTI scans (bit for bit), and its
+behaviour on bad input. Run by ``crates/groundwork-py/test.sh`` (which builds the wheel and
+the CLI and sets GROUNDWORK_CLI)."""
+
+import json
+import os
+import subprocess
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import groundwork
+
+ROOT = Path(__file__).resolve().parents[3]
+SEQ = ROOT / "tests" / "data" / "semantickitti-00"
+SCANS = sorted((SEQ / "velodyne").glob("*.bin"))
+LABELED = [0, 1, 2]
+
+
+@pytest.fixture(scope="session")
+def cli() -> Path:
+    exe = os.environ.get("GROUNDWORK_CLI")
+    assert exe, "GROUNDWORK_CLI names the groundwork binary (test.sh sets it)"
+    return Path(exe)
+
+
+def run(cli: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [str(cli), *args], check=True, capture_output=True, text=True
+    )
+
+
+def kitti(path: Path) -> np.ndarray:
+    """A KITTI scan read by numpy alone: float32, C-contiguous, (N, 4)."""
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+
+
+def bits(a: np.ndarray) -> np.ndarray:
+    """Float32 values as their bit patterns: equality is bit-identity."""
+    return np.ascontiguousarray(a, dtype=np.float32).view(np.uint32)
+
+
+@pytest.fixture(scope="session")
+def cli_single(cli: Path, tmp_path_factory) -> Path:
+    """`groundwork segment` on frame 0 alone (a file: no poses, single frame)."""
+    out = tmp_path_factory.mktemp("single")
+    run(cli, "segment", "--out", str(out), str(SCANS[0]))
+    return out
+
+
+@pytest.fixture(scope="session")
+def cli_sequence(cli: Path, tmp_path_factory) -> Path:
+    """`groundwork segment` over the sequence folder (poses, default history)."""
+    out = tmp_path_factory.mktemp("sequence")
+    run(cli, "segment", "--out", str(out), str(SEQ))
+    return out
+
+
+def test_a_fresh_segmenter_equals_a_fresh_segment_process(cli_single: Path) -> None:
+    expected = np.fromfile(cli_single / "000000.prob", dtype=np.float32)
+    points = kitti(SCANS[0])
+    probs = groundwork.Segmenter().segment(points)
+    assert probs.dtype == np.float32 and probs.shape == (len(points),)
+    assert np.array_equal(bits(probs), bits(expected))
+    # The library's reader gives the same points, so the same answer.
+    assert np.array_equal(groundwork.read_scan(SCANS[0]), points)
+
+
+def test_one_segmenter_fed_the_sequence_equals_segment_over_it(cli_sequence: Path) -> None:
+    poses = groundwork.read_poses(SEQ / "poses.txt", SEQ / "calib.txt")
+    assert poses.shape == (len(SCANS), 4, 4) and poses.dtype == np.float64
+    seg = groundwork.Segmenter()
+    assert seg.frames > 1, "the default preset has a history"
+    for scan, pose in zip(SCANS, poses):
+        probs = seg.segment(kitti(scan), pose)
+        expected = np.fromfile(cli_sequence / f"{scan.stem}.prob", dtype=np.float32)
+        assert np.array_equal(bits(probs), bits(expected)), scan.name
+    c = seg.counters
+    assert c["scans"] == len(SCANS) and c["rejected"] == 0 and c["without_pose"] == 0
+    assert 1 <= seg.history_len <= seg.frames
+    hf = seg.height_filter
+    assert hf["active_segments"] > 0 and len(hf["mean"]) == len(hf["frames"])
+    assert seg.reset() is True and seg.history_len == 0
+
+
+def test_other_layouts_and_dtypes_give_the_same_probabilities() -> None:
+    points = kitti(SCANS[1])
+    reference = groundwork.Segmenter().segment(points)
+    for variant in (
+        points[:, :3],  # (N, 3), not contiguous: converted
+        np.ascontiguousarray(points[:, :3]),  # (N, 3) contiguous
+        points.astype(np.float64),  # converted to float32 exactly
+        np.asfortranarray(points),
+    ):
+        assert np.array_equal(bits(groundwork.Segmenter().segment(variant)), bits(reference))
+    # A list of lists converts too.
+    few = points[:2000]
+    assert np.array_equal(
+        groundwork.Segmenter().segment(few.tolist()), groundwork.Segmenter().segment(few)
+    )
+
+
+def test_ground_is_the_probability_at_the_threshold() -> None:
+    points = kitti(SCANS[0])
+    seg = groundwork.Segmenter()
+    probs = groundwork.Segmenter().segment(points)
+    mask = seg.ground(points)
+    assert mask.dtype == np.bool_ and np.array_equal(mask, probs >= seg.threshold)
+    strict = groundwork.Segmenter().ground(points, threshold=0.9)
+    assert np.array_equal(strict, probs >= 0.9)
+    assert 0.3 < mask.mean() < 0.8
+
+
+def test_evaluate_matches_groundwork_eval(cli: Path) -> None:
+    for protocol in ("gmm", "terraseg"):
+        report = json.loads(
+            run(
+                cli,
+                "eval",
+                "--frames",
+                "1",
+                "--protocol",
+                protocol,
+                "--json",
+                str(SCANS[0]),
+                "--labels",
+                str(SEQ / "labels"),
+            ).stdout
+        )
+        points = kitti(SCANS[0])
+        probs = groundwork.Segmenter(frames=1).segment(points)
+        labels = groundwork.read_labels(SEQ / "labels" / "000000.label", len(points))
+        assert np.array_equal(labels, np.fromfile(SEQ / "labels" / "000000.label", np.uint32))
+        got = groundwork.evaluate(probs, labels, protocol=protocol)
+        scan = report["scans"][0]
+        for k, v in scan["metrics"].items():
+            assert got[k] == v, (protocol, k)
+        for k in ("tp", "fp", "tn", "ignored"):
+            assert got[k] == scan["confusion"][k]
+        assert got["fn"] == scan["confusion"]["fn_"]
+
+
+def test_offline_methods_and_the_detector_match_the_cli(cli: Path, tmp_path: Path) -> None:
+    points = kitti(SCANS[0])
+    for method, call in (
+        ("ransac", lambda: groundwork.ransac(points)),
+        ("pseudolabeler", lambda: groundwork.pseudo_label(points, seed=0)),
+    ):
+        out = tmp_path / method
+        run(cli, "segment", "--method", method, "--out", str(out), str(SCANS[0]))
+        expected = np.fromfile(out / "000000.prob", dtype=np.float32)
+        assert np.array_equal(bits(call()), bits(expected)), method
+
+    out = tmp_path / "detect"
+    run(cli, "detect", "--out", str(out), str(SCANS[0]))
+    probs = groundwork.Segmenter().segment(points)
+    proposals, clusters = groundwork.detect(points, probs)
+    assert np.array_equal(clusters, np.fromfile(out / "000000.clusters", np.uint32))
+    saved = json.loads((out / "000000.proposals.json").read_text())["proposals"]
+    assert [p.id for p in proposals] == [p["id"] for p in saved] == list(
+        range(1, len(proposals) + 1)
+    )
+    for p, q in zip(proposals, saved):
+        assert p.points == q["points"] == np.count_nonzero(clusters == p.id)
+        assert p.flags == q["flags"]
+        assert p.length == pytest.approx(q["length"]) and p.yaw == pytest.approx(q["yaw"])
+    assert any(not p.flags for p in proposals)
+
+
+def test_a_thread_pool_gives_the_serial_results() -> None:
+    scans = [kitti(s) for s in SCANS]
+    serial = [groundwork.Segmenter().segment(s) for s in scans]
+    with ThreadPoolExecutor(2) as pool:
+        parallel = list(pool.map(lambda s: groundwork.Segmenter().segment(s), scans))
+    for a, b in zip(serial, parallel):
+        assert np.array_equal(bits(a), bits(b))
+
+
+def test_bad_points_are_value_errors_naming_the_problem() -> None:
+    seg = groundwork.Segmenter()
+    good = kitti(SCANS[0])
+    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\)"):
+        seg.segment(np.zeros((10, 2), np.float32))
+    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\)"):
+        seg.segment(np.zeros(12, np.float32))
+    with pytest.raises(ValueError):
+        seg.segment(np.array([["a", "b", "c"]]))
+    bad = good.copy()
+    bad[7, 2] = np.nan
+    with pytest.raises(ValueError, match="point 7"):
+        seg.segment(bad)
+    bad[7, 2] = np.inf
+    with pytest.raises(ValueError, match="point 7"):
+        seg.segment(bad)
+    with pytest.raises(ValueError, match="4 × 4"):
+        seg.segment(good, np.eye(3))
+    tilted = np.eye(4)
+    tilted[0, 0] = 2.0
+    with pytest.raises(ValueError, match="rotation"):
+        seg.segment(good, tilted)
+    # Scans the library rejected (the two non-finite ones; shapes and poses are refused
+    # before) are counted, and the segmenter goes on working.
+    assert seg.counters["rejected"] == 2 and seg.counters["scans"] == 0
+    assert np.array_equal(bits(seg.segment(good)), bits(groundwork.Segmenter().segment(good)))
+    # An empty scan is no error.
+    assert groundwork.Segmenter().segment(np.zeros((0, 3), np.float32)).shape == (0,)
+    with pytest.raises(ValueError, match="probabilities"):
+        groundwork.detect(good, np.zeros(len(good) - 1, np.float32))
+    with pytest.raises(ValueError, match="not in"):
+        groundwork.detect(good, np.full(len(good), 1.5, np.float32))
+    with pytest.raises(ValueError, match="labels for"):
+        groundwork.evaluate(np.zeros(3, np.float32), np.zeros(4, np.uint32))
+    with pytest.raises(ValueError, match="protocol"):
+        groundwork.evaluate(np.zeros(3, np.float32), np.zeros(3, np.uint32), protocol="x")
+
+
+def test_bad_configuration_and_files_are_errors_naming_them(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no such sensor preset"):
+        groundwork.Segmenter(sensor="hdl65")
+    with pytest.raises(ValueError, match="keyword arguments.*unknown field"):
+        groundwork.Segmenter(history={"framez": 3})
+    with pytest.raises(ValueError, match="frames"):
+        groundwork.Segmenter(frames=0)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[ground]\nground_treshold = 0.4\n")
+    with pytest.raises(ValueError, match="bad.toml"):
+        groundwork.Segmenter(config=bad)
+    with pytest.raises(OSError, match="missing.bin"):
+        groundwork.read_scan(tmp_path / "missing.bin")
+    truncated = tmp_path / "truncated.bin"
+    truncated.write_bytes(SCANS[0].read_bytes()[:100])
+    with pytest.raises(ValueError, match="truncated.bin"):
+        groundwork.read_scan(truncated)
+    with pytest.raises(ValueError, match="label"):
+        groundwork.read_labels(SEQ / "labels" / "000000.label", 10)
+
+
+def test_keyword_arguments_configure_like_a_file(tmp_path: Path) -> None:
+    points = kitti(SCANS[0])
+    cfg = tmp_path / "strict.toml"
+    cfg.write_text("[ground]\nground_threshold = 0.8\n")
+    by_file = groundwork.Segmenter(config=cfg)
+    by_kwargs = groundwork.Segmenter(ground={"ground_threshold": 0.8})
+    assert by_file.threshold == by_kwargs.threshold == pytest.approx(0.8)
+    assert np.array_equal(by_file.ground(points), by_kwargs.ground(points))
+    assert groundwork.Segmenter(frames=3).frames == 3
+    assert "vlp16" in groundwork.sensors()
+    assert groundwork.Segmenter(sensor="vlp16").sensor == "vlp16"
