@@ -145,6 +145,13 @@ def read_scan(path: _Path, max_points: int = 10_000_000) -> npt.NDArray[np.float
     """A scan file (KITTI .bin, nuScenes .pcd.bin, PCD, PLY) as an (N, 4) float32 array of
     x, y, z, intensity. Records with non-finite coordinates are left out."""
 
+def read_recording(
+    path: _Path, topic: str | None = None, max_points: int = 10_000_000
+) -> list[tuple[int, npt.NDArray[np.float32]]]:
+    """The point clouds of a ROS 2 recording (MCAP, sensor_msgs/msg/PointCloud2) on
+    ``topic`` (default: the first point cloud topic), in log order: (log time in ns, (N, 4)
+    float32 x, y, z, intensity)."""
+
 def read_poses(poses: _Path, calib: _Path) -> npt.NDArray[np.float64]:
     """A KITTI sequence's sensor poses, (N, 4, 4), world from sensor (camera poses and the
     calibration's Tr, as ``groundwork segment`` uses them)."""

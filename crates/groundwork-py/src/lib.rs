@@ -509,12 +509,40 @@ fn read_scan<'py>(
     let scan = py
         .detach(|| groundwork_io::read_scan(&path, max_points))
         .map_err(format_error)?;
-    let flat: Vec<f32> = scan
-        .points
+    xyzi_array(py, &scan.points)
+}
+
+/// The point clouds of a ROS 2 recording (MCAP, `sensor_msgs/msg/PointCloud2`) on `topic`
+/// (default: the first point cloud topic), in log order: a list of (log time in ns, (N, 4)
+/// float32 array of x, y, z, intensity). A message that cannot be decoded is an error naming
+/// it.
+#[pyfunction]
+#[pyo3(signature = (path, topic=None, max_points=10_000_000))]
+fn read_recording<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    topic: Option<&str>,
+    max_points: usize,
+) -> PyResult<Vec<(u64, Bound<'py, PyArray2<f32>>)>> {
+    let scans = py
+        .detach(|| {
+            groundwork_io::RecordingReader::open(&path, topic, max_points)?
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .map_err(format_error)?;
+    scans
+        .into_iter()
+        .map(|s| Ok((s.log_time_ns, xyzi_array(py, &s.scan.points)?)))
+        .collect()
+}
+
+/// Points as an (N, 4) float32 array: x, y, z, intensity.
+fn xyzi_array<'py>(py: Python<'py>, points: &[Point]) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    let flat: Vec<f32> = points
         .iter()
         .flat_map(|p| [p.x, p.y, p.z, p.intensity])
         .collect();
-    flat.into_pyarray(py).reshape([scan.points.len(), 4])
+    flat.into_pyarray(py).reshape([points.len(), 4])
 }
 
 /// The sensor's world poses of a KITTI sequence (world from sensor, (N, 4, 4) float64),
@@ -627,6 +655,7 @@ fn groundwork(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ransac, m)?)?;
     m.add_function(wrap_pyfunction!(detect, m)?)?;
     m.add_function(wrap_pyfunction!(read_scan, m)?)?;
+    m.add_function(wrap_pyfunction!(read_recording, m)?)?;
     m.add_function(wrap_pyfunction!(read_poses, m)?)?;
     m.add_function(wrap_pyfunction!(read_labels, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;

@@ -85,6 +85,29 @@ def test_one_segmenter_fed_the_sequence_equals_segment_over_it(cli_sequence: Pat
     assert seg.reset() is True and seg.history_len == 0
 
 
+def test_every_format_reads_the_points_independent_writers_wrote() -> None:
+    """The I/O crate's fixtures, written by pypcd4, plyfile and mcap-ros2-support from every
+    97th point of frame 0 (crates/groundwork-io/tests/fixtures/README.md)."""
+    fixtures = ROOT / "crates" / "groundwork-io" / "tests" / "fixtures"
+    want = kitti(SCANS[0])[::97]
+    for name in ("kitti_binary.pcd", "kitti_binary_compressed.pcd", "kitti_binary_le.ply",
+                 "kitti_ascii.ply"):
+        got = groundwork.read_scan(fixtures / name)
+        assert got.shape == want.shape and got.dtype == np.float32, name
+        assert np.array_equal(got[:, :3], want[:, :3]), name
+    ascii_pcd = groundwork.read_scan(fixtures / "kitti_ascii.pcd")
+    assert np.allclose(ascii_pcd[:, :3], want[:, :3], rtol=1e-7, atol=1e-10)
+    scans = groundwork.read_recording(fixtures / "kitti_pointcloud2.mcap")
+    assert len(scans) == 3, "the /chatter messages are not scans"
+    times = [t for t, _ in scans]
+    assert times == sorted(times) and times[1] - times[0] == 100_000_000
+    assert np.array_equal(scans[0][1][:, :3], want[:, :3])
+    # Message 1 is organised with two NaN placeholders: left out.
+    assert len(scans[1][1]) == 2 * (len(want) // 2) - 2
+    with pytest.raises(ValueError, match="nosuch"):
+        groundwork.read_recording(fixtures / "kitti_pointcloud2.mcap", topic="/nosuch")
+
+
 def test_other_layouts_and_dtypes_give_the_same_probabilities() -> None:
     points = kitti(SCANS[1])
     reference = groundwork.Segmenter().segment(points)
