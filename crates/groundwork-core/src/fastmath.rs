@@ -14,12 +14,18 @@ use wide::bytemuck::cast;
 pub fn exp_nonpositive(x: f32) -> f32 {
     let x = x.max(-87.0);
     let t = x * std::f32::consts::LOG2_E;
-    // Nearest integer of t without a libm call: floor(t + 0.5), where truncation rounds
-    // toward zero and the comparison corrects negative values.
+    // Nearest integer of t without a libm call: floor(t + 0.5). Adding 1.5·2^23 rounds u
+    // to the nearest integer r, held in the sum's low mantissa bits; floor is r, or r − 1
+    // where r rounded up. (A float-to-int cast would do, but a saturating `as i32` turns
+    // into a scalar conversion per lane; this stays in vector registers.)
+    const ROUND: f32 = 12_582_912.0; // 1.5·2^23
     let u = t + 0.5;
-    let ti = u as i32;
-    let fi = ti - i32::from((ti as f32) > u);
-    let f = t - fi as f32; // in [−0.5, 0.5]
+    let shifted = u + ROUND;
+    let r = shifted - ROUND;
+    let up = r > u;
+    let fl = r - f32::from(u8::from(up));
+    let fi = (shifted.to_bits() as i32 - ROUND.to_bits() as i32) - i32::from(up);
+    let f = t - fl; // in [−0.5, 0.5]
     // 2^f = e^{f·ln2} with |f·ln2| ≤ 0.35: Taylor to degree 6 errs by < 2e-7.
     let y = f * std::f32::consts::LN_2;
     let p = 1.0
@@ -153,6 +159,50 @@ mod tests {
         assert!(far < 2e-5, "worst relative error on [-87, -20]: {far}");
         assert_eq!(exp_nonpositive(0.0), 1.0);
         assert!(exp_nonpositive(-1e9) < 1e-37);
+    }
+
+    /// The integer rounding with a cast, as it was: the magic-number rounding must give
+    /// the same bits (the segmenter's outputs stay byte-identical).
+    fn exp_nonpositive_by_cast(x: f32) -> f32 {
+        let x = x.max(-87.0);
+        let t = x * std::f32::consts::LOG2_E;
+        let u = t + 0.5;
+        let ti = u as i32;
+        let fi = ti - i32::from((ti as f32) > u);
+        let f = t - fi as f32;
+        let y = f * std::f32::consts::LN_2;
+        let p = 1.0
+            + y * (1.0
+                + y * (0.5
+                    + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0 + y * (1.0 / 720.0))))));
+        p * f32::from_bits(((fi + 127) as u32) << 23)
+    }
+
+    #[test]
+    fn exp_rounding_by_magic_number_equals_the_cast_bit_for_bit() {
+        // Every 61st float in [-90, 0] (~18 million values); the ties, where t + 0.5 is an
+        // integer, on their own below.
+        let (lo, hi) = (0.0f32.to_bits() | (1 << 31), (-90.0f32).to_bits());
+        let mut bits = lo;
+        while bits <= hi {
+            let x = f32::from_bits(bits);
+            assert_eq!(
+                exp_nonpositive(x).to_bits(),
+                exp_nonpositive_by_cast(x).to_bits(),
+                "{x}"
+            );
+            bits += 61;
+        }
+        for k in 0..250 {
+            // t = x·log2(e) near −k − 0.5, where floor(t + 0.5) and rounding part ways.
+            let x = (-(k as f32) - 0.5) / std::f32::consts::LOG2_E;
+            for x in [x, x.next_up(), x.next_down()] {
+                assert_eq!(
+                    exp_nonpositive(x).to_bits(),
+                    exp_nonpositive_by_cast(x).to_bits()
+                );
+            }
+        }
     }
 
     #[test]
