@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use crate::config::SegmenterConfig;
-use crate::gmm::{Evaluator, Gaussian, fit_segment};
+use crate::gmm::{EmScratch, Evaluator, Gaussian, fit_segment_with};
 use crate::likelihood::{flatness, inverted_sigmoid};
 use crate::query::QueryTable;
 
@@ -93,6 +93,12 @@ pub struct SegmentedPoints {
     pub start: Vec<u32>,
 }
 
+thread_local! {
+    /// EM's buffers, one set per thread, reused from segment to segment and scan to scan
+    /// (fresh ones cost an allocation per buffer and segment; every use overwrites them).
+    static EM_SCRATCH: std::cell::RefCell<EmScratch> = std::cell::RefCell::new(EmScratch::default());
+}
+
 /// Fits the components of one segment and computes their ground likelihoods, with the
 /// outlier rule of §III-D. `lower_bound` comes from the zone-1 height filter.
 fn fit_ground_segment(
@@ -102,7 +108,7 @@ fn fit_ground_segment(
     cfg: &SegmenterConfig,
     lower_bound: Option<f64>,
 ) -> (Vec<GroundComponent>, SegmentStats) {
-    let fit = fit_segment(xs, ys, zs, &cfg.gmm);
+    let fit = EM_SCRATCH.with_borrow_mut(|s| fit_segment_with(xs, ys, zs, &cfg.gmm, s));
     let mut stats = SegmentStats {
         iterations: fit.iterations,
         ..Default::default()
