@@ -25,14 +25,19 @@ pub fn exp_nonpositive(x: f32) -> f32 {
     let up = r > u;
     let fl = r - f32::from(u8::from(up));
     let fi = (shifted.to_bits() as i32 - ROUND.to_bits() as i32) - i32::from(up);
-    let f = t - fl; // in [−0.5, 0.5]
+    exp2_split(t - fl, fi) // t − fl in [−0.5, 0.5]
+}
+
+/// 2^(i + f) for the integer part i of a reduced argument and f in [−0.5, 0.5].
+#[inline(always)]
+fn exp2_split(f: f32, i: i32) -> f32 {
     // 2^f = e^{f·ln2} with |f·ln2| ≤ 0.35: Taylor to degree 6 errs by < 2e-7.
     let y = f * std::f32::consts::LN_2;
     let p = 1.0
         + y * (1.0
             + y * (0.5
                 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0 + y * (1.0 / 720.0))))));
-    p * f32::from_bits(((fi + 127) as u32) << 23)
+    p * f32::from_bits(((i + 127) as u32) << 23)
 }
 
 /// 2^t on a vector, for t ≤ 127 (the query keeps log-densities in bits, so that no
@@ -161,21 +166,15 @@ mod tests {
         assert!(exp_nonpositive(-1e9) < 1e-37);
     }
 
-    /// The integer rounding with a cast, as it was: the magic-number rounding must give
-    /// the same bits (the segmenter's outputs stay byte-identical).
+    /// The integer rounding with a cast, as it was (same polynomial): the magic-number
+    /// rounding must give the same bits (the segmenter's outputs stay byte-identical).
     fn exp_nonpositive_by_cast(x: f32) -> f32 {
         let x = x.max(-87.0);
         let t = x * std::f32::consts::LOG2_E;
         let u = t + 0.5;
         let ti = u as i32;
         let fi = ti - i32::from((ti as f32) > u);
-        let f = t - fi as f32;
-        let y = f * std::f32::consts::LN_2;
-        let p = 1.0
-            + y * (1.0
-                + y * (0.5
-                    + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0 + y * (1.0 / 720.0))))));
-        p * f32::from_bits(((fi + 127) as u32) << 23)
+        exp2_split(t - fi as f32, fi)
     }
 
     #[test]

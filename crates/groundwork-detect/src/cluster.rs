@@ -45,6 +45,33 @@ struct Occupied {
     len: u32,
 }
 
+/// The occupied cells of a scan in cell order, and where each grid row starts among them.
+#[derive(Debug, Clone, Default)]
+struct Occupancy {
+    cells: Vec<Occupied>,
+    /// Per grid row, its first cell in `cells` (and one past the last row).
+    row_start: Vec<u32>,
+}
+
+impl Occupancy {
+    /// Indexes the rows of `cells` (after they were filled) for a grid `side` cells wide.
+    fn index_rows(&mut self, side: usize) {
+        self.row_start.clear();
+        self.row_start.resize(side + 1, 0);
+        for c in &self.cells {
+            self.row_start[c.cell as usize / side + 1] += 1;
+        }
+        for r in 1..=side {
+            self.row_start[r] += self.row_start[r - 1];
+        }
+    }
+
+    /// Indices into `cells` of grid row `row`'s cells.
+    fn row(&self, row: usize) -> std::ops::Range<usize> {
+        self.row_start[row] as usize..self.row_start[row + 1] as usize
+    }
+}
+
 /// Bits per radix-sort pass: 2 048 counters stay in L1.
 const DIGIT_BITS: u32 = 11;
 
@@ -91,12 +118,10 @@ struct RowRing {
     slot: Vec<u32>,
     /// The grid row each ring row holds.
     held: Vec<i32>,
-    /// Per grid row, its first cell in the sorted list (and one past the last row).
-    row_start: Vec<u32>,
 }
 
 impl RowRing {
-    fn reset(&mut self, cells: &[Occupied], side: usize, reach_max: i32) {
+    fn reset(&mut self, side: usize, reach_max: i32) {
         self.reach_max = reach_max;
         self.side = side;
         self.rows = 2 * reach_max as usize + 1;
@@ -106,22 +131,14 @@ impl RowRing {
         self.slot.resize(self.rows * side, 0); // read only where a bit is set
         self.held.clear();
         self.held.resize(self.rows, -1);
-        self.row_start.clear();
-        self.row_start.resize(side + 1, 0);
-        for c in cells {
-            self.row_start[c.cell as usize / side + 1] += 1;
-        }
-        for r in 1..=side {
-            self.row_start[r] += self.row_start[r - 1];
-        }
     }
 
     /// The occupied cells of row `row`, columns `c0` ..= `c1` (`c1` − `c0` < 64), as
-    /// (column offset from `c0`, index into `cells`), loading the row if it is new.
+    /// (column offset from `c0`, index into `occupied.cells`), loading the row if it is new.
     #[inline]
     fn row(
         &mut self,
-        cells: &[Occupied],
+        occupied: &Occupancy,
         row: i32,
         (c0, c1): (i32, i32),
     ) -> impl Iterator<Item = (i32, usize)> + use<'_> {
@@ -130,7 +147,7 @@ impl RowRing {
         if (0..self.side as i32).contains(&row) && c0 <= c1 {
             let k = row as usize % self.rows;
             if self.held[k] != row {
-                self.load(cells, k, row);
+                self.load(occupied, k, row);
             }
             let words = &self.bits[k * self.words..(k + 1) * self.words];
             bits = if c0 >= 0 {
@@ -155,13 +172,12 @@ impl RowRing {
     }
 
     #[cold]
-    fn load(&mut self, cells: &[Occupied], k: usize, row: i32) {
+    fn load(&mut self, occupied: &Occupancy, k: usize, row: i32) {
         let words = &mut self.bits[k * self.words..(k + 1) * self.words];
         words.fill(0);
         let first = row as usize * self.side;
-        let range =
-            self.row_start[row as usize] as usize..self.row_start[row as usize + 1] as usize;
-        for (c, idx) in cells[range.clone()].iter().zip(range) {
+        let range = occupied.row(row as usize);
+        for (c, idx) in occupied.cells[range.clone()].iter().zip(range) {
             let col = c.cell as usize - first;
             words[col / 64] |= 1 << (col % 64);
             self.slot[k * self.side + col] = idx as u32;
@@ -178,14 +194,14 @@ pub struct ClusterGrid {
     cell_bits: u32,
     entries: Vec<Entry>,
     spare: Vec<Entry>,
-    /// Occupied cells of the last scan, in cell order.
-    cells: Vec<Occupied>,
+    /// Occupied cells of the last scan.
+    occupied: Occupancy,
     segments: Vec<Segment>,
     /// The widest look-around of the last scan, in cells.
     reach_max: i32,
     ring: RowRing,
+    /// One per thread of the join; the first one's union-find holds the merged result.
     bands: Vec<Band>,
-    parent: Vec<u32>,
     component: Vec<u32>,
 }
 
@@ -241,11 +257,11 @@ struct Band {
 }
 
 /// Joins the segments of each of `own` (cells in ascending order) to those of its
-/// neighbours among `cells` (the rows at and after its own, and the columns after it in
-/// its own row), in `band`'s union-find.
+/// neighbours among the occupied cells (the rows at and after its own, and the columns
+/// after it in its own row), in `band`'s union-find.
 fn join_cells(
     own: &[Occupied],
-    cells: &[Occupied],
+    occupied: &Occupancy,
     segments: &[Segment],
     grid: &SquareGrid,
     cfg: &DetectorConfig,
@@ -264,13 +280,13 @@ fn join_cells(
             let di = di as i32;
             let gx = (di - 1).max(0) as f32 * grid.cell;
             let c0 = if di == 0 { j + 1 } else { j - half };
-            for (d, k) in band.ring.row(cells, i + di, (c0, j + half)) {
+            for (d, k) in band.ring.row(occupied, i + di, (c0, j + half)) {
                 let gy = ((c0 + d - j).abs() - 1).max(0) as f32 * grid.cell;
                 let h = (gx * gx + gy * gy) * inv_dh2;
                 if h > 1.0 {
                     continue;
                 }
-                let b = cells[k];
+                let b = occupied.cells[k];
                 for s in a.first..a.first + a.len {
                     let sa = segments[s as usize];
                     let mut root = find(&mut band.parent, s);
@@ -311,6 +327,21 @@ impl ClusterGrid {
         }
     }
 
+    /// `points` inside the grid as entries in cell order (within a cell, input order).
+    fn bucket(&mut self, points: &[[f32; 3]]) {
+        self.entries.clear();
+        for (k, p) in points.iter().enumerate() {
+            if let Some((i, j)) = self.grid.cell_of(p[0], p[1]) {
+                self.entries.push(Entry {
+                    cell: self.grid.index(i, j) as u32,
+                    z: p[2],
+                    point: k as u32,
+                });
+            }
+        }
+        sort_by_cell(&mut self.entries, &mut self.spare, self.cell_bits);
+    }
+
     /// Clusters `points` (ground-aligned x, y, z; finite): writes a component number per
     /// point into `labels` (`u32::MAX` for a point outside the grid) and returns how many
     /// components there are. Components are numbered in the order of their first cell in
@@ -323,21 +354,11 @@ impl ClusterGrid {
     ) -> usize {
         labels.clear();
         labels.resize(points.len(), u32::MAX);
-        self.entries.clear();
-        for (k, p) in points.iter().enumerate() {
-            if let Some((i, j)) = self.grid.cell_of(p[0], p[1]) {
-                self.entries.push(Entry {
-                    cell: self.grid.index(i, j) as u32,
-                    z: p[2],
-                    point: k as u32,
-                });
-            }
-        }
-        sort_by_cell(&mut self.entries, &mut self.spare, self.cell_bits);
+        self.bucket(points);
 
         // Each cell's points by height, cut into segments; the point → segment map goes
         // into `labels` for now.
-        self.cells.clear();
+        self.occupied.cells.clear();
         self.segments.clear();
         self.reach_max = 1;
         let mut rest = &mut self.entries[..];
@@ -370,34 +391,36 @@ impl ClusterGrid {
                 }
                 labels[e.point as usize] = self.segments.len() as u32 - 1;
             }
-            self.cells.push(Occupied {
+            self.occupied.cells.push(Occupied {
                 cell,
                 first,
                 len: self.segments.len() as u32 - first,
             });
         }
+        self.occupied.index_rows(self.grid.side);
 
         // Join segments of neighbouring cells (each pair of cells looked at once: the rows
         // at and after a cell's, and in its own row the columns after it). The cells are
         // split into bands of rows, one per thread, each with its own union-find; the
         // bands' unions are then merged (the components do not depend on the order).
         let n = self.segments.len();
-        let bands = if self.cells.len() < 4096 {
+        let bands = if self.occupied.cells.len() < 4096 {
             1
         } else {
             rayon::current_num_threads().clamp(1, 8)
         };
         self.bands.resize_with(bands, Band::default);
-        let (cells, segments, grid) = (&self.cells[..], &self.segments[..], &self.grid);
+        let (occupied, segments, grid) = (&self.occupied, &self.segments[..], &self.grid);
+        let cells = &occupied.cells;
         let reach_max = self.reach_max;
         let per_band = cells.len().div_ceil(bands);
         self.bands.par_iter_mut().enumerate().for_each(|(k, band)| {
             band.parent.clear();
             band.parent.extend(0..n as u32);
-            band.ring.reset(cells, grid.side, reach_max);
+            band.ring.reset(grid.side, reach_max);
             let own =
                 &cells[(k * per_band).min(cells.len())..((k + 1) * per_band).min(cells.len())];
-            join_cells(own, cells, segments, grid, cfg, band);
+            join_cells(own, occupied, segments, grid, cfg, band);
         });
         let (first, rest) = self.bands.split_at_mut(1);
         let parent = &mut first[0].parent;
@@ -410,15 +433,13 @@ impl ClusterGrid {
                 }
             }
         }
-        self.parent.clear();
-        self.parent.extend_from_slice(parent);
 
         // Dense component numbers in segment order (cell order, then height).
         self.component.clear();
         self.component.resize(n, u32::MAX);
         let mut components = 0u32;
         for s in 0..n as u32 {
-            let root = find(&mut self.parent, s);
+            let root = find(parent, s);
             if self.component[root as usize] == u32::MAX {
                 self.component[root as usize] = components;
                 components += 1;
@@ -444,18 +465,8 @@ impl ClusterGrid {
     ) {
         out.clear();
         out.resize(queries.len(), None);
-        // Queries in cell order, for the cursors.
-        self.entries.clear();
-        for (k, p) in queries.iter().enumerate() {
-            if let Some((i, j)) = self.grid.cell_of(p[0], p[1]) {
-                self.entries.push(Entry {
-                    cell: self.grid.index(i, j) as u32,
-                    z: p[2],
-                    point: k as u32,
-                });
-            }
-        }
-        sort_by_cell(&mut self.entries, &mut self.spare, self.cell_bits);
+        // Queries in cell order, for the ring of rows.
+        self.bucket(queries);
         let reach_max = self.entries.iter().fold(self.reach_max, |m, e| {
             let (i, j) = self.grid.ij(e.cell);
             m.max(reach(
@@ -463,7 +474,7 @@ impl ClusterGrid {
                 self.grid.cell,
             ))
         });
-        self.ring.reset(&self.cells, self.grid.side, reach_max);
+        self.ring.reset(self.grid.side, reach_max);
         for e in &self.entries {
             let (i, j) = self.grid.ij(e.cell);
             let r = self.grid.range(i, j);
@@ -472,9 +483,12 @@ impl ClusterGrid {
             let mut best: Option<(f32, u32)> = None;
             for di in -reach..=reach {
                 let gx = (di.abs() - 1).max(0) as f32 * self.grid.cell;
-                for (d, k) in self.ring.row(&self.cells, i + di, (j - reach, j + reach)) {
+                for (d, k) in self
+                    .ring
+                    .row(&self.occupied, i + di, (j - reach, j + reach))
+                {
                     let gy = ((d - reach).abs() - 1).max(0) as f32 * self.grid.cell;
-                    let b = self.cells[k];
+                    let b = self.occupied.cells[k];
                     for t in b.first..b.first + b.len {
                         let s = self.segments[t as usize];
                         let v = (s.z_min - e.z).max(e.z - s.z_max).max(0.0) / dv;

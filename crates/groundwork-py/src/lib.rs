@@ -10,6 +10,7 @@
 
 use std::path::PathBuf;
 
+use groundwork_core::height_filter::SegmentHeight;
 use groundwork_core::{
     FrameReport, GroundMethod, Point, Pose, SegmentError, Segmenter, pose_from_matrix,
 };
@@ -316,27 +317,12 @@ impl PySegmenter {
         d.set_item("mean_height", s.mean_height)?;
         d.set_item("mean_std", s.mean_std)?;
         let segs = f.segments();
-        d.set_item(
-            "mean",
-            segs.iter()
-                .map(|x| x.mean)
-                .collect::<Vec<_>>()
-                .into_pyarray(py),
-        )?;
-        d.set_item(
-            "variance",
-            segs.iter()
-                .map(|x| x.variance)
-                .collect::<Vec<_>>()
-                .into_pyarray(py),
-        )?;
-        d.set_item(
-            "frames",
-            segs.iter()
-                .map(|x| x.frames)
-                .collect::<Vec<_>>()
-                .into_pyarray(py),
-        )?;
+        let column =
+            |v: fn(&SegmentHeight) -> f64| segs.iter().map(v).collect::<Vec<_>>().into_pyarray(py);
+        d.set_item("mean", column(|x| x.mean))?;
+        d.set_item("variance", column(|x| x.variance))?;
+        let frames: Vec<u32> = segs.iter().map(|x| x.frames).collect();
+        d.set_item("frames", frames.into_pyarray(py))?;
         Ok(d)
     }
 
