@@ -2,13 +2,13 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use groundwork_core::SegmenterConfig;
-use groundwork_eval::{Protocol, Sequence, evaluate, median};
-use groundwork_io::{SENSOR_PRESETS, load_config_over, sensor_preset, write_outputs};
+use groundwork_eval::{Protocol, Sequence, evaluate};
+use groundwork_io::{SENSOR_PRESETS, load_config_over, sensor_preset};
 use groundwork_service::{
     ServiceConfig, check_shared_memory, consumer, launcher, producer, segmenter,
 };
@@ -19,6 +19,7 @@ mod detect;
 mod label;
 mod methods;
 mod render;
+mod segment;
 use methods::MethodArg;
 
 /// The service defaults, likewise.
@@ -373,7 +374,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             method,
             out,
             inputs,
-        } => segment(&common, method, &out, &inputs),
+        } => segment::run(&common, method, &out, &inputs),
         Command::Detect {
             common,
             method,
@@ -855,133 +856,6 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     );
     pb.set_message(what.to_string());
     pb
-}
-
-fn segment(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -> Result<ExitCode> {
-    let methods_cfg = load_methods(common, None)?;
-    let cfg = methods_cfg.segmenter.clone();
-    // The GMM runs as the service's segmenter stage (same checks, same counters); the
-    // offline methods run as they are.
-    let mut offline = match method {
-        MethodArg::Gmm => None,
-        m => Some(methods::build(m, &methods_cfg)?),
-    };
-    let thr = offline
-        .as_ref()
-        .map_or(cfg.ground.ground_threshold, |m| m.threshold());
-    let max = cfg.sensor.max_points;
-    let mut output = groundwork_io::OutputTarget::create(out)?;
-
-    let (sequences, mut failed) = open_inputs(
-        inputs,
-        common.poses.as_deref(),
-        common.calib.as_deref(),
-        common.topic.as_deref(),
-    );
-    if offline.is_none() && cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
-        info!("no poses found: scans are segmented single-frame");
-    }
-    // The same stage as the service's segmenter process: same checks, same counters.
-    let mut stage = segmenter::SegmenterStage::new(
-        &segmenter::SegmenterOptions {
-            segmenter: cfg,
-            count: None,
-            echo: false,
-        },
-        max,
-    )?;
-    let known: Option<usize> = sequences.iter().map(Sequence::len_hint).sum();
-    let pb = progress(known.unwrap_or(0), "segment");
-    let mut times = Vec::new();
-    let mut probs = Vec::new();
-    let (mut sequence_resets, mut scans, mut placeholders) = (0u64, 0usize, 0usize);
-    for (input, seq) in sequences.iter().enumerate() {
-        // Every input is a sequence of its own: the history of the previous one describes
-        // another place (and KITTI sequences all start at the identity pose).
-        if input > 0 && stage.new_sequence() {
-            sequence_resets += 1;
-        }
-        for item in seq.scans(max) {
-            if known.is_none() {
-                pb.inc_length(1);
-            }
-            let k = scans;
-            scans += 1;
-            let result = (|| -> Result<()> {
-                let scan = item.scan.as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
-                let header = offline_header(seq.pose(item.index), input, k, scan.points.len());
-                let t = Instant::now();
-                let out_of_bounds = if let Some(m) = offline.as_mut() {
-                    probs.resize(scan.points.len(), 0.0);
-                    m.segment_scan(&scan.points, seq.pose(item.index), &mut probs)
-                        .map_err(|e| anyhow::anyhow!("{}: {e}", item.name))?;
-                    0
-                } else {
-                    probs.resize(stage.mask_len(&header, &scan.points), 0.0);
-                    let mask = stage.process(&header, &scan.points, 0, &mut probs);
-                    if let Some(reason) = stage.last_rejection() {
-                        bail!("{}: {reason}", item.name);
-                    }
-                    mask.out_of_bounds_points
-                };
-                times.push(t.elapsed().as_secs_f64() * 1e3);
-                if out_of_bounds > 0 {
-                    pb.suspend(|| {
-                        tracing::warn!(
-                            points = out_of_bounds,
-                            "{}: points beyond the coordinate bound (probability 0)",
-                            item.name
-                        )
-                    });
-                }
-                placeholders += scan.skipped();
-                match &mut output {
-                    // One value per record of the input: placeholders get 0.
-                    groundwork_io::OutputTarget::Files(dir) => {
-                        write_outputs(dir, &item.name, &scan.expand(&probs, 0.0), thr)?
-                    }
-                    groundwork_io::OutputTarget::Recording(w) => {
-                        let topic = item.topic.as_deref().unwrap_or("/points");
-                        // Files have no time: 10 Hz from 0, in processing order.
-                        let t = item.log_time_ns.unwrap_or(k as u64 * 100_000_000);
-                        w.write(topic, scan, &probs, t)?
-                    }
-                }
-                Ok(())
-            })();
-            if let Err(e) = result {
-                // One bad scan never costs the others.
-                failed += 1;
-                pb.suspend(|| error!("skipped: {e:#}"));
-            }
-            pb.inc(1);
-        }
-    }
-    pb.finish_and_clear();
-    if let groundwork_io::OutputTarget::Recording(w) = output {
-        w.finish()?;
-    }
-    if offline.is_none() {
-        stage.segmenter().log_state();
-    }
-    let c = stage.segmenter().counters();
-    info!(
-        method = ?method,
-        scans,
-        failed,
-        sequence_resets,
-        placeholders,
-        history_resets = c.history_resets,
-        out_of_bounds_points = c.out_of_bounds_points,
-        median_ms = median(times),
-        out = %out.display(),
-        "segmentation done"
-    );
-    Ok(if failed > 0 {
-        ExitCode::from(1)
-    } else {
-        ExitCode::SUCCESS
-    })
 }
 
 /// The header a scan read from a file would carry in the service: its input is its

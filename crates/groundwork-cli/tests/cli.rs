@@ -808,3 +808,44 @@ fn render_draws_a_png_of_the_scan_and_refuses_compare_without_labels() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("bad.prob"));
 }
+
+#[test]
+fn per_scan_methods_run_one_worker_per_core_with_the_outputs_of_one() {
+    // RANSAC keeps no state between scans: `segment` runs one worker per core, scans
+    // finishing in any order. The files must be those of a single worker, bad scans
+    // still counted.
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    for n in 0..4 {
+        copy_scan(n, &input);
+    }
+    fs::write(input.join("empty.bin"), []).unwrap();
+    let run = |threads: &str| {
+        let out = tmp.path().join(format!("out{threads}"));
+        let o = bin()
+            .env("RAYON_NUM_THREADS", threads)
+            .args(["segment", "--method", "ransac", "--out"])
+            .arg(&out)
+            .arg(&input)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(
+            err.contains(&format!("workers={threads}")) && err.contains("failed=1"),
+            "{err}"
+        );
+        out
+    };
+    let (one, three) = (run("1"), run("3"));
+    for n in 0..4 {
+        for ext in ["prob", "ground"] {
+            let name = format!("{n:06}.{ext}");
+            let a = fs::read(one.join(&name)).unwrap();
+            assert!(!a.is_empty());
+            assert_eq!(a, fs::read(three.join(&name)).unwrap(), "{name}");
+        }
+    }
+    assert_eq!(fs::read_dir(&three).unwrap().count(), 8);
+}
