@@ -1,22 +1,31 @@
 //! Times groundwork on scan files the way `patchwork_time.py` times Patchwork++: each scan
 //! loaded once, segmented `--repeat` times, the median of all runs reported (JSON).
+//!
+//! `--sequence DIR` times the service's case instead: the sequence (with its poses) replayed
+//! in order `--repeat` times, each replay by a fresh segmenter with the preset's history, and
+//! every scan but a replay's first (which has no predecessor) timed.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
+use anyhow::Context;
 use clap::Parser;
-use groundwork_core::Segmenter;
-use groundwork_eval::median;
+use groundwork_core::{Pose, Segmenter};
+use groundwork_eval::{Sequence, median};
 
 #[derive(Parser)]
 struct Args {
-    /// Segmentations per scan.
+    /// Segmentations per scan (with --sequence: replays of the sequence).
     #[arg(long, default_value_t = 20)]
     repeat: usize,
-    /// Untimed warm-up runs per scan.
+    /// Untimed warm-up runs per scan (with --sequence: replays).
     #[arg(long, default_value_t = 3)]
     warmup: usize,
-    /// Scan files.
+    /// A sequence folder with poses.txt and calib.txt, streamed in order with history.
+    #[arg(long, conflicts_with = "scans")]
+    sequence: Option<PathBuf>,
+    /// Scan files, each segmented single-frame (no previous frame).
+    #[arg(required_unless_present = "sequence")]
     scans: Vec<PathBuf>,
 }
 
@@ -29,8 +38,35 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let cfg = groundwork_benches::preset()?;
     let max = cfg.sensor.max_points;
-    let mut seg = Segmenter::new(cfg)?;
     let mut times = Vec::new();
+    if let Some(dir) = &args.sequence {
+        let seq = Sequence::open(dir, None, None)?;
+        let mut scans: Vec<(Vec<groundwork_core::Point>, Pose)> = Vec::new();
+        for item in seq.scans(max) {
+            let pose = *seq
+                .pose(item.index)
+                .with_context(|| format!("{}: no poses.txt + calib.txt", dir.display()))?;
+            scans.push((item.scan?.points, pose));
+        }
+        let frames = cfg.history.frames;
+        for replay in 0..args.warmup + args.repeat {
+            let mut seg = Segmenter::new(cfg.clone())?;
+            for (i, (points, pose)) in scans.iter().enumerate() {
+                let mut out = vec![0.0f32; points.len()];
+                let t = Instant::now();
+                seg.segment(points, Some(pose), &mut out)?;
+                if replay >= args.warmup && i > 0 {
+                    times.push(t.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+        println!(
+            "{}",
+            serde_json::json!({ "median_ms": median(times.clone()), "runs": times.len(), "history_frames": frames })
+        );
+        return Ok(());
+    }
+    let mut seg = Segmenter::new(cfg)?;
     for path in &args.scans {
         let points = groundwork_io::read_scan(path, max)?.points;
         let mut out = vec![0.0f32; points.len()];

@@ -13,6 +13,9 @@
 //! - Work is done on coordinates relative to the segment centroid, so second moments do
 //!   not lose precision to catastrophic cancellation far from the sensor.
 
+use wide::bytemuck::cast;
+use wide::{f32x8, i32x8};
+
 use crate::config::GmmConfig;
 use crate::fastmath::{exp_nonpositive, ln_positive};
 
@@ -297,15 +300,33 @@ pub fn fit_segment_with(
             }
         }
         // Best component per point (for the log-sum-exp and for pruning).
-        s.max.copy_from_slice(&s.resp[..np]);
-        s.best.fill(0);
-        for c in 1..k {
-            let row = &s.resp[c * np..(c + 1) * np];
-            for ((m, b), &l) in s.max.iter_mut().zip(s.best.iter_mut()).zip(row) {
-                let gt = l > *m;
-                *m = if gt { l } else { *m };
-                *b = if gt { c as u32 } else { *b };
+        // Block by block, the running best kept in registers: written as a pass per
+        // component with selects, LLVM stored only the changed lanes with masked stores,
+        // which Zen microcodes (a quarter of EM's time went there).
+        let block =
+            |v: &[f32], o: usize| v.get(o..).and_then(|v| v.first_chunk::<LANES>()).copied();
+        for (o, (m, b)) in (0..np).step_by(LANES).zip(
+            s.max
+                .chunks_exact_mut(LANES)
+                .zip(s.best.chunks_exact_mut(LANES)),
+        ) {
+            let Some(first) = block(&s.resp, o) else {
+                break; // cannot happen: every row holds np values, a multiple of LANES
+            };
+            let mut mv = f32x8::new(first);
+            let mut bv = i32x8::splat(0);
+            for c in 1..k {
+                let Some(l) = block(&s.resp, c * np + o) else {
+                    break;
+                };
+                let lv = f32x8::new(l);
+                // Lanes where this component is strictly better (false for NaN, as `>`).
+                let gt = lv.simd_gt(mv);
+                mv = gt.select(lv, mv);
+                bv = cast::<f32x8, i32x8>(gt).select(i32x8::splat(c as i32), bv);
             }
+            m.copy_from_slice(&mv.to_array());
+            b.copy_from_slice(&cast::<i32x8, [u32; LANES]>(bv));
         }
         // Pass 2: exponentiate relative to the best, sum per point.
         s.inv.fill(0.0);

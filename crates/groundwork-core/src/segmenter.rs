@@ -397,14 +397,15 @@ impl Segmenter {
         let thr = self.cfg.ground.ground_threshold;
         // No NaN ever leaves the segmenter: a non-finite value would be a defect (none is
         // known), and it would poison every consumer's arithmetic. Written as 0, counted.
-        let mut non_finite = 0u64;
-        for p in out.iter_mut() {
-            if !p.is_finite() {
+        // Counted first, written only if there is any: a conditional write in the counting
+        // loop becomes a masked store per vector, which Zen microcodes.
+        let non_finite = out.iter().filter(|p| !p.is_finite()).count() as u64;
+        if non_finite > 0 {
+            for p in out.iter_mut().filter(|p| !p.is_finite()) {
                 *p = 0.0;
-                non_finite += 1;
             }
-            report.ground_points += usize::from(*p >= thr);
         }
+        report.ground_points = out.iter().filter(|&&p| p >= thr).count();
         if non_finite > 0 {
             self.counters.non_finite_outputs += non_finite;
             tracing::error!(
