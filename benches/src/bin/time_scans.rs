@@ -3,7 +3,8 @@
 //!
 //! `--sequence DIR` times the service's case instead: the sequence (with its poses) replayed
 //! in order `--repeat` times, each replay by a fresh segmenter with the preset's history, and
-//! every scan but a replay's first (which has no predecessor) timed.
+//! every scan but a replay's first (which has no predecessor) timed. `--period-ms 100` paces
+//! the replay as the service's producer paces a 10 Hz sensor: the cores idle between scans.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -24,6 +25,10 @@ struct Args {
     /// A sequence folder with poses.txt and calib.txt, streamed in order with history.
     #[arg(long, conflicts_with = "scans")]
     sequence: Option<PathBuf>,
+    /// With --sequence: start a scan every this many milliseconds, idle in between, as the
+    /// service's producer paces the sensor (0: back to back).
+    #[arg(long, default_value_t = 0.0, requires = "sequence")]
+    period_ms: f64,
     /// Scan files, each segmented single-frame (no previous frame).
     #[arg(required_unless_present = "sequence")]
     scans: Vec<PathBuf>,
@@ -49,20 +54,29 @@ fn main() -> anyhow::Result<()> {
             scans.push((item.scan?.points, pose));
         }
         let frames = cfg.history.frames;
+        let (mut fits, mut queries) = (Vec::new(), Vec::new());
+        let period = std::time::Duration::from_secs_f64(args.period_ms.max(0.0) / 1e3);
+        let mut last_start = Instant::now();
         for replay in 0..args.warmup + args.repeat {
             let mut seg = Segmenter::new(cfg.clone())?;
             for (i, (points, pose)) in scans.iter().enumerate() {
                 let mut out = vec![0.0f32; points.len()];
+                if let Some(wait) = period.checked_sub(last_start.elapsed()) {
+                    std::thread::sleep(wait);
+                }
+                last_start = Instant::now();
                 let t = Instant::now();
-                seg.segment(points, Some(pose), &mut out)?;
+                let r = seg.segment(points, Some(pose), &mut out)?;
                 if replay >= args.warmup && i > 0 {
                     times.push(t.elapsed().as_secs_f64() * 1e3);
+                    fits.push(r.fit_time.as_secs_f64() * 1e3);
+                    queries.push(r.query_time.as_secs_f64() * 1e3);
                 }
             }
         }
         println!(
             "{}",
-            serde_json::json!({ "median_ms": median(times.clone()), "runs": times.len(), "history_frames": frames })
+            serde_json::json!({ "median_ms": median(times.clone()), "fit_median_ms": median(fits), "query_median_ms": median(queries), "runs": times.len(), "history_frames": frames, "period_ms": args.period_ms })
         );
         return Ok(());
     }
