@@ -259,31 +259,28 @@ pub(crate) struct QueryScratch {
     x: Vec<f32>,
     y: Vec<f32>,
     z: Vec<f32>,
-    /// Input index of each grouped point.
-    order: Vec<u32>,
+    /// Per input point, its place among the grouped points (`UNQUERIED` if it has none).
+    place: Vec<u32>,
     /// Grouped points of segment s are at `start[s]..start[s+1]`.
     start: Vec<u32>,
     /// Running sums per grouped point.
     acc: Sums,
 }
 
-/// Ground probability of every point. `points` are in the query scan's ground-aligned frame
-/// and `bins` their packed bins in it. Points near the sensor, beyond range under the
-/// `NonGround` policy, or in no fitted segment of any frame get 0.
+/// Ground probability of every point [`group`] grouped into `s` (the query scan's points in
+/// its ground-aligned frame, with their packed bins). Points near the sensor, beyond range
+/// under the `NonGround` policy, or in no fitted segment of any frame get 0.
 ///
 /// The points are grouped once by their segment in the query scan, so that a vector of
 /// them is a compact patch of ground, mostly in one cell of every past frame too.
-pub(crate) fn query(
+pub(crate) fn query_grouped(
     binner: &LaneBinner,
     frames: &[QueryFrame<'_>],
-    points: &[[f64; 3]],
-    bins: &[u32],
     policy: BeyondRangePolicy,
     s: &mut QueryScratch,
     out: &mut [f32],
 ) {
-    group(s, points, bins, binner.segment_count(), policy);
-    s.acc.resize(s.order.len());
+    s.acc.resize(s.x.len());
     let runs = split_runs(&s.start, s.acc.slices());
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
     let tables: Vec<(&QueryTable, Option<Move>)> = frames
@@ -297,12 +294,27 @@ pub(crate) fn query(
             let (x, y, z) = (&xs[r.clone()], &ys[r.clone()], &zs[r]);
             eval_run(binner, &tables, policy, seg, x, y, z, &mut acc);
         });
-    out.fill(0.0);
+    // Back into input order: a gather per input point, so both cores share it.
     let a = &s.acc;
-    for (j, &i) in s.order.iter().enumerate() {
-        out[i as usize] = probability(a.sum[j], a.flat[j], a.orient[j], a.elev[j]);
-    }
+    out.par_chunks_mut(GATHER_CHUNK)
+        .zip(s.place.par_chunks(GATHER_CHUNK))
+        .for_each(|(out, place)| {
+            for (o, &j) in out.iter_mut().zip(place) {
+                let j = j as usize;
+                *o = if j < a.sum.len() {
+                    probability(a.sum[j], a.flat[j], a.orient[j], a.elev[j])
+                } else {
+                    0.0
+                };
+            }
+        });
 }
+
+/// An input point that no model answers for.
+const UNQUERIED: u32 = u32::MAX;
+
+/// Input points per task of the final gather.
+const GATHER_CHUNK: usize = 16 * 1024;
 
 /// Per-segment views of the running sums, with each segment's index and offset.
 fn split_runs<'a>(start: &[u32], mut acc: SumsMut<'a>) -> Vec<(u32, usize, SumsMut<'a>)> {
@@ -342,8 +354,9 @@ pub(crate) fn segment_offsets(
 }
 
 /// Counting sort of the queried points by the segment that answers for them in the query
-/// scan, into f32 structure-of-arrays.
-fn group(
+/// scan, into f32 structure-of-arrays (`points` in the query scan's ground-aligned frame,
+/// `bins` their packed bins).
+pub(crate) fn group(
     s: &mut QueryScratch,
     points: &[[f64; 3]],
     bins: &[u32],
@@ -351,21 +364,26 @@ fn group(
     policy: BeyondRangePolicy,
 ) {
     let total = segment_offsets(bins, segments, |b| segment_of(b, policy), &mut s.start);
-    s.order.resize(total, 0);
+    s.place.resize(points.len(), UNQUERIED);
     s.x.resize(total, 0.0);
     s.y.resize(total, 0.0);
     s.z.resize(total, 0.0);
     let mut cursor = s.start[..segments].to_vec();
-    for (i, (&b, p)) in bins.iter().zip(points).enumerate() {
-        if let Some(seg) = segment_of(b, policy) {
-            let c = &mut cursor[seg as usize];
-            let j = *c as usize;
-            s.order[j] = i as u32;
-            s.x[j] = p[0] as f32;
-            s.y[j] = p[1] as f32;
-            s.z[j] = p[2] as f32;
-            *c += 1;
-        }
+    // Local slices: through `s` the compiler would reload every pointer after each store.
+    let (xs, ys, zs) = (&mut s.x[..], &mut s.y[..], &mut s.z[..]);
+    for ((&b, p), place) in bins.iter().zip(points).zip(&mut s.place) {
+        *place = match segment_of(b, policy) {
+            Some(seg) => {
+                let c = &mut cursor[seg as usize];
+                let j = *c as usize;
+                xs[j] = p[0] as f32;
+                ys[j] = p[1] as f32;
+                zs[j] = p[2] as f32;
+                *c += 1;
+                j as u32
+            }
+            None => UNQUERIED,
+        };
     }
 }
 
@@ -769,15 +787,11 @@ mod tests {
         let zones = seg.zones();
         let bins: Vec<u32> = ground.iter().map(|p| pack(zones.bin(p[0], p[1]))).collect();
         let mut out = vec![0.0; ground.len()];
-        query(
-            &LaneBinner::new(zones),
-            &frames,
-            &ground,
-            &bins,
-            BeyondRangePolicy::OuterRing,
-            &mut QueryScratch::default(),
-            &mut out,
-        );
+        let binner = LaneBinner::new(zones);
+        let policy = BeyondRangePolicy::OuterRing;
+        let mut scratch = QueryScratch::default();
+        group(&mut scratch, &ground, &bins, binner.segment_count(), policy);
+        query_grouped(&binner, &frames, policy, &mut scratch, &mut out);
         let mut off = 0;
         let mut worst_typical: f64 = 0.0;
         for (p, &got) in ground.iter().zip(&out) {

@@ -14,7 +14,7 @@ use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
-use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, query, segment_offsets};
+use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, query_grouped, segment_offsets};
 use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
 
@@ -22,6 +22,28 @@ use crate::zones::{LaneBinner, ZoneModel};
 /// queried, never fitted).
 fn in_range(b: u32) -> Option<u32> {
     (b & BEYOND == 0).then_some(b)
+}
+
+/// Counting sort of the in-range points (`ground`, binned `bins`) into contiguous runs per
+/// segment, in input order within each run.
+fn group_in_range(s: &mut SegmentedPoints, bins: &[u32], ground: &[[f64; 3]], segments: usize) {
+    let total = segment_offsets(bins, segments, in_range, &mut s.start);
+    s.xs.resize(total, 0.0);
+    s.ys.resize(total, 0.0);
+    s.zs.resize(total, 0.0);
+    let mut cursor: Vec<u32> = s.start[..segments].to_vec();
+    // Local slices: through `s` the compiler would reload every pointer after each store.
+    let (xs, ys, zs) = (&mut s.xs[..], &mut s.ys[..], &mut s.zs[..]);
+    for (&b, g) in bins.iter().zip(ground) {
+        if b & BEYOND == 0 {
+            let c = &mut cursor[b as usize];
+            let i = *c as usize;
+            xs[i] = g[0];
+            ys[i] = g[1];
+            zs[i] = g[2];
+            *c += 1;
+        }
+    }
 }
 
 /// What happened to one scan.
@@ -241,6 +263,7 @@ impl Segmenter {
     ) -> Result<(), SegmentError> {
         self.check(points, None, out)?;
         self.bin_points(points);
+        self.group_for_query();
         self.query_frames(model, None, out);
         Ok(())
     }
@@ -258,13 +281,14 @@ impl Segmenter {
     ) -> Result<usize, SegmentError> {
         self.check(points, Some(pose), out)?;
         self.bin_points(points);
+        self.group_for_query();
         let pose = (self.pose_jump(pose).is_none()).then_some(pose);
         Ok(self.query_frames(model, pose, out))
     }
 
-    /// Query of the binned points against `model` and, given the scan's pose, every stored
-    /// past frame; without a pose, against `model` alone. Returns the number of models
-    /// queried.
+    /// Query of the binned and grouped points against `model` and, given the scan's pose,
+    /// every stored past frame; without a pose, against `model` alone. Returns the number of
+    /// models queried.
     fn query_frames(&mut self, model: &FrameModel, pose: Option<&Pose>, out: &mut [f32]) -> usize {
         let transforms: Vec<Isometry3<f64>> = match pose {
             Some(pose) => self
@@ -288,16 +312,25 @@ impl Segmenter {
                     transform: Some(t),
                 }),
         );
-        query(
+        query_grouped(
             &self.binner,
             &frames,
-            &self.ground,
-            &self.bins,
             self.cfg.zones.beyond_max_range,
             &mut self.query_scratch,
             out,
         );
         frames.len()
+    }
+
+    /// Groups the binned points for the query ([`query_grouped`]).
+    fn group_for_query(&mut self) {
+        crate::query::group(
+            &mut self.query_scratch,
+            &self.ground,
+            &self.bins,
+            self.binner.segment_count(),
+            self.cfg.zones.beyond_max_range,
+        );
     }
 
     fn fit_grouped(&self) -> (FrameModel, Vec<crate::model::SegmentStats>) {
@@ -356,7 +389,7 @@ impl Segmenter {
         if let Some(t) = sensor_time_ns {
             report.history_cleared |= self.check_time_gap(t);
         }
-        self.group_by_segment();
+        self.group_for_fit_and_query();
         let (model, stats) = self.fit_grouped();
         self.update_height_filter(&model);
         report.fit_time = t0.elapsed();
@@ -504,23 +537,25 @@ impl Segmenter {
 
     /// Counting sort of the in-range points into contiguous per-segment runs.
     fn group_by_segment(&mut self) {
-        let segs = self.zones.segment_count();
-        let s = &mut self.sorted;
-        let total = segment_offsets(&self.bins, segs, in_range, &mut s.start);
-        s.xs.resize(total, 0.0);
-        s.ys.resize(total, 0.0);
-        s.zs.resize(total, 0.0);
-        let mut cursor: Vec<u32> = s.start[..segs].to_vec();
-        for (&b, g) in self.bins.iter().zip(&self.ground) {
-            if b & BEYOND == 0 {
-                let c = &mut cursor[b as usize];
-                let i = *c as usize;
-                s.xs[i] = g[0];
-                s.ys[i] = g[1];
-                s.zs[i] = g[2];
-                *c += 1;
-            }
-        }
+        group_in_range(
+            &mut self.sorted,
+            &self.bins,
+            &self.ground,
+            self.zones.segment_count(),
+        );
+    }
+
+    /// [`Segmenter::group_by_segment`] and [`Segmenter::group_for_query`] side by side: two
+    /// serial counting sorts of the same binned points, one per core.
+    fn group_for_fit_and_query(&mut self) {
+        let (bins, ground) = (&self.bins, &self.ground);
+        let (sorted, scratch) = (&mut self.sorted, &mut self.query_scratch);
+        let (segments, query_segments) = (self.zones.segment_count(), self.binner.segment_count());
+        let policy = self.cfg.zones.beyond_max_range;
+        rayon::join(
+            || group_in_range(sorted, bins, ground, segments),
+            || crate::query::group(scratch, ground, bins, query_segments, policy),
+        );
     }
 
     /// Feeds each zone-1 segment's ground-component height (weight-averaged over components
