@@ -211,14 +211,20 @@ fn reach(d: f32, cell: f32) -> i32 {
     ((d / cell).floor() as i32 + 1).min(31)
 }
 
+/// Column offsets of a look-around row: 0 ..= 31 (`reach` keeps distances under 31 cells).
+const MAX_HALF: usize = 32;
+
 /// The look-around of a cell for a horizontal distance d_h: per row offset 0, 1, …, the
-/// columns on either side whose gap can be within d_h (one more than the bound, against
-/// rounding; the distance test is exact). Recomputed only when d_h changes (it is constant
-/// within `cluster_distance / distance_per_metre` of the sensor).
+/// columns on either side whose gap to the cell is within d_h, and the squared gap over
+/// d_h² of each column offset (the same products the join would compute per neighbour, so
+/// the window is exact: every neighbour it yields is within d_h). Recomputed only when d_h
+/// changes (it is constant within `cluster_distance / distance_per_metre` of the sensor).
 #[derive(Debug, Default)]
 struct Window {
     dh: f32,
     half: Vec<i32>,
+    /// Per row offset, per column offset 0 ..= half: (gap / d_h)².
+    h: Vec<[f32; MAX_HALF]>,
 }
 
 impl Window {
@@ -228,14 +234,32 @@ impl Window {
         }
         self.dh = dh;
         self.half.clear();
+        self.h.clear();
         let reach = reach(dh, cell);
+        let inv_dh2 = 1.0 / (dh * dh);
         for di in 0..=reach {
             let gx = (di - 1).max(0) as f32 * cell;
             let room = dh * dh - gx * gx;
             if room < 0.0 {
                 break;
             }
-            self.half.push((2 + (room.sqrt() / cell) as i32).min(reach));
+            // Never past the bound that rounding could blur (the test below decides).
+            let bound = (2 + (room.sqrt() / cell) as i32).min(reach);
+            let mut row = [f32::INFINITY; MAX_HALF];
+            let mut half = -1;
+            for (dj, h) in row.iter_mut().enumerate().take(bound as usize + 1) {
+                let gy = (dj as i32 - 1).max(0) as f32 * cell;
+                *h = (gx * gx + gy * gy) * inv_dh2;
+                if *h > 1.0 {
+                    break; // the gap only grows with the column offset
+                }
+                half = dj as i32;
+            }
+            if half < 0 {
+                break; // and with the row offset
+            }
+            self.half.push(half);
+            self.h.push(row);
         }
     }
 }
@@ -275,32 +299,50 @@ fn join_cells(
         let r = grid.range(i, j);
         let (dh, dv) = (cfg.distance_at(r), cfg.vertical_distance_at(r));
         window.update(dh, grid.cell);
-        let (inv_dh2, inv_dv) = (1.0 / (dh * dh), 1.0 / dv);
-        for (di, &half) in window.half.iter().enumerate() {
-            let di = di as i32;
-            let gx = (di - 1).max(0) as f32 * grid.cell;
+        let inv_dv = 1.0 / dv;
+        // A cell of one segment (most cells) keeps its set's root from link to link.
+        let mut single_root = (a.len == 1).then(|| find(&mut band.parent, a.first));
+        for (di, (&half, hs)) in window.half.iter().zip(&window.h).enumerate() {
             let c0 = if di == 0 { j + 1 } else { j - half };
-            for (d, k) in band.ring.row(occupied, i + di, (c0, j + half)) {
-                let gy = ((c0 + d - j).abs() - 1).max(0) as f32 * grid.cell;
-                let h = (gx * gx + gy * gy) * inv_dh2;
-                if h > 1.0 {
+            for (d, k) in band.ring.row(occupied, i + di as i32, (c0, j + half)) {
+                let h = hs[(c0 + d - j).unsigned_abs() as usize];
+                let b = occupied.cells[k];
+                if let Some(root) = single_root.as_mut() {
+                    let sa = segments[a.first as usize];
+                    *root = link_near(&mut band.parent, segments, *root, sa, b, h, inv_dv);
                     continue;
                 }
-                let b = occupied.cells[k];
                 for s in a.first..a.first + a.len {
+                    let root = find(&mut band.parent, s);
                     let sa = segments[s as usize];
-                    let mut root = find(&mut band.parent, s);
-                    for t in b.first..b.first + b.len {
-                        let sb = segments[t as usize];
-                        let v = (sa.z_min - sb.z_max).max(sb.z_min - sa.z_max).max(0.0) * inv_dv;
-                        if h + v * v <= 1.0 {
-                            root = link(&mut band.parent, root, t);
-                        }
-                    }
+                    link_near(&mut band.parent, segments, root, sa, b, h, inv_dv);
                 }
             }
         }
     }
+}
+
+/// Links to the set whose root is `root` (segment `sa`'s) every segment of cell `b` within
+/// the distance, `h` being the cells' squared horizontal gap over d_h²; returns the joined
+/// set's root.
+#[inline]
+fn link_near(
+    parent: &mut [u32],
+    segments: &[Segment],
+    mut root: u32,
+    sa: Segment,
+    b: Occupied,
+    h: f32,
+    inv_dv: f32,
+) -> u32 {
+    for t in b.first..b.first + b.len {
+        let sb = segments[t as usize];
+        let v = (sa.z_min - sb.z_max).max(sb.z_min - sa.z_max).max(0.0) * inv_dv;
+        if h + v * v <= 1.0 {
+            root = link(parent, root, t);
+        }
+    }
+    root
 }
 
 /// Joins `b`'s set to the set whose root is `root`; returns the joined set's root.
