@@ -222,9 +222,9 @@ const MAX_HALF: usize = 32;
 #[derive(Debug, Default)]
 struct Window {
     dh: f32,
-    half: Vec<i32>,
-    /// Per row offset, per column offset 0 ..= half: (gap / d_h)².
-    h: Vec<[f32; MAX_HALF]>,
+    /// Per row offset: the columns on either side, and per column offset 0 ..= that,
+    /// (gap / d_h)².
+    rows: Vec<(i32, [f32; MAX_HALF])>,
 }
 
 impl Window {
@@ -233,8 +233,7 @@ impl Window {
             return;
         }
         self.dh = dh;
-        self.half.clear();
-        self.h.clear();
+        self.rows.clear();
         let reach = reach(dh, cell);
         let inv_dh2 = 1.0 / (dh * dh);
         for di in 0..=reach {
@@ -258,8 +257,7 @@ impl Window {
             if half < 0 {
                 break; // and with the row offset
             }
-            self.half.push(half);
-            self.h.push(row);
+            self.rows.push((half, row));
         }
     }
 }
@@ -301,15 +299,15 @@ fn join_cells(
         window.update(dh, grid.cell);
         let inv_dv = 1.0 / dv;
         // A cell of one segment (most cells) keeps its set's root from link to link.
-        let mut single_root = (a.len == 1).then(|| find(&mut band.parent, a.first));
-        for (di, (&half, hs)) in window.half.iter().zip(&window.h).enumerate() {
+        let mut single =
+            (a.len == 1).then(|| (find(&mut band.parent, a.first), segments[a.first as usize]));
+        for (di, &(half, ref hs)) in window.rows.iter().enumerate() {
             let c0 = if di == 0 { j + 1 } else { j - half };
             for (d, k) in band.ring.row(occupied, i + di as i32, (c0, j + half)) {
                 let h = hs[(c0 + d - j).unsigned_abs() as usize];
                 let b = occupied.cells[k];
-                if let Some(root) = single_root.as_mut() {
-                    let sa = segments[a.first as usize];
-                    *root = link_near(&mut band.parent, segments, *root, sa, b, h, inv_dv);
+                if let Some((root, sa)) = single.as_mut() {
+                    *root = link_near(&mut band.parent, segments, *root, *sa, b, h, inv_dv);
                     continue;
                 }
                 for s in a.first..a.first + a.len {
