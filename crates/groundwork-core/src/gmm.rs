@@ -137,6 +137,51 @@ pub struct EmScratch {
     best: Vec<u32>,
     /// (coordinate hash, index) of the points fitted, in canonical order.
     order: Vec<(u64, u32)>,
+    hashes: Vec<u64>,
+    spare: Vec<(u64, u32)>,
+    counts: Vec<u32>,
+}
+
+/// Sorts `v` by hash, every hash at most `max_key`. Hashes spread evenly, so a counting
+/// sort on their top bits (about one bucket per element) leaves only neighbours out of
+/// order, which an insertion sort then fixes: linear time, against n·log n comparisons
+/// of a general sort (4 % of a scan's time). Equal hashes keep their order.
+fn sort_by_hash(
+    v: &mut Vec<(u64, u32)>,
+    spare: &mut Vec<(u64, u32)>,
+    counts: &mut Vec<u32>,
+    max_key: u64,
+) {
+    let m = v.len();
+    if m > 16 {
+        let bits = usize::BITS - (m - 1).leading_zeros(); // 2^bits ≥ m
+        let shift = (u64::BITS - max_key.leading_zeros()).saturating_sub(bits);
+        counts.clear();
+        counts.resize((max_key >> shift) as usize + 2, 0);
+        for e in v.iter() {
+            counts[(e.0 >> shift) as usize + 1] += 1;
+        }
+        for b in 1..counts.len() {
+            counts[b] += counts[b - 1];
+        }
+        spare.clear();
+        spare.resize(m, (0, 0));
+        for e in v.iter() {
+            let slot = &mut counts[(e.0 >> shift) as usize];
+            spare[*slot as usize] = *e;
+            *slot += 1;
+        }
+        std::mem::swap(v, spare);
+    }
+    for i in 1..m {
+        let e = v[i];
+        let mut j = i;
+        while j > 0 && v[j - 1].0 > e.0 {
+            v[j] = v[j - 1];
+            j -= 1;
+        }
+        v[j] = e;
+    }
 }
 
 /// A well-mixed 64-bit hash of a point's coordinates (splitmix64 finaliser).
@@ -203,17 +248,29 @@ pub fn fit_segment_with(
         cap => n.div_ceil(cap as usize).max(1),
     };
     let threshold = u64::MAX / stride as u64;
+    // Hashes first in a plain loop (vectorised), then the kept points without a branch:
+    // a filtered push mispredicted on every other point of a dense segment.
+    s.hashes.clear();
+    s.hashes.extend(
+        xs.iter()
+            .zip(ys)
+            .zip(zs)
+            .map(|((&x, &y), &z)| point_hash(x, y, z)),
+    );
     s.order.clear();
-    s.order.extend((0..n).filter_map(|i| {
-        let h = point_hash(xs[i], ys[i], zs[i]);
-        (h <= threshold).then_some((h, i as u32))
-    }));
+    s.order.resize(n, (0, 0));
+    let mut kept = 0;
+    for (i, &h) in s.hashes.iter().enumerate() {
+        s.order[kept] = (h, i as u32);
+        kept += usize::from(h <= threshold);
+    }
+    s.order.truncate(kept);
     if s.order.is_empty() {
         // Astronomically unlikely; fall back to one point rather than fit nothing.
         s.order.push((0, 0));
     }
     // Equal hashes mean equal coordinates (or a 2^-64 collision): their order is moot.
-    s.order.sort_unstable_by_key(|&(h, _)| h);
+    sort_by_hash(&mut s.order, &mut s.spare, &mut s.counts, threshold);
     let m = s.order.len();
     let mut centroid = [0.0; 3];
     for &(_, i) in &s.order {
@@ -591,6 +648,35 @@ mod tests {
         // One component: the second iteration reproduces the first's log-likelihood.
         assert_eq!(fit.components.len(), 1);
         assert!(fit.iterations <= 3, "{}", fit.iterations);
+    }
+
+    #[test]
+    fn the_hash_sort_orders_like_a_comparison_sort() {
+        use rand::Rng;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let (mut spare, mut counts) = (Vec::new(), Vec::new());
+        for (m, max_key) in [
+            (0, u64::MAX),
+            (1, u64::MAX),
+            (16, u64::MAX),
+            (17, u64::MAX),
+            (256, u64::MAX / 3),
+            (300, u64::MAX / 40),
+            (1000, 5000),
+            (64, 10),
+        ] {
+            let mut v: Vec<(u64, u32)> = (0..m as u32)
+                .map(|i| (rng.random_range(0..=max_key), i))
+                .collect();
+            // Equal hashes too (the same point twice).
+            if m > 2 {
+                v[m - 1].0 = v[0].0;
+            }
+            let mut want = v.clone();
+            want.sort_by_key(|e| e.0); // stable, as the hash sort is
+            sort_by_hash(&mut v, &mut spare, &mut counts, max_key);
+            assert_eq!(v, want, "{m} keys up to {max_key}");
+        }
     }
 
     #[test]

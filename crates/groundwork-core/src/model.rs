@@ -99,6 +99,32 @@ thread_local! {
     static EM_SCRATCH: std::cell::RefCell<EmScratch> = std::cell::RefCell::new(EmScratch::default());
 }
 
+/// The lowest of `zs` at or above `cut` (∞ if none) and how many lie below it. Eight
+/// running minima and counts, one per lane: a single `min` chain with a branch ran one
+/// point per `minsd` latency (4 % of a scan's time for a pass over every point).
+fn lowest_inlier(zs: &[f64], cut: f64) -> (f64, u32) {
+    const W: usize = 8;
+    let (mut lo, mut below) = ([f64::INFINITY; W], [0u32; W]);
+    let chunks = zs.chunks_exact(W);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for l in 0..W {
+            let inlier = c[l] >= cut;
+            lo[l] = if inlier && c[l] < lo[l] { c[l] } else { lo[l] };
+            below[l] += u32::from(!inlier);
+        }
+    }
+    for (l, &z) in tail.iter().enumerate() {
+        let inlier = z >= cut;
+        lo[l] = if inlier && z < lo[l] { z } else { lo[l] };
+        below[l] += u32::from(!inlier);
+    }
+    (
+        lo.into_iter().fold(f64::INFINITY, f64::min),
+        below.iter().sum(),
+    )
+}
+
 /// Fits the components of one segment and computes their ground likelihoods, with the
 /// outlier rule of §III-D. `lower_bound` comes from the zone-1 height filter.
 fn fit_ground_segment(
@@ -140,14 +166,9 @@ fn fit_ground_segment(
     // Points more than τ_o below the lowest retained mean are outliers (multipath
     // reflections); the segment's ground reference is the lowest remaining point.
     let cut = lowest - cfg.ground.outlier_threshold;
-    let mut min_inlier = f64::INFINITY;
-    for &z in zs {
-        if z >= cut {
-            min_inlier = min_inlier.min(z);
-        } else {
-            stats.outliers += 1;
-        }
-    }
+    let (min_inlier, outliers) = lowest_inlier(zs, cut);
+    stats.outliers = outliers;
+    let mut min_inlier = min_inlier;
     if !min_inlier.is_finite() {
         // Cannot happen (the lowest mean lies above its lowest point), kept for safety.
         min_inlier = lowest;
