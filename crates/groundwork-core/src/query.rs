@@ -342,11 +342,21 @@ pub(crate) fn segment_offsets(
 ) -> usize {
     start.clear();
     start.resize(segments + 1, 0);
+    // Consecutive points mostly share a segment (a sensor sweeps one sector after the
+    // other): a run is counted in a register and added once. A memory increment per
+    // point waited on the previous one's store.
+    let (mut run_seg, mut run) = (0usize, 0u32);
     for &b in bins {
         if let Some(seg) = key(b) {
-            start[seg as usize + 1] += 1;
+            let seg = seg as usize + 1;
+            if seg != run_seg {
+                start[run_seg] += run;
+                (run_seg, run) = (seg, 0);
+            }
+            run += 1;
         }
     }
+    start[run_seg] += run;
     for i in 0..segments {
         start[i + 1] += start[i];
     }
@@ -371,16 +381,23 @@ pub(crate) fn group(
     let mut cursor = s.start[..segments].to_vec();
     // Local slices: through `s` the compiler would reload every pointer after each store.
     let (xs, ys, zs) = (&mut s.x[..], &mut s.y[..], &mut s.z[..]);
+    // The current run's segment keeps its cursor in a register (see `segment_offsets`).
+    let (mut run_seg, mut j) = (usize::MAX, 0usize);
     for ((&b, p), place) in bins.iter().zip(points).zip(&mut s.place) {
         *place = match segment_of(b, policy) {
             Some(seg) => {
-                let c = &mut cursor[seg as usize];
-                let j = *c as usize;
+                let seg = seg as usize;
+                if seg != run_seg {
+                    if let Some(c) = cursor.get_mut(run_seg) {
+                        *c = j as u32;
+                    }
+                    (run_seg, j) = (seg, cursor[seg] as usize);
+                }
                 xs[j] = p[0] as f32;
                 ys[j] = p[1] as f32;
                 zs[j] = p[2] as f32;
-                *c += 1;
-                j as u32
+                j += 1;
+                j as u32 - 1
             }
             None => UNQUERIED,
         };

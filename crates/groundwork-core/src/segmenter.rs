@@ -34,14 +34,22 @@ fn group_in_range(s: &mut SegmentedPoints, bins: &[u32], ground: &[[f64; 3]], se
     let mut cursor: Vec<u32> = s.start[..segments].to_vec();
     // Local slices: through `s` the compiler would reload every pointer after each store.
     let (xs, ys, zs) = (&mut s.xs[..], &mut s.ys[..], &mut s.zs[..]);
+    // Consecutive points mostly share a segment: the current run's cursor stays in a
+    // register (a memory increment per point waited on the previous one's store).
+    let (mut run_seg, mut i) = (usize::MAX, 0usize);
     for (&b, g) in bins.iter().zip(ground) {
         if b & BEYOND == 0 {
-            let c = &mut cursor[b as usize];
-            let i = *c as usize;
+            let seg = b as usize;
+            if seg != run_seg {
+                if let Some(c) = cursor.get_mut(run_seg) {
+                    *c = i as u32;
+                }
+                (run_seg, i) = (seg, cursor[seg] as usize);
+            }
             xs[i] = g[0];
             ys[i] = g[1];
             zs[i] = g[2];
-            *c += 1;
+            i += 1;
         }
     }
 }
@@ -534,11 +542,13 @@ impl Segmenter {
             .zip(self.bins.par_chunks_mut(CHUNK))
             .zip(points.par_chunks(CHUNK))
             .map(|((ground, bins), points)| {
-                let finite = points.iter().fold(true, |ok, p| {
+                // Counted first, fixed up only where there is any: a branch in the
+                // transform loop kept it from being vectorised.
+                let (finite, out_of_bounds) = points.iter().fold((true, 0), |(ok, n), p| {
                     let [x, y, z] = p.xyz();
-                    ok & x.is_finite() & y.is_finite() & z.is_finite()
+                    let ok = ok & x.is_finite() & y.is_finite() & z.is_finite();
+                    (ok, n + usize::from(outside(p)))
                 });
-                let mut out_of_bounds = 0;
                 for (g, p) in ground.iter_mut().zip(points) {
                     let [x, y, z] = p.xyz().map(f64::from);
                     *g = [
@@ -546,9 +556,12 @@ impl Segmenter {
                         r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
                         r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
                     ];
-                    if outside(p) {
-                        *g = [0.0; 3];
-                        out_of_bounds += 1;
+                }
+                if out_of_bounds > 0 {
+                    for (g, p) in ground.iter_mut().zip(points) {
+                        if outside(p) {
+                            *g = [0.0; 3];
+                        }
                     }
                 }
                 binner.bin_all(ground, bins);
