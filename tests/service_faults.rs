@@ -601,6 +601,13 @@ fn shm_files() -> Vec<std::ffi::OsString> {
         .collect()
 }
 
+/// iceoryx2's domain-wide node counter (`iox2_<hash>_node.<version>.global_mgmt`): the first
+/// node on the machine creates it, world-writable by iceoryx2's design, and it outlives every
+/// pipeline. It holds a node counter and no pipeline data, so it is not the pipeline's.
+fn is_iceoryx2_global(f: &std::ffi::OsStr) -> bool {
+    f.to_string_lossy().ends_with(".global_mgmt")
+}
+
 /// Asserts that pipeline `p` left no node (alive or dead) and no shared memory beyond
 /// iceoryx2's management file, waiting up to `limit` for its processes to leave.
 fn assert_nothing_left(p: &str, shm_before: &[std::ffi::OsString], limit: Duration) {
@@ -609,7 +616,7 @@ fn assert_nothing_left(p: &str, shm_before: &[std::ffi::OsString], limit: Durati
         let nodes = groundwork_service::transport::pipeline_nodes(&service(p));
         let new: Vec<_> = shm_files()
             .into_iter()
-            .filter(|f| !shm_before.contains(f) && !f.to_string_lossy().ends_with("global_mgmt"))
+            .filter(|f| !shm_before.contains(f) && !is_iceoryx2_global(f))
             .collect();
         if nodes.is_empty() && new.is_empty() {
             return;
@@ -867,7 +874,12 @@ fn another_user_cannot_attach_to_a_pipeline() {
     stage_pid(&p, "segmenter");
     // The pipeline's shared memory is this user's alone.
     use std::os::unix::fs::MetadataExt;
-    for f in shm_files().iter().filter(|f| !before.contains(f)) {
+    // (On a fresh machine this segmenter may be the first node and create iceoryx2's global
+    // counter, which is not the pipeline's.)
+    for f in shm_files()
+        .iter()
+        .filter(|f| !before.contains(f) && !is_iceoryx2_global(f))
+    {
         let m = std::fs::metadata(Path::new("/dev/shm").join(f)).unwrap();
         assert_eq!(
             m.mode() & 0o077,
