@@ -50,60 +50,122 @@ pub fn convex_hull(pts: &mut [[f64; 2]], hull: &mut Vec<[f64; 2]>) {
     hull.pop(); // the first point again
 }
 
-/// Drops points strictly inside the octagon of the extreme points in eight directions
-/// (Akl–Toussaint): they cannot be on the hull, and a wall's thousands of points shrink to a
-/// few dozen before the hull's sort.
-fn discard_interior(pts: &mut Vec<[f64; 2]>) {
-    if pts.len() < 32 {
+/// Bins along x of the interior filter.
+const BINS: usize = 32;
+
+/// Scratch of [`min_area_rect`], reused between calls.
+#[derive(Debug, Clone, Default)]
+pub struct RectScratch {
+    local: Vec<[f64; 2]>,
+    hull: Vec<[f64; 2]>,
+    sample: Vec<[f64; 2]>,
+    inner: Vec<[f64; 2]>,
+    /// Per bin, the inner hull's edges over it.
+    edges: Vec<BinEdges>,
+}
+
+/// Most inner-hull edges over one bin.
+const EDGES: usize = 8;
+
+/// The inner hull's edges over one bin: origins and directions, x then y.
+#[derive(Debug, Clone, Copy, Default)]
+struct BinEdges {
+    o: [[f64; EDGES]; 2],
+    d: [[f64; EDGES]; 2],
+}
+
+impl BinEdges {
+    /// No point is strictly left of a zero-length edge: the bin keeps all its points.
+    const KEEP: Self = Self {
+        o: [[0.0; EDGES]; 2],
+        d: [[0.0; EDGES]; 2],
+    };
+}
+
+/// Drops points that cannot be on the hull, before the hull's sort (a wall or a hedge row
+/// holds thousands of points, nearly all inside). The lowest and highest point of each of
+/// [`BINS`] slices along x, with the leftmost and rightmost points, span an inner hull; a
+/// point strictly left of every inner-hull edge over its slice (the same products as
+/// [`convex_hull`]'s test) is strictly inside it, so inside the full hull and not one of its
+/// vertices. Edges are given to slices by the very function that gives points theirs, which
+/// is monotone in x: an edge over a point's x is always among those tested.
+fn discard_interior(s: &mut RectScratch) {
+    let pts = &mut s.local;
+    if pts.len() < 4 * BINS {
         return;
     }
-    const DIRS: [[f64; 2]; 8] = [
-        [1.0, 0.0],
-        [1.0, 1.0],
-        [0.0, 1.0],
-        [-1.0, 1.0],
-        [-1.0, 0.0],
-        [-1.0, -1.0],
-        [0.0, -1.0],
-        [1.0, -1.0],
-    ];
-    let mut ext = [pts[0]; 8];
-    let mut best = [f64::MIN; 8];
+    let (mut lo, mut hi) = (pts[0], pts[0]);
     for p in pts.iter() {
-        for (k, d) in DIRS.iter().enumerate() {
-            let v = p[0] * d[0] + p[1] * d[1];
-            if v > best[k] {
-                best[k] = v;
-                ext[k] = *p;
-            }
+        if p[0] < lo[0] {
+            lo = *p;
+        }
+        if p[0] > hi[0] {
+            hi = *p;
         }
     }
-    // The octagon, counter-clockwise (the directions turn counter-clockwise).
-    let mut poly: Vec<[f64; 2]> = ext.to_vec();
-    poly.dedup();
-    if poly.len() > 1 && poly.first() == poly.last() {
-        poly.pop();
-    }
-    if poly.len() < 3 {
+    let width = hi[0] - lo[0];
+    if width <= 0.0 {
         return;
     }
-    // Eight edges always (a short polygon repeats its last edge), tested without branches
-    // so the test vectorises; the same products as `cross`, so the octagon's own vertices
-    // give exactly 0 and stay.
-    let m = poly.len();
-    let edge = |e: usize| {
-        let e = e.min(m - 1);
-        (poly[e], poly[(e + 1) % m])
-    };
-    let (mut ox, mut oy, mut ax, mut ay) = ([0.0; 8], [0.0; 8], [0.0; 8], [0.0; 8]);
-    for e in 0..8 {
-        let (o, a) = edge(e);
-        (ox[e], oy[e], ax[e], ay[e]) = (o[0], o[1], a[0] - o[0], a[1] - o[1]);
+    let scale = BINS as f64 / width;
+    // x − lo ≥ 0: a 32-bit conversion (a 64-bit unsigned one has no instruction here).
+    let bin = |x: f64| (((x - lo[0]) * scale) as i32).min(BINS as i32 - 1) as usize;
+    let mut low = [[0.0, f64::INFINITY]; BINS];
+    let mut high = [[0.0, f64::NEG_INFINITY]; BINS];
+    for p in pts.iter() {
+        let b = bin(p[0]);
+        // Selects, not branches: which point is lowest in its bin is not predictable.
+        low[b] = if p[1] < low[b][1] { *p } else { low[b] };
+        high[b] = if p[1] > high[b][1] { *p } else { high[b] };
     }
+    s.sample.clear();
+    s.sample.extend([lo, hi]);
+    for (l, h) in low.iter().zip(&high) {
+        if l[1].is_finite() {
+            s.sample.extend([*l, *h]);
+        }
+    }
+    convex_hull(&mut s.sample, &mut s.inner);
+    let m = s.inner.len();
+    if m < 3 {
+        return;
+    }
+    // Each bin's edges as (origin, direction), padded to `EDGES` by repeating one; a bin
+    // with more (a curve crossing it in small steps) is not filtered.
+    s.edges.clear();
+    s.edges.resize(BINS, BinEdges::default());
+    let mut count = [0usize; BINS];
+    for k in 0..m {
+        let (o, a) = (s.inner[k], s.inner[(k + 1) % m]);
+        let over = bin(o[0].min(a[0]))..=bin(o[0].max(a[0]));
+        for (e, n) in s.edges[over.clone()].iter_mut().zip(&mut count[over]) {
+            if *n < EDGES {
+                e.o[0][*n] = o[0];
+                e.o[1][*n] = o[1];
+                e.d[0][*n] = a[0] - o[0];
+                e.d[1][*n] = a[1] - o[1];
+            }
+            *n += 1;
+        }
+    }
+    for (e, &n) in s.edges.iter_mut().zip(&count) {
+        if n == 0 || n > EDGES {
+            *e = BinEdges::KEEP;
+        }
+        for k in n..EDGES {
+            e.o[0][k] = e.o[0][0];
+            e.o[1][k] = e.o[1][0];
+            e.d[0][k] = e.d[0][0];
+            e.d[1][k] = e.d[1][0];
+        }
+    }
+    let edges = &s.edges;
     pts.retain(|p| {
+        let e = &edges[bin(p[0])];
+        // `cross(o, o + d, p) > 0` for every edge, without a branch.
         let mut inside = true;
-        for e in 0..8 {
-            inside &= ax[e] * (p[1] - oy[e]) - ay[e] * (p[0] - ox[e]) > 0.0;
+        for k in 0..EDGES {
+            inside &= e.d[0][k] * (p[1] - e.o[1][k]) - e.d[1][k] * (p[0] - e.o[0][k]) > 0.0;
         }
         !inside
     });
@@ -112,18 +174,18 @@ fn discard_interior(pts: &mut Vec<[f64; 2]>) {
 /// The minimum-area rectangle around `pts` (x, y). `scratch` is reused between calls.
 /// Computed about the points' first point in f64, so boxes far from the origin keep
 /// centimetre precision.
-pub fn min_area_rect(pts: &[[f32; 2]], scratch: &mut (Vec<[f64; 2]>, Vec<[f64; 2]>)) -> Rect {
+pub fn min_area_rect(pts: &[[f32; 2]], scratch: &mut RectScratch) -> Rect {
     let Some(&[ox, oy]) = pts.first() else {
         return Rect::default();
     };
-    let (local, hull) = scratch;
-    local.clear();
-    local.extend(
+    scratch.local.clear();
+    scratch.local.extend(
         pts.iter()
             .map(|p| [f64::from(p[0] - ox), f64::from(p[1] - oy)]),
     );
-    discard_interior(local);
-    convex_hull(local, hull);
+    discard_interior(scratch);
+    let hull = &mut scratch.hull;
+    convex_hull(&mut scratch.local, hull);
     /// A candidate rectangle: area, axis, centre, extents along and across the axis.
     struct Candidate {
         area: f64,
@@ -242,7 +304,51 @@ mod tests {
         assert!((line.yaw - std::f32::consts::FRAC_PI_4).abs() < 1e-5);
     }
 
+    /// The hull of `pts` with and without the interior filter.
+    fn hulls(pts: &[[f64; 2]]) -> (Vec<[f64; 2]>, Vec<[f64; 2]>, usize) {
+        let mut plain = (pts.to_vec(), Vec::new());
+        convex_hull(&mut plain.0, &mut plain.1);
+        let mut s = RectScratch {
+            local: pts.to_vec(),
+            ..Default::default()
+        };
+        discard_interior(&mut s);
+        let kept = s.local.len();
+        convex_hull(&mut s.local, &mut s.hull);
+        (plain.1, s.hull, kept)
+    }
+
+    #[test]
+    fn the_interior_filter_keeps_the_hull_of_a_dense_footprint() {
+        // A car's footprint and a wall's band, filled: most points go, the hull stays.
+        let car = box_points([12.0, -3.0], 0.3, 4.4, 1.8);
+        for shape in [car, box_points([30.0, 8.0], 1.2, 25.0, 0.6)] {
+            let pts: Vec<[f64; 2]> = shape
+                .iter()
+                .map(|p| [f64::from(p[0]), f64::from(p[1])])
+                .collect();
+            let (plain, filtered, kept) = hulls(&pts);
+            assert_eq!(plain, filtered);
+            assert!(kept * 2 < pts.len(), "{kept} of {}", pts.len());
+        }
+    }
+
     proptest! {
+        #[test]
+        fn the_interior_filter_never_changes_the_hull(
+            pts in prop::collection::vec((-20i32..20, -20i32..20, 0.0f64..1.0), 0..600),
+            step in prop::sample::select(vec![0.05f64, 0.15, 1.0]),
+        ) {
+            // Coarse coordinates: duplicates, collinear runs and vertical edges are common.
+            let pts: Vec<[f64; 2]> = pts
+                .iter()
+                .map(|&(x, y, jitter)| [f64::from(x) * step, f64::from(y) * step + jitter * f64::from(x % 3 == 0)])
+                .collect();
+            let (plain, filtered, kept) = hulls(&pts);
+            prop_assert_eq!(plain, filtered);
+            prop_assert!(kept <= pts.len());
+        }
+
         #[test]
         fn every_point_lies_in_its_box(pts in prop::collection::vec((-50.0f32..50.0, -50.0f32..50.0), 1..200)) {
             let pts: Vec<[f32; 2]> = pts.into_iter().map(|(x, y)| [x, y]).collect();

@@ -102,8 +102,33 @@ fn sort_by_cell(entries: &mut Vec<Entry>, spare: &mut Vec<Entry>, bits: u32) {
     }
 }
 
+/// Sorts one cell's entries by height, ties in input order (they arrive in input order: the
+/// radix sort is stable). Most cells hold a handful of points: an insertion sort on an
+/// integer key that orders like `f32::total_cmp`; a wall's crowded cells take the library
+/// sort.
+fn sort_by_height(run: &mut [Entry]) {
+    if run.len() > 24 {
+        run.sort_unstable_by(|a, b| a.z.total_cmp(&b.z).then(a.point.cmp(&b.point)));
+        return;
+    }
+    let key = |e: &Entry| {
+        let b = e.z.to_bits() as i32;
+        b ^ (((b >> 31) as u32) >> 1) as i32
+    };
+    for k in 1..run.len() {
+        let e = run[k];
+        let ke = key(&e);
+        let mut m = k;
+        while m > 0 && key(&run[m - 1]) > ke {
+            run[m] = run[m - 1];
+            m -= 1;
+        }
+        run[m] = e;
+    }
+}
+
 /// The grid rows around the current query row, dense: a ring of 2·`reach_max` + 1 rows,
-/// each an occupancy bitmap and, per occupied column, the index of its cell. Queries come
+/// each an occupancy bitmap and, per occupied column, its cell. Queries come
 /// in ascending row order, so each row is loaded once; a look at a neighbour is a bit test
 /// in a row that stays in cache (a dense grid of the whole scan, 13.7 MB, cost a cache
 /// miss per look).
@@ -115,7 +140,8 @@ struct RowRing {
     /// Bitmap words per row (one spare: a window may read one word past the row).
     words: usize,
     bits: Vec<u64>,
-    slot: Vec<u32>,
+    /// Per occupied column, a copy of its cell (one load less per neighbour look).
+    slot: Vec<Occupied>,
     /// The grid row each ring row holds.
     held: Vec<i32>,
 }
@@ -128,20 +154,28 @@ impl RowRing {
         self.words = side.div_ceil(64) + 1;
         self.bits.clear();
         self.bits.resize(self.rows * self.words, 0);
-        self.slot.resize(self.rows * side, 0); // read only where a bit is set
+        // Read only where a bit is set.
+        self.slot.resize(
+            self.rows * side,
+            Occupied {
+                cell: 0,
+                first: 0,
+                len: 0,
+            },
+        );
         self.held.clear();
         self.held.resize(self.rows, -1);
     }
 
     /// The occupied cells of row `row`, columns `c0` ..= `c1` (`c1` − `c0` < 64), as
-    /// (column offset from `c0`, index into `occupied.cells`), loading the row if it is new.
+    /// (column offset from `c0`, the cell), loading the row if it is new.
     #[inline]
     fn row(
         &mut self,
         occupied: &Occupancy,
         row: i32,
         (c0, c1): (i32, i32),
-    ) -> impl Iterator<Item = (i32, usize)> + use<'_> {
+    ) -> impl Iterator<Item = (i32, Occupied)> + use<'_> {
         let mut bits = 0;
         let mut base = 0;
         if (0..self.side as i32).contains(&row) && c0 <= c1 {
@@ -167,7 +201,7 @@ impl RowRing {
             }
             let d = bits.trailing_zeros() as i32;
             bits &= bits - 1;
-            Some((d, slot[base + (c0 + d) as usize] as usize))
+            Some((d, slot[base + (c0 + d) as usize]))
         })
     }
 
@@ -177,10 +211,10 @@ impl RowRing {
         words.fill(0);
         let first = row as usize * self.side;
         let range = occupied.row(row as usize);
-        for (c, idx) in occupied.cells[range.clone()].iter().zip(range) {
+        for c in &occupied.cells[range] {
             let col = c.cell as usize - first;
             words[col / 64] |= 1 << (col % 64);
-            self.slot[k * self.side + col] = idx as u32;
+            self.slot[k * self.side + col] = *c;
         }
         self.held[k] = row;
     }
@@ -303,9 +337,8 @@ fn join_cells(
             (a.len == 1).then(|| (find(&mut band.parent, a.first), segments[a.first as usize]));
         for (di, &(half, ref hs)) in window.rows.iter().enumerate() {
             let c0 = if di == 0 { j + 1 } else { j - half };
-            for (d, k) in band.ring.row(occupied, i + di as i32, (c0, j + half)) {
+            for (d, b) in band.ring.row(occupied, i + di as i32, (c0, j + half)) {
                 let h = hs[(c0 + d - j).unsigned_abs() as usize];
-                let b = occupied.cells[k];
                 if let Some((root, sa)) = single.as_mut() {
                     *root = link_near(&mut band.parent, segments, *root, *sa, b, h, inv_dv);
                     continue;
@@ -400,7 +433,7 @@ impl ClusterGrid {
         // into `labels` for now.
         self.occupied.cells.clear();
         self.segments.clear();
-        self.reach_max = 1;
+        let mut r_max = 0.0f32;
         let mut rest = &mut self.entries[..];
         while let Some(first) = rest.first() {
             let cell = first.cell;
@@ -410,13 +443,11 @@ impl ClusterGrid {
                 .unwrap_or(rest.len());
             let (run, tail) = rest.split_at_mut(len);
             rest = tail;
-            run.sort_unstable_by(|a, b| a.z.total_cmp(&b.z).then(a.point.cmp(&b.point)));
+            sort_by_height(run);
             let (i, j) = self.grid.ij(cell);
             let r = self.grid.range(i, j);
             let gap = cfg.vertical_distance_at(r);
-            self.reach_max = self
-                .reach_max
-                .max(reach(cfg.distance_at(r), self.grid.cell));
+            r_max = r_max.max(r);
             let first = self.segments.len() as u32;
             for e in run.iter() {
                 let in_cell = self.segments.len() as u32 > first;
@@ -437,6 +468,8 @@ impl ClusterGrid {
                 len: self.segments.len() as u32 - first,
             });
         }
+        // The distance grows with range: the farthest cell has the widest look-around.
+        self.reach_max = reach(cfg.distance_at(r_max), self.grid.cell).max(1);
         self.occupied.index_rows(self.grid.side);
 
         // Join segments of neighbouring cells (each pair of cells looked at once: the rows
@@ -523,12 +556,11 @@ impl ClusterGrid {
             let mut best: Option<(f32, u32)> = None;
             for di in -reach..=reach {
                 let gx = (di.abs() - 1).max(0) as f32 * self.grid.cell;
-                for (d, k) in self
+                for (d, b) in self
                     .ring
                     .row(&self.occupied, i + di, (j - reach, j + reach))
                 {
                     let gy = ((d - reach).abs() - 1).max(0) as f32 * self.grid.cell;
-                    let b = self.occupied.cells[k];
                     for t in b.first..b.first + b.len {
                         let s = self.segments[t as usize];
                         let v = (s.z_min - e.z).max(e.z - s.z_max).max(0.0) / dv;

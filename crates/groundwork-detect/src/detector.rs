@@ -11,7 +11,6 @@ use crate::bbox::{Rect, min_area_rect};
 use crate::cluster::ClusterGrid;
 use crate::config::DetectorConfig;
 use crate::ground_map::GroundMap;
-use rayon::prelude::*;
 
 /// Why a scan could not be processed (the detector's state is unchanged).
 #[derive(Debug, Error)]
@@ -199,6 +198,7 @@ pub struct Detector {
     members: Vec<(u32, Maybe)>,
     footprint: Vec<[f32; 2]>,
     rects: Vec<Rect>,
+    scratch: crate::bbox::RectScratch,
 }
 
 impl Detector {
@@ -230,6 +230,7 @@ impl Detector {
             members: Vec::new(),
             footprint: Vec::new(),
             rects: Vec::new(),
+            scratch: Default::default(),
         })
     }
 
@@ -403,15 +404,15 @@ impl Detector {
             self.footprint[*slot] = [m.xyz[0], m.xyz[1]];
             *slot += 1;
         }
-        // `start[id]` is now the end of id's group (and the start of id + 1's). Boxes are
-        // independent: both cores share them (a wall's box costs as much as a hundred cars').
+        // `start[id]` is now the end of id's group (and the start of id + 1's). One thread:
+        // with the hull's interior filter a wall's box is cheap, and handing ~150 boxes to
+        // the other core cost more in wake-up and cache transfer than it gained.
         let footprint = &self.footprint;
-        (0..order.len())
-            .into_par_iter()
-            .map_init(Default::default, |scratch, k| {
-                min_area_rect(&footprint[start[k]..start[k + 1]], scratch)
-            })
-            .collect_into_vec(&mut self.rects);
+        self.rects.clear();
+        let scratch = &mut self.scratch;
+        self.rects.extend(
+            (0..order.len()).map(|k| min_area_rect(&footprint[start[k]..start[k + 1]], scratch)),
+        );
         out.proposals.clear();
         for (k, (&(_, _, c), rect)) in order.iter().zip(&self.rects).enumerate() {
             let Some(e) = extents[c as usize] else {
