@@ -39,6 +39,12 @@ pub struct ServiceConfig {
     pub rate_hz: f64,
     /// Seconds between periodic state logs.
     pub report_interval_s: f64,
+    /// Milliseconds before a periodic scan is due that the segmenter and detector stages
+    /// wake their worker threads and keep them spinning until the scan is processed (0:
+    /// never). Cores that idled through a period come back slowly on virtual machines and
+    /// hosts with deep idle states; this costs at most twice this time per period and core
+    /// (see `awake`).
+    pub prewarm_ms: f64,
     /// Sensor preset the segmenter stage uses (`groundwork sensors` lists them; absent:
     /// hdl64e). `--sensor` and `--config` of the stage override it.
     pub sensor: Option<String>,
@@ -56,6 +62,7 @@ impl Default for ServiceConfig {
             max_subscribers: 4,
             rate_hz: 10.0,
             report_interval_s: 2.0,
+            prewarm_ms: 3.0,
             sensor: None,
         }
     }
@@ -103,10 +110,19 @@ impl ServiceConfig {
             self.report_interval_s.is_finite() && self.report_interval_s > 0.0,
             "report_interval_s must be > 0"
         );
+        anyhow::ensure!(
+            self.prewarm_ms.is_finite() && (0.0..=50.0).contains(&self.prewarm_ms),
+            "prewarm_ms must be in 0..=50"
+        );
         if let Some(name) = &self.sensor {
             groundwork_io::sensor_preset(name).map_err(|e| anyhow::anyhow!("sensor: {e}"))?;
         }
         Ok(())
+    }
+
+    /// How long before a due scan the stages start spinning.
+    pub fn prewarm(&self) -> std::time::Duration {
+        std::time::Duration::from_secs_f64(self.prewarm_ms / 1e3)
     }
 
     /// Shared memory the publishers may need at worst (bytes): per topic, chunk size ×

@@ -19,6 +19,7 @@ use groundwork_msg::{
 use serde::Serialize;
 use tracing::{info, warn};
 
+use crate::awake::{ScanWait, Woken};
 use crate::config::{ServiceConfig, check_shared_memory};
 use crate::window::ScanWindow;
 use crate::{signals, transport};
@@ -207,10 +208,14 @@ pub fn run(cfg: &ServiceConfig, opts: &DetectorOptions) -> anyhow::Result<Detect
     info!(prefix = %cfg.prefix, "detector started");
 
     let done = |stage: &DetectorStage| opts.count.is_some_and(|c| stage.report().masks >= c);
-    let drain = |stage: &mut DetectorStage| -> anyhow::Result<()> {
+    let mut wait = ScanWait::new(cfg.prewarm(), Duration::from_millis(250));
+    let drain = |stage: &mut DetectorStage, wait: &mut ScanWait| -> anyhow::Result<()> {
         loop {
             let next = mask_sub.receive().context("receive mask")?;
             let received_ns = monotonic_ns();
+            if next.is_some() {
+                wait.arrived(std::time::Instant::now());
+            }
             while let Some(scan) = scan_sub.receive().context("receive scan")? {
                 stage.on_scan(scan.user_header(), scan.payload());
             }
@@ -244,14 +249,15 @@ pub fn run(cfg: &ServiceConfig, opts: &DetectorOptions) -> anyhow::Result<Detect
         }
     };
 
-    drain(&mut stage)?;
+    drain(&mut stage, &mut wait)?;
     let interval = Duration::from_secs_f64(cfg.report_interval_s);
     let mut last_report = std::time::Instant::now();
     while !done(&stage) {
-        if !transport::wait_or_stop(&mask_listener, Duration::from_millis(250))? {
+        let Woken::Look(spinner) = wait.wait(&mask_listener)? else {
             break;
-        }
-        drain(&mut stage)?;
+        };
+        drain(&mut stage, &mut wait)?;
+        drop(spinner);
         if last_report.elapsed() >= interval {
             last_report = std::time::Instant::now();
             let r = stage.report();

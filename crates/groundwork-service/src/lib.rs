@@ -3,6 +3,7 @@
 //! publish-subscribe topics (see `groundwork-msg`), woken by iceoryx2 events; the detector
 //! stage ([`detector`]) turns scans and masks into object proposals.
 
+pub mod awake;
 pub mod config;
 pub mod consumer;
 pub mod detector;

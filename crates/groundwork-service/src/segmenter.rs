@@ -17,6 +17,7 @@ use groundwork_msg::{
 use serde::Serialize;
 use tracing::{info, warn};
 
+use crate::awake::{ScanWait, Woken};
 use crate::config::{ServiceConfig, check_shared_memory};
 use crate::{signals, transport};
 
@@ -311,9 +312,11 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
     info!(prefix = %cfg.prefix, frames = opts.segmenter.history.frames, echo = opts.echo, "segmenter started");
 
     let done = |stage: &SegmenterStage| opts.count.is_some_and(|c| stage.report().received >= c);
-    let handle_scans = |stage: &mut SegmenterStage| -> anyhow::Result<()> {
+    let mut wait = ScanWait::new(cfg.prewarm(), Duration::from_millis(250));
+    let handle_scans = |stage: &mut SegmenterStage, wait: &mut ScanWait| -> anyhow::Result<()> {
         while let Some(scan) = subscriber.receive().context("receive scan")? {
             let received_ns = monotonic_ns();
+            wait.arrived(std::time::Instant::now());
             let h = *scan.user_header();
             let points: &[ScanPoint] = scan.payload();
             let n = stage.mask_len(&h, points);
@@ -343,17 +346,19 @@ pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<Segme
     };
 
     // Scans published before our listener existed wake nobody: look once at start.
-    handle_scans(&mut stage)?;
+    handle_scans(&mut stage, &mut wait)?;
     let interval = Duration::from_secs_f64(cfg.report_interval_s);
     let mut last_report = std::time::Instant::now();
     while !done(&stage) {
-        // The bounded wait also lets the periodic work run while idle.
-        if !transport::wait_or_stop(&scan_listener, Duration::from_millis(250))? {
+        // The bounded wait also lets the periodic work run while idle; the pool's workers
+        // spin from just before a periodic scan is due until it is processed.
+        let Woken::Look(spinner) = wait.wait(&scan_listener)? else {
             break;
-        }
+        };
         // Also serves scans whose wake-up was missed (e.g. a producer restarted between
         // our listener's cleanups): nothing strands in the queue.
-        handle_scans(&mut stage)?;
+        handle_scans(&mut stage, &mut wait)?;
+        drop(spinner);
         if last_report.elapsed() >= interval {
             last_report = std::time::Instant::now();
             stage.log_state();

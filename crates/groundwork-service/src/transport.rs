@@ -318,6 +318,9 @@ pub fn wait_or_stop(
     if crate::signals::stop_requested() {
         return Ok(false);
     }
+    if timeout.is_zero() {
+        return Ok(true); // nothing to wait for (and a zero wait must not mean "forever")
+    }
     let woke = listener.timed_wait(|_| {}, timeout);
     if crate::signals::stop_requested() {
         tracing::info!("termination requested");
