@@ -29,6 +29,10 @@ struct Args {
     /// service's producer paces the sensor (0: back to back).
     #[arg(long, default_value_t = 0.0, requires = "sequence")]
     period_ms: f64,
+    /// A configuration file (TOML) laid over the HDL-64E preset, as `groundwork --config`
+    /// takes it: times a setting against the preset with the same binary.
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Scan files, each segmented single-frame (no previous frame).
     #[arg(required_unless_present = "sequence")]
     scans: Vec<PathBuf>,
@@ -41,7 +45,10 @@ fn main() -> anyhow::Result<()> {
         std::process::exit(3);
     }
     let args = Args::parse();
-    let cfg = groundwork_benches::preset()?;
+    let cfg = match &args.config {
+        Some(path) => groundwork_io::load_config_over(Some("hdl64e"), Some(path))?,
+        None => groundwork_benches::preset()?,
+    };
     let max = cfg.sensor.max_points;
     let mut times = Vec::new();
     if let Some(dir) = &args.sequence {
