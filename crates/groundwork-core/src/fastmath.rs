@@ -7,27 +7,69 @@
 use crate::simd::{Vf, Vi};
 use wide::bytemuck::cast;
 
+/// What the exponential needs of its lanes: `f32` itself or a `wide` vector of them. One
+/// body serves the EM (8 lanes), the query (16) and scalar callers, so their bits agree.
+pub trait ExpLanes:
+    Copy + std::ops::Add<Output = Self> + std::ops::Sub<Output = Self> + std::ops::Mul<Output = Self>
+{
+    fn splat(v: f32) -> Self;
+    /// self·m + a, rounded once.
+    fn fma(self, m: Self, a: Self) -> Self;
+    fn max_with(self, o: Self) -> Self;
+    /// The float whose bits are self's shifted left by 23.
+    fn shl23(self) -> Self;
+}
+
+impl ExpLanes for f32 {
+    #[inline(always)]
+    fn splat(v: f32) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn fma(self, m: Self, a: Self) -> Self {
+        self.mul_add(m, a)
+    }
+    #[inline(always)]
+    fn max_with(self, o: Self) -> Self {
+        self.max(o)
+    }
+    #[inline(always)]
+    fn shl23(self) -> Self {
+        f32::from_bits(self.to_bits() << 23)
+    }
+}
+
+macro_rules! exp_lanes_for_wide {
+    ($f:ty, $i:ty) => {
+        impl ExpLanes for $f {
+            #[inline(always)]
+            fn splat(v: f32) -> Self {
+                <$f>::splat(v)
+            }
+            #[inline(always)]
+            fn fma(self, m: Self, a: Self) -> Self {
+                self.mul_add(m, a)
+            }
+            #[inline(always)]
+            fn max_with(self, o: Self) -> Self {
+                self.max(o)
+            }
+            #[inline(always)]
+            fn shl23(self) -> Self {
+                cast::<$i, $f>(cast::<$f, $i>(self) << 23)
+            }
+        }
+    };
+}
+exp_lanes_for_wide!(wide::f32x8, wide::i32x8);
+exp_lanes_for_wide!(Vf, Vi);
+
 /// e^x for x ≤ 0 (the callers subtract the maximum first). Inputs below −87 return about
 /// 1e-38; NaN is not expected. Relative error below 2e-6 on [−20, 0] and below 2e-5 on
 /// [−87, −20] (the rounding of x·log2(e)), where weights are negligible anyway.
 #[inline(always)]
-pub fn exp_nonpositive(x: f32) -> f32 {
-    exp2_from((x * std::f32::consts::LOG2_E).max(-126.0))
-}
-
-/// [`exp2_v_from`] for one value, in scalar code that the compiler vectorises: 2^t for t
-/// in [−126, 127].
-#[inline(always)]
-fn exp2_from(t: f32) -> f32 {
-    let shifted = t + EXP2_ROUND;
-    let f = t - (shifted - EXP2_ROUND); // in [−0.5, 0.5]
-    let [c5, c4, c3, c2, c1] = EXP2_POLY;
-    let p = f.mul_add(c5, c4);
-    let p = f.mul_add(p, c3);
-    let p = f.mul_add(p, c2);
-    let p = f.mul_add(p, c1);
-    let p = f.mul_add(p, 1.0);
-    p * f32::from_bits(shifted.to_bits() << 23)
+pub fn exp_nonpositive<T: ExpLanes>(x: T) -> T {
+    exp2_from((x * T::splat(std::f32::consts::LOG2_E)).max_with(T::splat(-126.0)))
 }
 
 /// Adding it rounds t to the nearest integer i: the low mantissa bits of the sum then hold
@@ -52,23 +94,23 @@ const EXP2_POLY: [f32; 5] = [
 /// about 1e-38; NaN is not expected.
 #[inline(always)]
 pub fn exp2_v(t: Vf) -> Vf {
-    exp2_v_from(t.max(Vf::splat(-126.0)))
+    exp2_from(t.max(Vf::splat(-126.0)))
 }
 
-/// [`exp2_v`] for t in [−126, 127], without the clamp; the integer part is rounded with
+/// 2^t for t in [−126, 127], without a clamp; the integer part is rounded with
 /// [`EXP2_ROUND`].
 #[inline(always)]
-pub fn exp2_v_from(t: Vf) -> Vf {
-    let round = Vf::splat(EXP2_ROUND);
+pub fn exp2_from<T: ExpLanes>(t: T) -> T {
+    let round = T::splat(EXP2_ROUND);
     let shifted = t + round;
     let f = t - (shifted - round); // in [−0.5, 0.5]
-    let [c5, c4, c3, c2, c1] = EXP2_POLY.map(Vf::splat);
-    let p = f.mul_add(c5, c4);
-    let p = f.mul_add(p, c3);
-    let p = f.mul_add(p, c2);
-    let p = f.mul_add(p, c1);
-    let p = f.mul_add(p, Vf::ONE);
-    p * cast::<Vi, Vf>(cast::<Vf, Vi>(shifted) << 23)
+    let [c5, c4, c3, c2, c1] = EXP2_POLY.map(T::splat);
+    let p = f.fma(c5, c4);
+    let p = f.fma(p, c3);
+    let p = f.fma(p, c2);
+    let p = f.fma(p, c1);
+    let p = f.fma(p, T::splat(1.0));
+    p * shifted.shl23()
 }
 
 /// ln x for finite x ≥ 1e-30 (the callers pass sums of responsibilities ≥ 1).

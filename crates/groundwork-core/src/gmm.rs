@@ -407,8 +407,10 @@ pub fn fit_segment_with(
         // LN_GROUP blocks are multiplied per lane (at most 64^16 = 2^96, no overflow) and
         // one ln taken of the product, instead of one per point (the ln's division was 15 %
         // of EM).
-        let mut ll_lanes = [0.0f32; LANES];
-        let mut prod = [1.0f32; LANES];
+        // In explicit vectors: written per lane, LLVM left the division scalar.
+        let one = f32x8::splat(1.0);
+        let mut ll_v = f32x8::splat(0.0);
+        let mut prod = one;
         for (b, ((inv, m), w)) in s
             .inv
             .chunks_exact_mut(LANES)
@@ -416,21 +418,21 @@ pub fn fit_segment_with(
             .zip(s.w.chunks_exact(LANES))
             .enumerate()
         {
-            for l in 0..LANES {
-                ll_lanes[l] += w[l] * m[l];
-                prod[l] *= if w[l] > 0.0 { inv[l] } else { 1.0 };
-                inv[l] = w[l] / inv[l];
-            }
+            let (Some(sum), Some(m), Some(w)) =
+                (inv.first_chunk(), m.first_chunk(), w.first_chunk())
+            else {
+                break; // cannot happen: exact chunks of LANES
+            };
+            let (sum, m, w) = (f32x8::new(*sum), f32x8::new(*m), f32x8::new(*w));
+            ll_v += w * m;
+            prod *= w.simd_gt(f32x8::splat(0.0)).select(sum, one);
+            inv.copy_from_slice(&(w / sum).to_array());
             if b % LN_GROUP == LN_GROUP - 1 {
-                for l in 0..LANES {
-                    ll_lanes[l] += ln_positive(prod[l]);
-                    prod[l] = 1.0;
-                }
+                ll_v += f32x8::new(prod.to_array().map(ln_positive));
+                prod = one;
             }
         }
-        for l in 0..LANES {
-            ll_lanes[l] += ln_positive(prod[l]);
-        }
+        let ll_lanes = (ll_v + f32x8::new(prod.to_array().map(ln_positive))).to_array();
         let ll: f64 = ll_lanes.iter().map(|&v| f64::from(v)).sum();
         // One vectorised count per component: a scattered `owned[best] += 1` serialises
         // on store-to-load forwarding.

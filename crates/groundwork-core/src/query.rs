@@ -21,7 +21,7 @@ use crate::config::BeyondRangePolicy;
 use crate::simd::{LANES, Vf, Vi, load, store};
 use wide::bytemuck::cast;
 
-use crate::fastmath::{exp2_v, exp2_v_from};
+use crate::fastmath::{exp2_from, exp2_v};
 use crate::model::FrameModel;
 use crate::zones::LaneBinner;
 
@@ -588,7 +588,7 @@ impl LaneSums {
         let d = log_density(q, x, y, z) - reference;
         // Below the floor a weight counts as 2^-86 (≤ 1e-26 of the sums, which hold the
         // reference's weight 1): no compare, and no denormal products.
-        self.add_weight(exp2_v_from(d.fast_max(Vf::splat(-LOG_FLOOR))) & hit, q);
+        self.add_weight(exp2_from(d.fast_max(Vf::splat(-LOG_FLOOR))) & hit, q);
         d
     }
 
