@@ -117,6 +117,34 @@ impl Evaluator {
     }
 }
 
+/// U (rows' non-zero entries) and b = U·mean with UᵀU = P/2, for P given by its upper
+/// triangle. A precision that is not positive definite (not produced by the fit, which
+/// regularises covariances) is factored through its diagonal, clamped at 0.
+pub(crate) fn half_precision_factor(p: &[f64; 6], mean: &[f64; 3]) -> ([f64; 6], [f64; 3]) {
+    // Cholesky by hand: nalgebra's generic factorisation, called per component and EM
+    // iteration, was 4 % of a scan.
+    let h = p.map(|v| 0.5 * v);
+    let u0 = h[0].sqrt();
+    let (u1, u2) = (h[1] / u0, h[2] / u0);
+    let u3 = (h[3] - u1 * u1).sqrt();
+    let u4 = (h[4] - u1 * u2) / u3;
+    let u5 = (h[5] - u2 * u2 - u4 * u4).sqrt();
+    let u = [u0, u1, u2, u3, u4, u5];
+    // `> 0` is false for NaN too: not positive definite.
+    let u = if u0 > 0.0 && u3 > 0.0 && u5 > 0.0 {
+        u
+    } else {
+        let d = |v: f64| v.max(0.0).sqrt();
+        [d(h[0]), 0.0, 0.0, d(h[3]), 0.0, d(h[5])]
+    };
+    let b = [
+        u[0] * mean[0] + u[1] * mean[1] + u[2] * mean[2],
+        u[3] * mean[1] + u[4] * mean[2],
+        u[5] * mean[2],
+    ];
+    (u, b)
+}
+
 /// Lanes of the hand-shaped reductions: 8 × f32 fills an AVX register and two SSE ones.
 const LANES: usize = 8;
 
@@ -198,8 +226,12 @@ fn point_hash(x: f64, y: f64, z: f64) -> u64 {
 /// f32 parameters of one component for the vectorised E-step.
 #[derive(Debug, Clone, Copy)]
 struct Lanes {
+    /// The mean (the M-step's moments are taken about it).
     m: [f32; 3],
-    p: [f32; 6],
+    /// log π N(x) = c − |U·x − b|² (see [`half_precision_factor`]): nine fused
+    /// multiply-adds per point.
+    u: [f32; 6],
+    b: [f32; 3],
     c: f32,
 }
 
@@ -339,9 +371,11 @@ pub fn fit_segment_with(
         lanes.clear();
         lanes.extend(comps.iter().map(|g| {
             let e = Evaluator::new(g).unwrap_or_else(|| Evaluator::unit(g));
+            let (u, b) = half_precision_factor(&e.precision, &e.mean);
             Lanes {
                 m: e.mean.map(|v| v as f32),
-                p: e.precision.map(|v| v as f32),
+                u: u.map(|v| v as f32),
+                b: b.map(|v| v as f32),
                 c: e.log_coef as f32,
             }
         }));
@@ -349,14 +383,12 @@ pub fn fit_segment_with(
         // E-step, pass 1: log π_c N(x | μ_c, Σ_c) for every component and point.
         for (c, lc) in lanes.iter().enumerate() {
             let row = &mut s.resp[c * np..(c + 1) * np];
-            let p = lc.p;
+            let (u, b) = (lc.u, lc.b);
             for (((r, &x), &y), &z) in row.iter_mut().zip(&s.x).zip(&s.y).zip(&s.z) {
-                let (dx, dy, dz) = (x - lc.m[0], y - lc.m[1], z - lc.m[2]);
-                let q = p[0] * dx * dx
-                    + p[3] * dy * dy
-                    + p[5] * dz * dz
-                    + 2.0 * (p[1] * dx * dy + p[2] * dx * dz + p[4] * dy * dz);
-                *r = lc.c - 0.5 * q;
+                let u3 = u[5].mul_add(z, -b[2]);
+                let u2 = u[3].mul_add(y, u[4].mul_add(z, -b[1]));
+                let u1 = u[0].mul_add(x, u[1].mul_add(y, u[2].mul_add(z, -b[0])));
+                *r = (-u1).mul_add(u1, (-u2).mul_add(u2, (-u3).mul_add(u3, lc.c)));
             }
         }
         // Best component per point (for the log-sum-exp and for pruning).
@@ -469,12 +501,12 @@ pub fn fit_segment_with(
                     s1[l] += gx;
                     s2[l] += gy;
                     s3[l] += gz;
-                    s4[l] += gx * dx;
-                    s5[l] += gx * dy;
-                    s6[l] += gx * dz;
-                    s7[l] += gy * dy;
-                    s8[l] += gy * dz;
-                    s9[l] += gz * dz;
+                    s4[l] = gx.mul_add(dx, s4[l]);
+                    s5[l] = gx.mul_add(dy, s5[l]);
+                    s6[l] = gx.mul_add(dz, s6[l]);
+                    s7[l] = gy.mul_add(dy, s7[l]);
+                    s8[l] = gy.mul_add(dz, s8[l]);
+                    s9[l] = gz.mul_add(dz, s9[l]);
                 }
             }
             let sum = |a: [f32; LANES]| a.iter().map(|&v| f64::from(v)).sum::<f64>();

@@ -14,7 +14,7 @@
 //! component; past frames add to them without rescaling, and a log-sum-exp merge takes over
 //! only where a component would exceed the reference by 2^86 (e^60).
 
-use nalgebra::{Isometry3, Matrix3};
+use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
@@ -22,6 +22,7 @@ use crate::simd::{LANES, Vf, Vi, load, store};
 use wide::bytemuck::cast;
 
 use crate::fastmath::{exp2_from, exp2_v};
+use crate::gmm::half_precision_factor;
 use crate::model::FrameModel;
 use crate::zones::LaneBinner;
 
@@ -132,32 +133,6 @@ impl QueryTable {
             self.peak.get(s as usize).copied().unwrap_or(EMPTY),
         )
     }
-}
-
-/// U (rows' non-zero entries) and b = U·mean with UᵀU = P/2, for P given by its upper
-/// triangle. A precision that is not positive definite (not produced by the fit, which
-/// regularises covariances) is factored through its diagonal, clamped at 0.
-fn half_precision_factor(p: &[f64; 6], mean: &[f64; 3]) -> ([f64; 6], [f64; 3]) {
-    let half = Matrix3::new(p[0], p[1], p[2], p[1], p[3], p[4], p[2], p[4], p[5]) * 0.5;
-    let l = half.cholesky().map_or_else(
-        || Matrix3::from_diagonal(&half.diagonal().map(|d| d.max(0.0).sqrt())),
-        |c| c.l(),
-    );
-    // U = Lᵀ: row i holds column i of L from the diagonal down.
-    let u = [
-        l[(0, 0)],
-        l[(1, 0)],
-        l[(2, 0)],
-        l[(1, 1)],
-        l[(2, 1)],
-        l[(2, 2)],
-    ];
-    let b = [
-        u[0] * mean[0] + u[1] * mean[1] + u[2] * mean[2],
-        u[3] * mean[1] + u[4] * mean[2],
-        u[5] * mean[2],
-    ];
-    (u, b)
 }
 
 /// One model to query, with the transform from the query scan's ground-aligned frame into
