@@ -62,7 +62,7 @@ impl Default for ServiceConfig {
             max_subscribers: 4,
             rate_hz: 10.0,
             report_interval_s: 2.0,
-            prewarm_ms: 3.0,
+            prewarm_ms: 10.0,
             sensor: None,
         }
     }
