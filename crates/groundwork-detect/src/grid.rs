@@ -6,6 +6,8 @@
 pub(crate) struct SquareGrid {
     /// Side of a cell, metres.
     pub(crate) cell: f32,
+    /// 1 / cell: a multiplication per coordinate instead of a division.
+    inv_cell: f32,
     half: i32,
     /// Cells per side.
     pub(crate) side: usize,
@@ -16,6 +18,7 @@ impl SquareGrid {
         let half = (max_range / cell).ceil() as i32 + 1;
         Self {
             cell,
+            inv_cell: 1.0 / cell,
             half,
             side: (2 * half) as usize,
         }
@@ -29,8 +32,8 @@ impl SquareGrid {
     /// The cell (row, column) holding (x, y), if inside.
     #[inline]
     pub(crate) fn cell_of(&self, x: f32, y: f32) -> Option<(i32, i32)> {
-        let i = (x / self.cell).floor() as i32 + self.half;
-        let j = (y / self.cell).floor() as i32 + self.half;
+        let i = (x * self.inv_cell).floor() as i32 + self.half;
+        let j = (y * self.inv_cell).floor() as i32 + self.half;
         self.contains(i, j).then_some((i, j))
     }
 
