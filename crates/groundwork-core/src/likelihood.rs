@@ -1,7 +1,5 @@
 //! Ground likelihoods of a fitted component (paper §III-C).
 
-use nalgebra::{Matrix3, SymmetricEigen};
-
 use crate::config::Sigmoid;
 use crate::gmm::Sym3;
 
@@ -27,20 +25,58 @@ pub struct Flatness {
     pub tilt: f64,
 }
 
-/// Eigen-analysis of a symmetric covariance.
+/// Eigen-analysis of a symmetric covariance, in closed form: the smallest eigenvalue by the
+/// trigonometric solution of the characteristic cubic, its eigenvector as the longest cross
+/// product of two rows of Σ − λI. nalgebra's iterative `SymmetricEigen`, run once per fitted
+/// component, was 6 % of a scan's CPU time.
 pub fn flatness(cov: &Sym3) -> Flatness {
-    let m = Matrix3::new(
-        cov[0], cov[1], cov[2], cov[1], cov[3], cov[4], cov[2], cov[4], cov[5],
-    );
-    let eig = SymmetricEigen::new(m);
-    let (i, &lambda_min) = eig
-        .eigenvalues
-        .iter()
-        .enumerate()
-        .min_by(|a, b| a.1.total_cmp(b.1))
-        .unwrap_or((2, &cov[5]));
-    let v = eig.eigenvectors.column(i);
-    let cos = (v[2].abs() / v.norm()).clamp(0.0, 1.0);
+    let [a, b, c, d, e, f] = *cov; // xx, xy, xz, yy, yz, zz
+    let off = b * b + c * c + e * e;
+    let q = (a + d + f) / 3.0;
+    let (aq, dq, fq) = (a - q, d - q, f - q);
+    let p = ((aq * aq + dq * dq + fq * fq + 2.0 * off) / 6.0).sqrt();
+    if !(off > 0.0 && p > 0.0) {
+        // Diagonal (or not finite): the axes are the eigenvectors; z alone is untilted.
+        let lambda_min = a.min(d).min(f);
+        let tilt = if f <= a.min(d) {
+            0.0
+        } else {
+            std::f64::consts::FRAC_PI_2
+        };
+        return Flatness { lambda_min, tilt };
+    }
+    // det((Σ − qI)/p) / 2 = cos 3φ; the eigenvalues are q + 2p·cos(φ + 2πk/3).
+    let det = aq * (dq * fq - e * e) - b * (b * fq - e * c) + c * (b * e - dq * c);
+    let r = (det / (2.0 * p * p * p)).clamp(-1.0, 1.0);
+    let phi = r.acos() / 3.0;
+    let lambda_min = q + 2.0 * p * (phi + 2.0 * std::f64::consts::FRAC_PI_3).cos();
+    let rows = [
+        [a - lambda_min, b, c],
+        [b, d - lambda_min, e],
+        [c, e, f - lambda_min],
+    ];
+    let cross = |u: [f64; 3], v: [f64; 3]| {
+        [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ]
+    };
+    let norm2 = |v: &[f64; 3]| v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+    let v = [
+        cross(rows[0], rows[1]),
+        cross(rows[0], rows[2]),
+        cross(rows[1], rows[2]),
+    ]
+    .into_iter()
+    .max_by(|x, y| norm2(x).total_cmp(&norm2(y)))
+    .unwrap_or([0.0, 0.0, 1.0]);
+    let n = norm2(&v).sqrt();
+    let cos = if n > 0.0 {
+        (v[2].abs() / n).clamp(0.0, 1.0)
+    } else {
+        1.0 // all three eigenvalues equal: no direction is the normal; call it level
+    };
     Flatness {
         lambda_min,
         tilt: cos.acos(),
@@ -105,5 +141,36 @@ mod tests {
         // The sign of the eigenvector does not matter: mirrored slope, same tilt.
         let mirrored = [cov[0], 0.0, -cov[2], 1.0, 0.0, cov[5]];
         assert!((flatness(&mirrored).tilt - f.tilt).abs() < 1e-9);
+    }
+
+    proptest::proptest! {
+        /// The closed form against nalgebra's iterative eigen-solver, on covariances of any
+        /// orientation with eigenvalues from the regulariser's 1e-4 to 10 m².
+        #[test]
+        fn closed_form_matches_nalgebra(
+            l in proptest::array::uniform3(-4.0f64..1.0),
+            angles in proptest::array::uniform3(-3.2f64..3.2),
+        ) {
+            use nalgebra::{Matrix3, Rotation3, SymmetricEigen};
+            let r = Rotation3::from_euler_angles(angles[0], angles[1], angles[2]);
+            let d = Matrix3::from_diagonal(&nalgebra::Vector3::from(l.map(|v| 10f64.powf(v))));
+            let m = r.matrix() * d * r.matrix().transpose();
+            let cov = [m[(0, 0)], m[(0, 1)], m[(0, 2)], m[(1, 1)], m[(1, 2)], m[(2, 2)]];
+            let eig = SymmetricEigen::new(Matrix3::new(
+                cov[0], cov[1], cov[2], cov[1], cov[3], cov[4], cov[2], cov[4], cov[5],
+            ));
+            let mut order = [0, 1, 2];
+            order.sort_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]));
+            let (min, mid) = (eig.eigenvalues[order[0]], eig.eigenvalues[order[1]]);
+            let f = flatness(&cov);
+            let scale = eig.eigenvalues.abs().max();
+            proptest::prop_assert!((f.lambda_min - min).abs() <= 1e-10 * scale, "{f:?} {min}");
+            // The normal is defined where the smallest eigenvalue stands apart.
+            if mid - min > 1e-3 * scale {
+                let v = eig.eigenvectors.column(order[0]);
+                let tilt = (v[2].abs() / v.norm()).clamp(0.0, 1.0).acos();
+                proptest::prop_assert!((f.tilt - tilt).abs() < 1e-5, "{f:?} {tilt}");
+            }
+        }
     }
 }
