@@ -7,15 +7,15 @@
 use crate::simd::{Vf, Vi};
 use wide::bytemuck::cast;
 
-/// What the exponential needs of its lanes: `f32` itself or a `wide` vector of them. One
-/// body serves the EM (8 lanes), the query (16) and scalar callers, so their bits agree.
+/// What the exponential needs of its lanes: `f32` itself or the query's vector of them. One
+/// body serves the EM (scalar code that the compiler vectorises) and the query (16 lanes),
+/// so their bits agree.
 pub trait ExpLanes:
     Copy + std::ops::Add<Output = Self> + std::ops::Sub<Output = Self> + std::ops::Mul<Output = Self>
 {
     fn splat(v: f32) -> Self;
     /// self·m + a, rounded once.
     fn fma(self, m: Self, a: Self) -> Self;
-    fn max_with(self, o: Self) -> Self;
     /// The float whose bits are self's shifted left by 23.
     fn shl23(self) -> Self;
 }
@@ -30,46 +30,32 @@ impl ExpLanes for f32 {
         self.mul_add(m, a)
     }
     #[inline(always)]
-    fn max_with(self, o: Self) -> Self {
-        self.max(o)
-    }
-    #[inline(always)]
     fn shl23(self) -> Self {
         f32::from_bits(self.to_bits() << 23)
     }
 }
 
-macro_rules! exp_lanes_for_wide {
-    ($f:ty, $i:ty) => {
-        impl ExpLanes for $f {
-            #[inline(always)]
-            fn splat(v: f32) -> Self {
-                <$f>::splat(v)
-            }
-            #[inline(always)]
-            fn fma(self, m: Self, a: Self) -> Self {
-                self.mul_add(m, a)
-            }
-            #[inline(always)]
-            fn max_with(self, o: Self) -> Self {
-                self.max(o)
-            }
-            #[inline(always)]
-            fn shl23(self) -> Self {
-                cast::<$i, $f>(cast::<$f, $i>(self) << 23)
-            }
-        }
-    };
+impl ExpLanes for Vf {
+    #[inline(always)]
+    fn splat(v: f32) -> Self {
+        Vf::splat(v)
+    }
+    #[inline(always)]
+    fn fma(self, m: Self, a: Self) -> Self {
+        self.mul_add(m, a)
+    }
+    #[inline(always)]
+    fn shl23(self) -> Self {
+        cast::<Vi, Vf>(cast::<Vf, Vi>(self) << 23)
+    }
 }
-exp_lanes_for_wide!(wide::f32x8, wide::i32x8);
-exp_lanes_for_wide!(Vf, Vi);
 
 /// e^x for x ≤ 0 (the callers subtract the maximum first). Inputs below −87 return about
 /// 1e-38; NaN is not expected. Relative error below 2e-6 on [−20, 0] and below 2e-5 on
 /// [−87, −20] (the rounding of x·log2(e)), where weights are negligible anyway.
 #[inline(always)]
-pub fn exp_nonpositive<T: ExpLanes>(x: T) -> T {
-    exp2_from((x * T::splat(std::f32::consts::LOG2_E)).max_with(T::splat(-126.0)))
+pub fn exp_nonpositive(x: f32) -> f32 {
+    exp2_from((x * std::f32::consts::LOG2_E).max(-126.0))
 }
 
 /// Adding it rounds t to the nearest integer i: the low mantissa bits of the sum then hold
