@@ -7,7 +7,13 @@ use groundwork_core::{ConfigError, GroundFrame, PointXyz, SegmentError, Segmente
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use thiserror::Error;
 
-use crate::bbox::{Rect, min_area_rect};
+use crate::bbox::{Rect, RectScratch, min_area_rect};
+use rayon::prelude::*;
+
+thread_local! {
+    /// The boxes' scratch, one per thread that fits boxes, kept from scan to scan.
+    static RECT_SCRATCH: std::cell::RefCell<RectScratch> = Default::default();
+}
 use crate::cluster::ClusterGrid;
 use crate::config::DetectorConfig;
 use crate::ground_map::GroundMap;
@@ -198,7 +204,6 @@ pub struct Detector {
     members: Vec<(u32, Maybe)>,
     footprint: Vec<[f32; 2]>,
     rects: Vec<Rect>,
-    scratch: crate::bbox::RectScratch,
 }
 
 impl Detector {
@@ -230,7 +235,6 @@ impl Detector {
             members: Vec::new(),
             footprint: Vec::new(),
             rects: Vec::new(),
-            scratch: Default::default(),
         })
     }
 
@@ -247,6 +251,19 @@ impl Detector {
     /// Proposals for one scan (sensor frame) and its ground probabilities (one per point,
     /// input order), written into `out`.
     pub fn detect<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        probabilities: &[f32],
+        out: &mut Detections,
+    ) -> Result<DetectionReport, DetectError> {
+        // The join and the boxes are parallel and come 2 ms and more into the scan, after
+        // serial steps: the other core is kept awake for them.
+        groundwork_core::workers::with_workers_awake(|| {
+            self.detect_awake(points, probabilities, out)
+        })
+    }
+
+    fn detect_awake<P: PointXyz + Sync>(
         &mut self,
         points: &[P],
         probabilities: &[f32],
@@ -404,15 +421,17 @@ impl Detector {
             self.footprint[*slot] = [m.xyz[0], m.xyz[1]];
             *slot += 1;
         }
-        // `start[id]` is now the end of id's group (and the start of id + 1's). One thread:
-        // with the hull's interior filter a wall's box is cheap, and handing ~150 boxes to
-        // the other core cost more in wake-up and cache transfer than it gained.
+        // `start[id]` is now the end of id's group (and the start of id + 1's). On both
+        // cores: the other one is awake (`with_workers_awake`), so handing it boxes costs
+        // no wake-up.
         let footprint = &self.footprint;
-        self.rects.clear();
-        let scratch = &mut self.scratch;
-        self.rects.extend(
-            (0..order.len()).map(|k| min_area_rect(&footprint[start[k]..start[k + 1]], scratch)),
-        );
+        (0..order.len())
+            .into_par_iter()
+            .map(|k| {
+                RECT_SCRATCH
+                    .with_borrow_mut(|s| min_area_rect(&footprint[start[k]..start[k + 1]], s))
+            })
+            .collect_into_vec(&mut self.rects);
         out.proposals.clear();
         for (k, (&(_, _, c), rect)) in order.iter().zip(&self.rects).enumerate() {
             let Some(e) = extents[c as usize] else {

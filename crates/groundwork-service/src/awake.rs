@@ -71,7 +71,8 @@ impl ArrivalClock {
 }
 
 /// The global thread pool's workers spinning until this is dropped: each runs any parallel
-/// work that appears ([`rayon::yield_now`]) and otherwise spins, instead of going to sleep.
+/// work that appears ([`rayon::yield_now`]) and otherwise yields its core to any thread that
+/// has work ([`std::thread::yield_now`]), instead of going to sleep.
 #[derive(Debug)]
 pub struct Spinner {
     stop: Arc<AtomicBool>,
@@ -85,7 +86,8 @@ impl Spinner {
         rayon::spawn_broadcast(move |_| {
             while !flag.load(Ordering::Relaxed) {
                 if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                    std::hint::spin_loop();
+                    // Gives the core to any thread with work on it (the other stage's).
+                    std::thread::yield_now();
                 }
             }
         });
