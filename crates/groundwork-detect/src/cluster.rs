@@ -237,6 +237,73 @@ pub struct ClusterGrid {
     /// One per thread of the join; the first one's union-find holds the merged result.
     bands: Vec<Band>,
     component: Vec<u32>,
+    /// The column segments of each half of the entries, cut on their own core.
+    halves: [Columns; 2],
+    /// Per entry (in cell order), its segment.
+    entry_segment: Vec<u32>,
+    /// Fewest entries worth cutting on two cores.
+    split_min: usize,
+}
+
+/// The column segments of a run of entries (whole cells, in cell order), numbered from 0.
+#[derive(Debug, Clone, Default)]
+struct Columns {
+    segments: Vec<Segment>,
+    cells: Vec<Occupied>,
+    /// Range of the farthest cell.
+    r_max: f32,
+}
+
+impl Columns {
+    /// Sorts each cell's entries by height and cuts them into segments wherever two
+    /// neighbours in height are more than the vertical distance apart; writes each entry's
+    /// segment into `segment_of`.
+    fn cut(
+        &mut self,
+        entries: &mut [Entry],
+        segment_of: &mut [u32],
+        grid: &SquareGrid,
+        cfg: &DetectorConfig,
+    ) {
+        self.segments.clear();
+        self.cells.clear();
+        self.r_max = 0.0;
+        let (mut rest, mut rest_of) = (entries, segment_of);
+        while let Some(first) = rest.first() {
+            let cell = first.cell;
+            let len = rest
+                .iter()
+                .position(|e| e.cell != cell)
+                .unwrap_or(rest.len());
+            let (run, tail) = rest.split_at_mut(len);
+            let (run_of, tail_of) = rest_of.split_at_mut(len);
+            (rest, rest_of) = (tail, tail_of);
+            sort_by_height(run);
+            let (i, j) = grid.ij(cell);
+            let r = grid.range(i, j);
+            let gap = cfg.vertical_distance_at(r);
+            self.r_max = self.r_max.max(r);
+            let first = self.segments.len() as u32;
+            for (e, of) in run.iter().zip(run_of) {
+                let in_cell = self.segments.len() as u32 > first;
+                match self.segments.last_mut() {
+                    Some(s) if in_cell && e.z - s.z_max <= gap => {
+                        s.z_max = e.z;
+                    }
+                    _ => self.segments.push(Segment {
+                        z_min: e.z,
+                        z_max: e.z,
+                    }),
+                }
+                *of = self.segments.len() as u32 - 1;
+            }
+            self.cells.push(Occupied {
+                cell,
+                first,
+                len: self.segments.len() as u32 - first,
+            });
+        }
+    }
 }
 
 /// Look-around in cells for a horizontal distance (at most 31 cells: the configuration
@@ -396,6 +463,7 @@ impl ClusterGrid {
         Self {
             grid,
             cell_bits: usize::BITS - grid.len().leading_zeros(),
+            split_min: 4096,
             ..Default::default()
         }
     }
@@ -429,45 +497,39 @@ impl ClusterGrid {
         labels.resize(points.len(), u32::MAX);
         self.bucket(points);
 
-        // Each cell's points by height, cut into segments; the point → segment map goes
-        // into `labels` for now.
-        self.occupied.cells.clear();
-        self.segments.clear();
-        let mut r_max = 0.0f32;
-        let mut rest = &mut self.entries[..];
-        while let Some(first) = rest.first() {
-            let cell = first.cell;
-            let len = rest
-                .iter()
-                .position(|e| e.cell != cell)
-                .unwrap_or(rest.len());
-            let (run, tail) = rest.split_at_mut(len);
-            rest = tail;
-            sort_by_height(run);
-            let (i, j) = self.grid.ij(cell);
-            let r = self.grid.range(i, j);
-            let gap = cfg.vertical_distance_at(r);
-            r_max = r_max.max(r);
-            let first = self.segments.len() as u32;
-            for e in run.iter() {
-                let in_cell = self.segments.len() as u32 > first;
-                match self.segments.last_mut() {
-                    Some(s) if in_cell && e.z - s.z_max <= gap => {
-                        s.z_max = e.z;
-                    }
-                    _ => self.segments.push(Segment {
-                        z_min: e.z,
-                        z_max: e.z,
-                    }),
-                }
-                labels[e.point as usize] = self.segments.len() as u32 - 1;
-            }
-            self.occupied.cells.push(Occupied {
-                cell,
-                first,
-                len: self.segments.len() as u32 - first,
-            });
+        // Each cell's points by height, cut into segments: the entries in two halves split
+        // at a cell boundary, one per core, each numbering its own segments (the second
+        // half's are then shifted past the first's: the same numbers as one pass gives).
+        let n_entries = self.entries.len();
+        let mid = if n_entries < self.split_min {
+            n_entries
+        } else {
+            let cell = self.entries[n_entries / 2].cell;
+            n_entries / 2 + self.entries[n_entries / 2..].partition_point(|e| e.cell == cell)
+        };
+        self.entry_segment.resize(n_entries, 0);
+        let (entries, entry_segment) = (&mut self.entries, &mut self.entry_segment);
+        let (e0, e1) = entries.split_at_mut(mid);
+        let (s0, s1) = entry_segment.split_at_mut(mid);
+        let [h0, h1] = &mut self.halves;
+        let grid = &self.grid;
+        rayon::join(|| h0.cut(e0, s0, grid, cfg), || h1.cut(e1, s1, grid, cfg));
+        let offset = h0.segments.len() as u32;
+        for s in s1.iter_mut() {
+            *s += offset;
         }
+        self.segments.clear();
+        self.segments.extend_from_slice(&h0.segments);
+        self.segments.extend_from_slice(&h1.segments);
+        self.occupied.cells.clear();
+        self.occupied.cells.extend_from_slice(&h0.cells);
+        self.occupied
+            .cells
+            .extend(h1.cells.iter().map(|c| Occupied {
+                first: c.first + offset,
+                ..*c
+            }));
+        let r_max = h0.r_max.max(h1.r_max);
         // The distance grows with range: the farthest cell has the widest look-around.
         self.reach_max = reach(cfg.distance_at(r_max), self.grid.cell).max(1);
         self.occupied.index_rows(self.grid.side);
@@ -519,10 +581,8 @@ impl ClusterGrid {
             }
             self.component[s as usize] = self.component[root as usize];
         }
-        for l in labels.iter_mut() {
-            if *l != u32::MAX {
-                *l = self.component[*l as usize];
-            }
+        for (e, &s) in self.entries.iter().zip(&self.entry_segment) {
+            labels[e.point as usize] = self.component[s as usize];
         }
         components as usize
     }
@@ -645,6 +705,30 @@ mod tests {
         assert_eq!(na, nb);
         b.reverse();
         assert_eq!(a, b);
+    }
+
+    #[test]
+    fn cutting_the_columns_in_two_halves_changes_nothing() {
+        let cfg = DetectorConfig::default();
+        // Many cells, crowded ones among them (a wall), and objects on both sides of the
+        // sensor, so that the halves' boundary falls among occupied rows.
+        let mut pts = Vec::new();
+        for k in 0..40 {
+            let a = k as f32 * 0.157;
+            pts.extend(blob([12.0 * a.cos(), 12.0 * a.sin(), 0.8], 120, 0.6));
+        }
+        pts.extend((0..3000).map(|k| [-6.0, -8.0 + 0.005 * k as f32, 0.2 + (k % 17) as f32 * 0.1]));
+        let mut split = ClusterGrid::new(cfg.cell_size, cfg.max_range);
+        let mut whole = ClusterGrid {
+            split_min: usize::MAX,
+            ..split.clone()
+        };
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        let n = split.cluster(&pts, &cfg, &mut a);
+        assert!(n > 1 && pts.len() >= split.split_min);
+        assert_eq!(whole.cluster(&pts, &cfg, &mut b), n);
+        assert_eq!(a, b);
+        assert_eq!(split.segments.len(), whole.segments.len());
     }
 
     #[test]
