@@ -18,7 +18,7 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
-use crate::simd::{LANES, Vf, Vi, load, store};
+use crate::simd::{LANES, Vf, Vi, load};
 use wide::bytemuck::cast;
 
 use crate::fastmath::{exp2_from, exp2_v};
@@ -145,76 +145,6 @@ pub struct QueryFrame<'a> {
     pub transform: Option<&'a Isometry3<f64>>,
 }
 
-/// Final sums per point over every component asked, structure of arrays: Σw, Σw·p_λ, Σw·p_θ
-/// and Σw·p_e, all relative to the same (per point) reference, which the probability does
-/// not need.
-#[derive(Debug, Default)]
-struct Sums {
-    sum: Vec<f32>,
-    flat: Vec<f32>,
-    orient: Vec<f32>,
-    elev: Vec<f32>,
-}
-
-impl Sums {
-    /// Room for `n` points; the query writes every entry.
-    fn resize(&mut self, n: usize) {
-        for v in [
-            &mut self.sum,
-            &mut self.flat,
-            &mut self.orient,
-            &mut self.elev,
-        ] {
-            v.resize(n, 0.0);
-        }
-    }
-
-    fn slices(&mut self) -> SumsMut<'_> {
-        SumsMut {
-            sum: &mut self.sum,
-            flat: &mut self.flat,
-            orient: &mut self.orient,
-            elev: &mut self.elev,
-        }
-    }
-}
-
-/// Mutable view of a range of [`Sums`].
-#[derive(Debug)]
-struct SumsMut<'a> {
-    sum: &'a mut [f32],
-    flat: &'a mut [f32],
-    orient: &'a mut [f32],
-    elev: &'a mut [f32],
-}
-
-impl<'a> SumsMut<'a> {
-    fn len(&self) -> usize {
-        self.sum.len()
-    }
-
-    fn split_at(self, mid: usize) -> (SumsMut<'a>, SumsMut<'a>) {
-        let (sum, sum2) = self.sum.split_at_mut(mid);
-        let (flat, flat2) = self.flat.split_at_mut(mid);
-        let (orient, orient2) = self.orient.split_at_mut(mid);
-        let (elev, elev2) = self.elev.split_at_mut(mid);
-        (
-            SumsMut {
-                sum,
-                flat,
-                orient,
-                elev,
-            },
-            SumsMut {
-                sum: sum2,
-                flat: flat2,
-                orient: orient2,
-                elev: elev2,
-            },
-        )
-    }
-}
-
 /// Ground probability from a point's final sums: the product of the three
 /// responsibility-weighted likelihoods.
 #[inline]
@@ -238,8 +168,8 @@ pub(crate) struct QueryScratch {
     place: Vec<u32>,
     /// Grouped points of segment s are at `start[s]..start[s+1]`.
     start: Vec<u32>,
-    /// Running sums per grouped point.
-    acc: Sums,
+    /// Ground probability per grouped point.
+    prob: Vec<f32>,
 }
 
 /// Ground probability of every point [`group`] grouped into `s` (the query scan's points in
@@ -255,8 +185,8 @@ pub(crate) fn query_grouped(
     s: &mut QueryScratch,
     out: &mut [f32],
 ) {
-    s.acc.resize(s.x.len());
-    let runs = split_runs(&s.start, s.acc.slices());
+    s.prob.resize(s.x.len(), 0.0);
+    let runs = split_runs(&s.start, &mut s.prob);
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
     let tables: Vec<(&QueryTable, Option<Move>)> = frames
         .iter()
@@ -264,23 +194,19 @@ pub(crate) fn query_grouped(
         .collect();
     runs.into_par_iter()
         .with_max_len(1)
-        .for_each(|(seg, a, mut acc)| {
-            let r = a..a + acc.len();
+        .for_each(|(seg, a, prob)| {
+            let r = a..a + prob.len();
             let (x, y, z) = (&xs[r.clone()], &ys[r.clone()], &zs[r]);
-            eval_run(binner, &tables, policy, seg, x, y, z, &mut acc);
+            eval_run(binner, &tables, policy, seg, x, y, z, prob);
         });
     // Back into input order: a gather per input point, so both cores share it.
-    let a = &s.acc;
+    let prob = &s.prob;
     out.par_chunks_mut(GATHER_CHUNK)
         .zip(s.place.par_chunks(GATHER_CHUNK))
         .for_each(|(out, place)| {
             for (o, &j) in out.iter_mut().zip(place) {
                 let j = j as usize;
-                *o = if j < a.sum.len() {
-                    probability(a.sum[j], a.flat[j], a.orient[j], a.elev[j])
-                } else {
-                    0.0
-                };
+                *o = prob.get(j).copied().unwrap_or(0.0);
             }
         });
 }
@@ -291,12 +217,12 @@ const UNQUERIED: u32 = u32::MAX;
 /// Input points per task of the final gather.
 const GATHER_CHUNK: usize = 16 * 1024;
 
-/// Per-segment views of the running sums, with each segment's index and offset.
-fn split_runs<'a>(start: &[u32], mut acc: SumsMut<'a>) -> Vec<(u32, usize, SumsMut<'a>)> {
+/// Per-segment views of the probabilities, with each segment's index and offset.
+fn split_runs<'a>(start: &[u32], mut acc: &'a mut [f32]) -> Vec<(u32, usize, &'a mut [f32])> {
     let mut runs = Vec::new();
     for (seg, w) in start.windows(2).enumerate() {
         let len = (w[1] - w[0]) as usize;
-        let (head, tail) = acc.split_at(len);
+        let (head, tail) = acc.split_at_mut(len);
         acc = tail;
         if len > 0 {
             runs.push((seg as u32, w[0] as usize, head));
@@ -398,7 +324,8 @@ impl Move {
     }
 }
 
-/// Sums of a run of points (all in query-scan segment `seg`) over every frame, a vector of
+/// Ground probabilities of a run of points (all in query-scan segment `seg`) from their
+/// sums over every frame, a vector of
 /// points at a time: the vector stays in registers while all frames are asked. For a past
 /// frame the vector is moved into that frame, binned there, and evaluated against the
 /// components of each distinct segment it falls into (points of one compact current segment
@@ -412,7 +339,7 @@ fn eval_run(
     xs: &[f32],
     ys: &[f32],
     zs: &[f32],
-    acc: &mut SumsMut<'_>,
+    prob: &mut [f32],
 ) {
     let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
     let no_key = Vi::splat(-1);
@@ -420,8 +347,8 @@ fn eval_run(
     // mostly fall into the same ones, and a cheap test confirms it (or the vector is
     // binned). Two, because 43 % of vectors straddle a past cell's edge.
     let mut guess = vec![[u32::MAX; 2]; frames.len()];
-    for j in (0..acc.len()).step_by(LANES) {
-        let w = LANES.min(acc.len() - j);
+    for j in (0..prob.len()).step_by(LANES) {
+        let w = LANES.min(prob.len() - j);
         let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
         let real = lane_index.simd_lt(Vi::splat(w as i32));
         let real_f: Vf = cast(real);
@@ -489,7 +416,12 @@ fn eval_run(
                 sums.add_segment(table.segment_peak(seg as u32), low, &moved, cast(hit));
             }
         }
-        acc.store(sums, j, w);
+        // The sums are final: every frame has been asked for these points.
+        let (sum, flat) = (sums.sum.to_array(), sums.flat.to_array());
+        let (orient, elev) = (sums.orient.to_array(), sums.elev.to_array());
+        for (k, p) in prob[j..j + w].iter_mut().enumerate() {
+            *p = probability(sum[k], flat[k], orient[k], elev[k]);
+        }
     }
 }
 
@@ -596,16 +528,6 @@ impl LaneSums {
         } else {
             next
         };
-    }
-}
-
-impl SumsMut<'_> {
-    #[inline(always)]
-    fn store(&mut self, v: LaneSums, j: usize, w: usize) {
-        store(v.sum, self.sum, j, w);
-        store(v.flat, self.flat, j, w);
-        store(v.orient, self.orient, j, w);
-        store(v.elev, self.elev, j, w);
     }
 }
 

@@ -21,12 +21,3 @@ pub(crate) fn load(v: &[f32], j: usize, w: usize) -> Vf {
         }
     }
 }
-
-/// Writes the first `w` lanes of `v` to `out[j..j + w]`.
-#[inline(always)]
-pub(crate) fn store(v: Vf, out: &mut [f32], j: usize, w: usize) {
-    match out[j..].first_chunk_mut::<LANES>() {
-        Some(a) => *a = v.to_array(),
-        None => out[j..j + w].copy_from_slice(&v.to_array()[..w]),
-    }
-}
