@@ -26,7 +26,7 @@ use crate::gmm::half_precision_factor;
 use crate::model::FrameModel;
 use crate::zones::LaneBinner;
 
-/// Packed bin of a point in its own scan (as [`LaneBinner::bin_all`] gives it): segment
+/// Packed bin of a point in its own scan (as [`LaneBinner::bin_block`] gives it): segment
 /// index, `BEYOND` flag, or `NEAR`.
 pub(crate) const NEAR: u32 = u32::MAX;
 pub(crate) const BEYOND: u32 = 1 << 31;

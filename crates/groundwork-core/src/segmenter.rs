@@ -565,26 +565,30 @@ impl Segmenter {
                     let ok = ok & x.is_finite() & y.is_finite() & z.is_finite();
                     (ok, n + usize::from(outside(p)))
                 });
-                for (g, p) in ground.iter_mut().zip(points) {
-                    let [x, y, z] = p.xyz().map(f64::from);
-                    *g = [
-                        r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
-                        r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
-                        r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
-                    ];
-                }
-                if out_of_bounds > 0 {
-                    for (g, p) in ground.iter_mut().zip(points) {
-                        if outside(p) {
-                            *g = [0.0; 3];
-                        }
+                // Transformed and binned a block at a time: the block's x and y go to the
+                // binning as f32 lanes straight from the transform, not read back from
+                // `ground` and converted lane by lane.
+                let blocks = ground.chunks_mut(LANES).zip(bins.chunks_mut(LANES));
+                for ((ground, bins), points) in blocks.zip(points.chunks(LANES)) {
+                    let (mut xs, mut ys) = ([0.0f32; LANES], [0.0f32; LANES]);
+                    for (k, (g, p)) in ground.iter_mut().zip(points).enumerate() {
+                        let [x, y, z] = p.xyz().map(f64::from);
+                        *g = [
+                            r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
+                            r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
+                            r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
+                        ];
+                        (xs[k], ys[k]) = (g[0] as f32, g[1] as f32);
                     }
+                    let packed = binner.bin_block(xs, ys);
+                    bins.copy_from_slice(&packed[..bins.len()]);
                 }
-                binner.bin_all(ground, bins);
+                // A point beyond the bound was binned where it is (binning any value is
+                // harmless: selects, no lookups); it moves to the origin, binned near.
                 if out_of_bounds > 0 {
-                    for (b, p) in bins.iter_mut().zip(points) {
+                    for ((g, b), p) in ground.iter_mut().zip(bins.iter_mut()).zip(points) {
                         if outside(p) {
-                            *b = NEAR;
+                            (*g, *b) = ([0.0; 3], NEAR);
                         }
                     }
                 }

@@ -211,23 +211,15 @@ impl LaneBinner {
         self.cells.len()
     }
 
-    /// Packed bins of ground-aligned points (x and y rounded to f32), 16 at a time:
-    /// `u32::MAX` for near points, the segment index otherwise, with bit 31 set beyond max
-    /// range. Agrees with [`ZoneModel::bin`] except for points within f32 rounding of a
-    /// boundary.
-    pub(crate) fn bin_all(&self, ground: &[[f64; 3]], out: &mut [u32]) {
-        for (g, b) in ground.chunks(LANES).zip(out.chunks_mut(LANES)) {
-            let lane = |c: usize| {
-                Vf::new(std::array::from_fn(|i| {
-                    g.get(i).map_or(0.0, |q| q[c] as f32)
-                }))
-            };
-            let packed: [u32; LANES] = cast(self.bin(lane(0), lane(1)));
-            b.copy_from_slice(&packed[..b.len()]);
-        }
+    /// Packed bins of a block of ground-aligned points (x and y rounded to f32): `u32::MAX`
+    /// for near points, the segment index otherwise, with bit 31 set beyond max range.
+    /// Agrees with [`ZoneModel::bin`] except for points within f32 rounding of a boundary.
+    #[inline(always)]
+    pub(crate) fn bin_block(&self, x: [f32; LANES], y: [f32; LANES]) -> [u32; LANES] {
+        cast(self.bin(Vf::new(x), Vf::new(y)))
     }
 
-    /// Packed bins (as [`LaneBinner::bin_all`]) of a vector of points, as i32 lanes: −1 near,
+    /// Packed bins (as [`LaneBinner::bin_block`]) of a vector of points, as i32 lanes: −1 near,
     /// bit 31 set beyond max range. Zone parameters are picked with selects, atan2 is a
     /// select-based polynomial: no branches, no gathers.
     #[inline(always)]
@@ -369,13 +361,15 @@ mod tests {
         for n in [100_003usize, 1, 7, 9] {
             let (xs, ys): (Vec<f32>, Vec<f32>) =
                 (0..n).map(|_| (next() as f32, next() as f32)).unzip();
-            let ground: Vec<[f64; 3]> = xs
-                .iter()
-                .zip(&ys)
-                .map(|(&x, &y)| [f64::from(x), f64::from(y), 0.0])
-                .collect();
             let mut out = vec![0; n];
-            binner.bin_all(&ground, &mut out);
+            for ((x, y), out) in xs
+                .chunks(LANES)
+                .zip(ys.chunks(LANES))
+                .zip(out.chunks_mut(LANES))
+            {
+                let lanes = |v: &[f32]| std::array::from_fn(|i| v.get(i).copied().unwrap_or(0.0));
+                out.copy_from_slice(&binner.bin_block(lanes(x), lanes(y))[..out.len()]);
+            }
             let mut mismatches = 0;
             for ((&x, &y), &got) in xs.iter().zip(&ys).zip(&out) {
                 let want = match m.bin(f64::from(x), f64::from(y)) {
