@@ -233,35 +233,66 @@ fn split_runs<'a>(start: &[u32], mut acc: &'a mut [f32]) -> Vec<(u32, usize, &'a
     runs
 }
 
-/// First pass of a counting sort: `start[s]..start[s+1]` will hold the points whose
-/// `key(bin)` is segment s (points with key `None` are left out). Returns their number.
-pub(crate) fn segment_offsets(
-    bins: &[u32],
-    segments: usize,
-    key: impl Fn(u32) -> Option<u32>,
-    start: &mut Vec<u32>,
-) -> usize {
-    start.clear();
-    start.resize(segments + 1, 0);
-    // Consecutive points mostly share a segment (a sensor sweeps one sector after the
-    // other): a run is counted in a register and added once. A memory increment per
-    // point waited on the previous one's store.
-    let (mut run_seg, mut run) = (0usize, 0u32);
-    for &b in bins {
-        if let Some(seg) = key(b) {
-            let seg = seg as usize + 1;
-            if seg != run_seg {
-                start[run_seg] += run;
-                (run_seg, run) = (seg, 0);
+/// Points per segment of a scan, in range and beyond it (its bins' first pass of a counting
+/// sort, taken while binning, a chunk of the scan per task, so that neither sort reads the
+/// bins twice).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct SegmentCounts {
+    /// In-range points of segment s at `[s]`, beyond-range points whose outer-ring segment
+    /// is s at `[segments + s]`.
+    counts: Vec<u32>,
+}
+
+impl SegmentCounts {
+    /// The counts of `bins` (packed) in a zone model of `segments` segments.
+    pub(crate) fn of(bins: &[u32], segments: usize) -> Self {
+        let mut counts = vec![0; 2 * segments];
+        // Consecutive points mostly share a segment (a sensor sweeps one sector after the
+        // other): a run is counted in a register and added once. A memory increment per
+        // point waited on the previous one's store.
+        let (mut run_key, mut run) = (0usize, 0u32);
+        for &b in bins {
+            if b != NEAR {
+                let key = (b & !BEYOND) as usize + if b & BEYOND != 0 { segments } else { 0 };
+                if key != run_key {
+                    counts[run_key] += run;
+                    (run_key, run) = (key, 0);
+                }
+                run += 1;
             }
-            run += 1;
         }
+        if let Some(c) = counts.get_mut(run_key) {
+            *c += run;
+        }
+        Self { counts }
     }
-    start[run_seg] += run;
-    for i in 0..segments {
-        start[i + 1] += start[i];
+
+    /// Both scans' counts together.
+    pub(crate) fn add(mut self, o: &Self) -> Self {
+        if self.counts.is_empty() {
+            return o.clone();
+        }
+        for (a, b) in self.counts.iter_mut().zip(&o.counts) {
+            *a += b;
+        }
+        self
     }
-    start[segments] as usize
+
+    /// The counting sort's offsets: `start[s]..start[s+1]` will hold the in-range points of
+    /// segment s and, with `beyond`, the beyond-range points answered by it. Returns their
+    /// number.
+    pub(crate) fn offsets(&self, segments: usize, beyond: bool, start: &mut Vec<u32>) -> usize {
+        start.clear();
+        start.push(0);
+        let (inside, outside) = self.counts.split_at(self.counts.len() / 2);
+        let mut total = 0;
+        for s in 0..segments {
+            let beyond = if beyond { outside.get(s) } else { None };
+            total += inside.get(s).copied().unwrap_or(0) + beyond.copied().unwrap_or(0);
+            start.push(total);
+        }
+        total as usize
+    }
 }
 
 /// Counting sort of the queried points by the segment that answers for them in the query
@@ -271,10 +302,12 @@ pub(crate) fn group(
     s: &mut QueryScratch,
     points: &[[f64; 3]],
     bins: &[u32],
+    counts: &SegmentCounts,
     segments: usize,
     policy: BeyondRangePolicy,
 ) {
-    let total = segment_offsets(bins, segments, |b| segment_of(b, policy), &mut s.start);
+    let outer_ring = policy == BeyondRangePolicy::OuterRing;
+    let total = counts.offsets(segments, outer_ring, &mut s.start);
     s.place.resize(points.len(), UNQUERIED);
     s.x.resize(total, 0.0);
     s.y.resize(total, 0.0);
@@ -282,7 +315,7 @@ pub(crate) fn group(
     let mut cursor = s.start[..segments].to_vec();
     // Local slices: through `s` the compiler would reload every pointer after each store.
     let (xs, ys, zs) = (&mut s.x[..], &mut s.y[..], &mut s.z[..]);
-    // The current run's segment keeps its cursor in a register (see `segment_offsets`).
+    // The current run's segment keeps its cursor in a register (see `SegmentCounts::of`).
     let (mut run_seg, mut j) = (usize::MAX, 0usize);
     for ((&b, p), place) in bins.iter().zip(points).zip(&mut s.place) {
         *place = match segment_of(b, policy) {
@@ -596,6 +629,37 @@ mod tests {
     use crate::point::mount_transform;
     use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};
+
+    #[test]
+    fn segment_counts_summed_over_chunks_give_each_sorts_offsets() {
+        // In range, near, and beyond range (bit 31) in runs and alone, over 5 segments.
+        let bins: Vec<u32> = [0, 0, 3, NEAR, 3, 4 | BEYOND, 4 | BEYOND, 1, NEAR, BEYOND, 4]
+            .into_iter()
+            .cycle()
+            .take(1000)
+            .collect();
+        let whole = SegmentCounts::of(&bins, 5);
+        let summed = bins
+            .chunks(37)
+            .map(|c| SegmentCounts::of(c, 5))
+            .fold(SegmentCounts::default(), |a, b| a.add(&b));
+        for beyond in [false, true] {
+            let mut want = vec![0u32; 6];
+            for &b in &bins {
+                if b != NEAR && (beyond || b & BEYOND == 0) {
+                    want[(b & !BEYOND) as usize + 1] += 1;
+                }
+            }
+            for k in 1..6 {
+                want[k] += want[k - 1];
+            }
+            let (mut a, mut b) = (Vec::new(), Vec::new());
+            assert_eq!(whole.offsets(5, beyond, &mut a), want[5] as usize);
+            assert_eq!(summed.offsets(5, beyond, &mut b), want[5] as usize);
+            assert_eq!(a, want);
+            assert_eq!(b, want);
+        }
+    }
     use nalgebra::{Point3, Translation3, UnitQuaternion};
 
     /// [`Bin`] in the packed form (for the direct evaluation in tests).
@@ -704,7 +768,15 @@ mod tests {
         let binner = LaneBinner::new(zones);
         let policy = BeyondRangePolicy::OuterRing;
         let mut scratch = QueryScratch::default();
-        group(&mut scratch, &ground, &bins, binner.segment_count(), policy);
+        let counts = SegmentCounts::of(&bins, binner.segment_count());
+        group(
+            &mut scratch,
+            &ground,
+            &bins,
+            &counts,
+            binner.segment_count(),
+            policy,
+        );
         query_grouped(&binner, &frames, policy, &mut scratch, &mut out);
         let mut off = 0;
         let mut worst_typical: f64 = 0.0;

@@ -14,20 +14,20 @@ use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
-use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, query_grouped, segment_offsets};
+use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, SegmentCounts, query_grouped};
 use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
 
-/// The segment a point is fitted in: in-range points only (beyond-range points are
-/// queried, never fitted).
-fn in_range(b: u32) -> Option<u32> {
-    (b & BEYOND == 0).then_some(b)
-}
-
 /// Counting sort of the in-range points (`ground`, binned `bins`) into contiguous runs per
 /// segment, in input order within each run.
-fn group_in_range(s: &mut SegmentedPoints, bins: &[u32], ground: &[[f64; 3]], segments: usize) {
-    let total = segment_offsets(bins, segments, in_range, &mut s.start);
+fn group_in_range(
+    s: &mut SegmentedPoints,
+    bins: &[u32],
+    ground: &[[f64; 3]],
+    counts: &SegmentCounts,
+    segments: usize,
+) {
+    let total = counts.offsets(segments, false, &mut s.start);
     s.xs.resize(total, 0.0);
     s.ys.resize(total, 0.0);
     s.zs.resize(total, 0.0);
@@ -150,6 +150,8 @@ pub struct Segmenter {
     // Scratch reused between frames so steady-state segmentation does not allocate more.
     ground: Vec<[f64; 3]>,
     bins: Vec<u32>,
+    /// Points per segment of `bins`, counted while binning.
+    counts: SegmentCounts,
     sorted: SegmentedPoints,
     query_scratch: QueryScratch,
 }
@@ -172,6 +174,7 @@ impl Segmenter {
             counters: SegmenterCounters::default(),
             ground: Vec::new(),
             bins: Vec::new(),
+            counts: SegmentCounts::default(),
             sorted: SegmentedPoints::default(),
             query_scratch: QueryScratch::default(),
         })
@@ -339,6 +342,7 @@ impl Segmenter {
             &mut self.query_scratch,
             &self.ground,
             &self.bins,
+            &self.counts,
             self.binner.segment_count(),
             self.cfg.zones.beyond_max_range,
         );
@@ -549,11 +553,13 @@ impl Segmenter {
         let r = self.mount.rotation.to_rotation_matrix().into_inner();
         let t = self.mount.translation.vector;
         let binner = &self.binner;
+        let segments = self.binner.segment_count();
         let bound = self.cfg.max_coordinate() as f32;
         let outside = |p: &P| p.xyz().iter().any(|v| v.abs() > bound);
         // Chunks of whole vectors: each is transformed, then binned 16 points at a time.
         const CHUNK: usize = 256 * LANES;
-        self.ground
+        let (out_of_bounds, finite, counts) = self
+            .ground
             .par_chunks_mut(CHUNK)
             .zip(self.bins.par_chunks_mut(CHUNK))
             .zip(points.par_chunks(CHUNK))
@@ -592,9 +598,15 @@ impl Segmenter {
                         }
                     }
                 }
-                (out_of_bounds, finite)
+                let counts = SegmentCounts::of(bins, segments);
+                (out_of_bounds, finite, counts)
             })
-            .reduce(|| (0, true), |a, b| (a.0 + b.0, a.1 & b.1))
+            .reduce(
+                || (0, true, SegmentCounts::default()),
+                |a, b| (a.0 + b.0, a.1 & b.1, a.2.add(&b.2)),
+            );
+        self.counts = counts;
+        (out_of_bounds, finite)
     }
 
     /// Counting sort of the in-range points into contiguous per-segment runs.
@@ -603,6 +615,7 @@ impl Segmenter {
             &mut self.sorted,
             &self.bins,
             &self.ground,
+            &self.counts,
             self.zones.segment_count(),
         );
     }
@@ -610,13 +623,13 @@ impl Segmenter {
     /// [`Segmenter::group_by_segment`] and [`Segmenter::group_for_query`] side by side: two
     /// serial counting sorts of the same binned points, one per core.
     fn group_for_fit_and_query(&mut self) {
-        let (bins, ground) = (&self.bins, &self.ground);
+        let (bins, ground, counts) = (&self.bins, &self.ground, &self.counts);
         let (sorted, scratch) = (&mut self.sorted, &mut self.query_scratch);
         let (segments, query_segments) = (self.zones.segment_count(), self.binner.segment_count());
         let policy = self.cfg.zones.beyond_max_range;
         rayon::join(
-            || group_in_range(sorted, bins, ground, segments),
-            || crate::query::group(scratch, ground, bins, query_segments, policy),
+            || group_in_range(sorted, bins, ground, counts, segments),
+            || crate::query::group(scratch, ground, bins, counts, query_segments, policy),
         );
     }
 
