@@ -25,24 +25,28 @@ pub fn with_workers_awake<R: Send>(f: impl FnOnce() -> R + Send) -> R {
         return f();
     }
     let done = AtomicBool::new(false);
-    let spin = || {
-        let start = Instant::now();
-        while !done.load(Ordering::Acquire) && start.elapsed() < MAX_SPIN {
-            if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                std::thread::yield_now(); // gives the core to `f` should they share one
-            }
-        }
-    };
     // The helpers are queued before `f` starts, so the first thieves take them (thieves
     // take the oldest job), and `f`'s own parallel work, queued after, goes to them.
     rayon::scope(|s| {
         for _ in 0..helpers {
-            s.spawn(|_| spin());
+            s.spawn(|_| spin_until(&done, MAX_SPIN));
         }
         let r = f();
         done.store(true, Ordering::Release);
         r
     })
+}
+
+/// On a pool worker: runs the pool's pending parallel work as it appears, and gives the
+/// core to any other thread that has work when there is none (`f` above, another stage),
+/// until `stop` is set or `limit` has passed. The worker stays awake all along.
+pub fn spin_until(stop: &AtomicBool, limit: Duration) {
+    let start = Instant::now();
+    while !stop.load(Ordering::Acquire) && start.elapsed() < limit {
+        if rayon::yield_now() != Some(rayon::Yield::Executed) {
+            std::thread::yield_now();
+        }
+    }
 }
 
 #[cfg(test)]

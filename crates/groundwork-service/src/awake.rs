@@ -15,6 +15,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use groundwork_core::workers::spin_until;
+
 use crate::transport::{EventListener, wait_or_stop};
 
 /// Intervals the period is estimated from.
@@ -71,8 +73,8 @@ impl ArrivalClock {
 }
 
 /// The global thread pool's workers spinning until this is dropped: each runs any parallel
-/// work that appears ([`rayon::yield_now`]) and otherwise yields its core to any thread that
-/// has work ([`std::thread::yield_now`]), instead of going to sleep.
+/// work that appears and otherwise yields its core to any thread that has work
+/// ([`spin_until`]), instead of going to sleep.
 #[derive(Debug)]
 pub struct Spinner {
     stop: Arc<AtomicBool>,
@@ -83,21 +85,14 @@ impl Spinner {
     pub fn start() -> Self {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
-        rayon::spawn_broadcast(move |_| {
-            while !flag.load(Ordering::Relaxed) {
-                if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                    // Gives the core to any thread with work on it (the other stage's).
-                    std::thread::yield_now();
-                }
-            }
-        });
+        rayon::spawn_broadcast(move |_| spin_until(&flag, Duration::MAX));
         Self { stop }
     }
 }
 
 impl Drop for Spinner {
     fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
+        self.stop.store(true, Ordering::Release);
     }
 }
 
