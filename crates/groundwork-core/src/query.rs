@@ -218,12 +218,12 @@ const UNQUERIED: u32 = u32::MAX;
 const GATHER_CHUNK: usize = 16 * 1024;
 
 /// Per-segment views of the probabilities, with each segment's index and offset.
-fn split_runs<'a>(start: &[u32], mut acc: &'a mut [f32]) -> Vec<(u32, usize, &'a mut [f32])> {
+fn split_runs<'a>(start: &[u32], mut prob: &'a mut [f32]) -> Vec<(u32, usize, &'a mut [f32])> {
     let mut runs = Vec::new();
     for (seg, w) in start.windows(2).enumerate() {
         let len = (w[1] - w[0]) as usize;
-        let (head, tail) = acc.split_at_mut(len);
-        acc = tail;
+        let (head, tail) = prob.split_at_mut(len);
+        prob = tail;
         if len > 0 {
             runs.push((seg as u32, w[0] as usize, head));
         }
@@ -267,7 +267,7 @@ impl SegmentCounts {
         Self { counts }
     }
 
-    /// Both scans' counts together.
+    /// The counts of two chunks of one scan together.
     pub(crate) fn add(mut self, o: &Self) -> Self {
         if self.counts.is_empty() {
             return o.clone();
@@ -358,11 +358,11 @@ impl Move {
 }
 
 /// Ground probabilities of a run of points (all in query-scan segment `seg`) from their
-/// sums over every frame, a vector of
-/// points at a time: the vector stays in registers while all frames are asked. For a past
-/// frame the vector is moved into that frame, binned there, and evaluated against the
-/// components of each distinct segment it falls into (points of one compact current segment
-/// are neighbours, so nearly every vector falls into a single past segment).
+/// sums over every frame, a vector of points at a time: the vector stays in registers while
+/// all frames are asked. For a past frame the vector is moved into that frame, binned there,
+/// and evaluated against the components of each distinct segment it falls into (points of
+/// one compact current segment are neighbours, so nearly every vector falls into a single
+/// past segment).
 #[allow(clippy::too_many_arguments)]
 fn eval_run(
     binner: &LaneBinner,
@@ -629,6 +629,7 @@ mod tests {
     use crate::point::mount_transform;
     use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};
+    use nalgebra::{Point3, Translation3, UnitQuaternion};
 
     #[test]
     fn segment_counts_summed_over_chunks_give_each_sorts_offsets() {
@@ -660,7 +661,6 @@ mod tests {
             assert_eq!(b, want);
         }
     }
-    use nalgebra::{Point3, Translation3, UnitQuaternion};
 
     /// [`Bin`] in the packed form (for the direct evaluation in tests).
     fn pack(bin: Bin) -> u32 {

@@ -7,16 +7,17 @@ use groundwork_core::{ConfigError, GroundFrame, PointXyz, SegmentError, Segmente
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use thiserror::Error;
 
-use crate::bbox::{Rect, RectScratch, min_area_rect};
 use rayon::prelude::*;
+
+use crate::bbox::{Rect, RectScratch, min_area_rect};
+use crate::cluster::ClusterGrid;
+use crate::config::DetectorConfig;
+use crate::ground_map::GroundMap;
 
 thread_local! {
     /// The boxes' scratch, one per thread that fits boxes, kept from scan to scan.
     static RECT_SCRATCH: std::cell::RefCell<RectScratch> = Default::default();
 }
-use crate::cluster::ClusterGrid;
-use crate::config::DetectorConfig;
-use crate::ground_map::GroundMap;
 
 /// Why a scan could not be processed (the detector's state is unchanged).
 #[derive(Debug, Error)]
