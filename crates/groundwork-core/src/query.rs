@@ -172,9 +172,20 @@ pub(crate) struct QueryScratch {
     prob: Vec<f32>,
 }
 
+/// What the query wrote, counted while writing it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(crate) struct OutputTally {
+    /// Probabilities that are not finite (a defect: none is known).
+    pub non_finite: usize,
+    /// Probabilities at or above the ground threshold.
+    pub ground: usize,
+}
+
 /// Ground probability of every point [`group`] grouped into `s` (the query scan's points in
 /// its ground-aligned frame, with their packed bins). Points near the sensor, beyond range
-/// under the `NonGround` policy, or in no fitted segment of any frame get 0.
+/// under the `NonGround` policy, or in no fitted segment of any frame get 0. Returns the
+/// written probabilities' tally against `threshold` (taken on both cores while writing, not
+/// in a serial pass after).
 ///
 /// The points are grouped once by their segment in the query scan, so that a vector of
 /// them is a compact patch of ground, mostly in one cell of every past frame too.
@@ -182,9 +193,10 @@ pub(crate) fn query_grouped(
     binner: &LaneBinner,
     frames: &[QueryFrame<'_>],
     policy: BeyondRangePolicy,
+    threshold: f32,
     s: &mut QueryScratch,
     out: &mut [f32],
-) {
+) -> OutputTally {
     s.prob.resize(s.x.len(), 0.0);
     let runs = split_runs(&s.start, &mut s.prob);
     let (xs, ys, zs) = (&s.x, &s.y, &s.z);
@@ -201,14 +213,21 @@ pub(crate) fn query_grouped(
         });
     // Back into input order: a gather per input point, so both cores share it.
     let prob = &s.prob;
-    out.par_chunks_mut(GATHER_CHUNK)
+    let (non_finite, ground) = out
+        .par_chunks_mut(GATHER_CHUNK)
         .zip(s.place.par_chunks(GATHER_CHUNK))
-        .for_each(|(out, place)| {
+        .map(|(out, place)| {
+            let (mut non_finite, mut ground) = (0, 0);
             for (o, &j) in out.iter_mut().zip(place) {
-                let j = j as usize;
-                *o = prob.get(j).copied().unwrap_or(0.0);
+                let p = prob.get(j as usize).copied().unwrap_or(0.0);
+                *o = p;
+                non_finite += usize::from(!p.is_finite());
+                ground += usize::from(p >= threshold);
             }
-        });
+            (non_finite, ground)
+        })
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    OutputTally { non_finite, ground }
 }
 
 /// An input point that no model answers for.
@@ -265,6 +284,13 @@ impl SegmentCounts {
             *c += run;
         }
         Self { counts }
+    }
+
+    /// Points in range and points beyond it (the bins that are not `NEAR`).
+    pub(crate) fn totals(&self) -> (usize, usize) {
+        let (inside, outside) = self.counts.split_at(self.counts.len() / 2);
+        let sum = |c: &[u32]| c.iter().map(|&n| n as usize).sum::<usize>();
+        (sum(inside), sum(outside))
     }
 
     /// The counts of two chunks of one scan together.
@@ -777,7 +803,12 @@ mod tests {
             binner.segment_count(),
             policy,
         );
-        query_grouped(&binner, &frames, policy, &mut scratch, &mut out);
+        let tally = query_grouped(&binner, &frames, policy, 0.5, &mut scratch, &mut out);
+        assert_eq!(
+            tally.non_finite,
+            out.iter().filter(|p| !p.is_finite()).count()
+        );
+        assert_eq!(tally.ground, out.iter().filter(|&&p| p >= 0.5).count());
         let mut off = 0;
         let mut worst_typical: f64 = 0.0;
         for (p, &got) in ground.iter().zip(&out) {

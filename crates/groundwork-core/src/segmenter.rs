@@ -14,7 +14,9 @@ use crate::error::{ConfigError, SegmentError};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
-use crate::query::{BEYOND, NEAR, QueryFrame, QueryScratch, SegmentCounts, query_grouped};
+use crate::query::{
+    BEYOND, NEAR, OutputTally, QueryFrame, QueryScratch, SegmentCounts, query_grouped,
+};
 use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
 
@@ -296,14 +298,19 @@ impl Segmenter {
             self.check_and_bin(points, Some(pose), out)?;
             self.group_for_query();
             let pose = (self.pose_jump(pose).is_none()).then_some(pose);
-            Ok(self.query_frames(model, pose, out))
+            Ok(self.query_frames(model, pose, out).0)
         })
     }
 
     /// Query of the binned and grouped points against `model` and, given the scan's pose,
     /// every stored past frame; without a pose, against `model` alone. Returns the number of
-    /// models queried.
-    fn query_frames(&mut self, model: &FrameModel, pose: Option<&Pose>, out: &mut [f32]) -> usize {
+    /// models queried and the tally of what was written.
+    fn query_frames(
+        &mut self,
+        model: &FrameModel,
+        pose: Option<&Pose>,
+        out: &mut [f32],
+    ) -> (usize, OutputTally) {
         let transforms: Vec<Isometry3<f64>> = match pose {
             Some(pose) => self
                 .history
@@ -326,14 +333,15 @@ impl Segmenter {
                     transform: Some(t),
                 }),
         );
-        query_grouped(
+        let tally = query_grouped(
             &self.binner,
             &frames,
             self.cfg.zones.beyond_max_range,
+            self.cfg.ground.ground_threshold,
             &mut self.query_scratch,
             out,
         );
-        frames.len()
+        (frames.len(), tally)
     }
 
     /// Groups the binned points for the query ([`query_grouped`]).
@@ -427,22 +435,18 @@ impl Segmenter {
         }
         report.fitted_segments = model.fitted_segments();
         report.components = model.components().len();
-        // One pass for both counts (each a plain sum, vectorised).
-        let (near, beyond) = self.bins.iter().fold((0usize, 0usize), |(n, f), &b| {
-            let near = b == NEAR;
-            (
-                n + usize::from(near),
-                f + usize::from(!near & (b & BEYOND != 0)),
-            )
-        });
-        report.near_points = near - out_of_bounds;
+        // From the per-segment counts taken while binning: every bin not `NEAR` is in
+        // range or beyond it.
+        let (in_range, beyond) = self.counts.totals();
+        report.near_points = points.len() - in_range - beyond - out_of_bounds;
         report.beyond_points = beyond;
 
         let t1 = Instant::now();
+        let tally;
         match pose {
             Some(pose) => {
                 report.history_cleared |= self.check_pose_jump(pose);
-                report.frames_queried = self.query_frames(&model, Some(pose), out);
+                (report.frames_queried, tally) = self.query_frames(&model, Some(pose), out);
                 let keep = self.cfg.history.frames as usize - 1;
                 if keep > 0 {
                     if self.history.len() == keep {
@@ -453,20 +457,16 @@ impl Segmenter {
             }
             None => {
                 self.counters.without_pose += 1;
-                report.frames_queried = self.query_frames(&model, None, out);
+                (report.frames_queried, tally) = self.query_frames(&model, None, out);
             }
         }
         report.query_time = t1.elapsed();
         let thr = self.cfg.ground.ground_threshold;
         // No NaN ever leaves the segmenter: a non-finite value would be a defect (none is
         // known), and it would poison every consumer's arithmetic. Written as 0, counted.
-        // Counted first, written only if there is any: a conditional write in the counting
-        // loop becomes a masked store per vector, which Zen microcodes.
-        let (non_finite, ground) = out.iter().fold((0usize, 0usize), |(n, g), &p| {
-            (n + usize::from(!p.is_finite()), g + usize::from(p >= thr))
-        });
-        let non_finite = non_finite as u64;
-        report.ground_points = ground;
+        // The query counted them while writing; they are rewritten only if there is any.
+        let non_finite = tally.non_finite as u64;
+        report.ground_points = tally.ground;
         if non_finite > 0 {
             for p in out.iter_mut().filter(|p| !p.is_finite()) {
                 *p = 0.0;
