@@ -24,6 +24,7 @@ use wide::bytemuck::cast;
 use crate::fastmath::{exp2_from, exp2_v};
 use crate::gmm::half_precision_factor;
 use crate::model::FrameModel;
+use crate::segmenter::GroundPoints;
 use crate::zones::LaneBinner;
 
 /// Packed bin of a point in its own scan (as [`LaneBinner::bin_block`] gives it): segment
@@ -326,7 +327,7 @@ impl SegmentCounts {
 /// `bins` their packed bins).
 pub(crate) fn group(
     s: &mut QueryScratch,
-    points: &[[f64; 3]],
+    points: &GroundPoints,
     bins: &[u32],
     counts: &SegmentCounts,
     segments: usize,
@@ -334,7 +335,7 @@ pub(crate) fn group(
 ) {
     let outer_ring = policy == BeyondRangePolicy::OuterRing;
     let total = counts.offsets(segments, outer_ring, &mut s.start);
-    s.place.resize(points.len(), UNQUERIED);
+    s.place.resize(bins.len(), UNQUERIED);
     s.x.resize(total, 0.0);
     s.y.resize(total, 0.0);
     s.z.resize(total, 0.0);
@@ -343,7 +344,8 @@ pub(crate) fn group(
     let (xs, ys, zs) = (&mut s.x[..], &mut s.y[..], &mut s.z[..]);
     // The current run's segment keeps its cursor in a register (see `SegmentCounts::of`).
     let (mut run_seg, mut j) = (usize::MAX, 0usize);
-    for ((&b, p), place) in bins.iter().zip(points).zip(&mut s.place) {
+    let points = points.x.iter().zip(&points.y).zip(&points.z);
+    for ((&b, ((&x, &y), &z)), place) in bins.iter().zip(points).zip(&mut s.place) {
         *place = match segment_of(b, policy) {
             Some(seg) => {
                 let seg = seg as usize;
@@ -353,9 +355,9 @@ pub(crate) fn group(
                     }
                     (run_seg, j) = (seg, cursor[seg] as usize);
                 }
-                xs[j] = p[0] as f32;
-                ys[j] = p[1] as f32;
-                zs[j] = p[2] as f32;
+                xs[j] = x as f32;
+                ys[j] = y as f32;
+                zs[j] = z as f32;
                 j += 1;
                 j as u32 - 1
             }
@@ -795,9 +797,14 @@ mod tests {
         let policy = BeyondRangePolicy::OuterRing;
         let mut scratch = QueryScratch::default();
         let counts = SegmentCounts::of(&bins, binner.segment_count());
+        let soa = GroundPoints {
+            x: ground.iter().map(|p| p[0]).collect(),
+            y: ground.iter().map(|p| p[1]).collect(),
+            z: ground.iter().map(|p| p[2]).collect(),
+        };
         group(
             &mut scratch,
-            &ground,
+            &soa,
             &bins,
             &counts,
             binner.segment_count(),

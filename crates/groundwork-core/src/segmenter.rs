@@ -25,7 +25,7 @@ use crate::zones::{LaneBinner, ZoneModel};
 fn group_in_range(
     s: &mut SegmentedPoints,
     bins: &[u32],
-    ground: &[[f64; 3]],
+    ground: &GroundPoints,
     counts: &SegmentCounts,
     segments: usize,
 ) {
@@ -39,7 +39,8 @@ fn group_in_range(
     // Consecutive points mostly share a segment: the current run's cursor stays in a
     // register (a memory increment per point waited on the previous one's store).
     let (mut run_seg, mut i) = (usize::MAX, 0usize);
-    for (&b, g) in bins.iter().zip(ground) {
+    let points = ground.x.iter().zip(&ground.y).zip(&ground.z);
+    for (&b, ((&x, &y), &z)) in bins.iter().zip(points) {
         if b & BEYOND == 0 {
             let seg = b as usize;
             if seg != run_seg {
@@ -48,12 +49,47 @@ fn group_in_range(
                 }
                 (run_seg, i) = (seg, cursor[seg] as usize);
             }
-            xs[i] = g[0];
-            ys[i] = g[1];
-            zs[i] = g[2];
+            xs[i] = x;
+            ys[i] = y;
+            zs[i] = z;
             i += 1;
         }
     }
+}
+
+/// A scan's points in the ground-aligned frame, in input order (structure of arrays: the
+/// transform writes whole vectors of each coordinate).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct GroundPoints {
+    pub(crate) x: Vec<f64>,
+    pub(crate) y: Vec<f64>,
+    pub(crate) z: Vec<f64>,
+}
+
+impl GroundPoints {
+    fn resize(&mut self, n: usize) {
+        for v in [&mut self.x, &mut self.y, &mut self.z] {
+            v.resize(n, 0.0);
+        }
+    }
+}
+
+/// Rows of [R | t] applied to a block of points (structure of arrays), in f64. Written as
+/// plain loops over the lanes so that they become f64 vector operations.
+#[inline(always)]
+fn transform_block(rows: &[[f64; 4]; 3], p: &[[f32; LANES]; 3]) -> [[f64; LANES]; 3] {
+    let (px, py, pz) = (
+        p[0].map(f64::from),
+        p[1].map(f64::from),
+        p[2].map(f64::from),
+    );
+    let mut g = [[0.0; LANES]; 3];
+    for (row, g) in rows.iter().zip(&mut g) {
+        for k in 0..LANES {
+            g[k] = row[0] * px[k] + row[1] * py[k] + row[2] * pz[k] + row[3];
+        }
+    }
+    g
 }
 
 /// What happened to one scan.
@@ -150,7 +186,7 @@ pub struct Segmenter {
     last_time_ns: Option<u64>,
     counters: SegmenterCounters,
     // Scratch reused between frames so steady-state segmentation does not allocate more.
-    ground: Vec<[f64; 3]>,
+    ground: GroundPoints,
     bins: Vec<u32>,
     /// Points per segment of `bins`, counted while binning.
     counts: SegmentCounts,
@@ -174,7 +210,7 @@ impl Segmenter {
             mount,
             height,
             counters: SegmenterCounters::default(),
-            ground: Vec::new(),
+            ground: GroundPoints::default(),
             bins: Vec::new(),
             counts: SegmentCounts::default(),
             sorted: SegmentedPoints::default(),
@@ -547,54 +583,62 @@ impl Segmenter {
     /// coordinate is finite (a non-finite one is binned harmlessly: selects, no lookups).
     fn bin_points<P: PointXyz + Sync>(&mut self, points: &[P]) -> (usize, bool) {
         let n = points.len();
-        self.ground.resize(n, [0.0; 3]);
+        self.ground.resize(n);
         self.bins.resize(n, 0);
         // A rotation matrix costs 9 multiply-adds per point, a unit quaternion about 30.
         let r = self.mount.rotation.to_rotation_matrix().into_inner();
         let t = self.mount.translation.vector;
+        let rows: [[f64; 4]; 3] = std::array::from_fn(|i| [r[(i, 0)], r[(i, 1)], r[(i, 2)], t[i]]);
         let binner = &self.binner;
         let segments = self.binner.segment_count();
         let bound = self.cfg.max_coordinate() as f32;
         let outside = |p: &P| p.xyz().iter().any(|v| v.abs() > bound);
         // Chunks of whole vectors: each is transformed, then binned 16 points at a time.
         const CHUNK: usize = 256 * LANES;
-        let (out_of_bounds, finite, counts) = self
-            .ground
+        let GroundPoints { x, y, z } = &mut self.ground;
+        let (out_of_bounds, finite, counts) = x
             .par_chunks_mut(CHUNK)
+            .zip(y.par_chunks_mut(CHUNK))
+            .zip(z.par_chunks_mut(CHUNK))
             .zip(self.bins.par_chunks_mut(CHUNK))
             .zip(points.par_chunks(CHUNK))
-            .map(|((ground, bins), points)| {
-                // Counted first, fixed up only where there is any: a branch in the
-                // transform loop kept it from being vectorised.
-                let (finite, out_of_bounds) = points.iter().fold((true, 0), |(ok, n), p| {
-                    let [x, y, z] = p.xyz();
-                    let ok = ok & x.is_finite() & y.is_finite() & z.is_finite();
-                    (ok, n + usize::from(outside(p)))
-                });
-                // Transformed and binned a block at a time: the block's x and y go to the
-                // binning as f32 lanes straight from the transform, not read back from
-                // `ground` and converted lane by lane.
-                let blocks = ground.chunks_mut(LANES).zip(bins.chunks_mut(LANES));
-                for ((ground, bins), points) in blocks.zip(points.chunks(LANES)) {
-                    let (mut xs, mut ys) = ([0.0f32; LANES], [0.0f32; LANES]);
-                    for (k, (g, p)) in ground.iter_mut().zip(points).enumerate() {
-                        let [x, y, z] = p.xyz().map(f64::from);
-                        *g = [
-                            r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
-                            r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
-                            r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
-                        ];
-                        (xs[k], ys[k]) = (g[0] as f32, g[1] as f32);
+            .map(|((((gx, gy), gz), bins), points)| {
+                // Non-finite and out-of-bounds coordinates are counted in lanes while the
+                // blocks are transformed (one read of the points), fixed up after only
+                // where there is any: a branch in the transform loop kept it from being
+                // vectorised. The zero-padded lanes of a last block count as neither.
+                let (mut finite, mut out_of_bounds) = (true, 0);
+                // Transformed and binned a block at a time, in lanes: the block's x and y
+                // go to the binning as f32 lanes straight from the transform.
+                let blocks = gx.chunks_mut(LANES).zip(gy.chunks_mut(LANES));
+                let blocks = blocks.zip(gz.chunks_mut(LANES)).zip(bins.chunks_mut(LANES));
+                for ((((gx, gy), gz), bins), points) in blocks.zip(points.chunks(LANES)) {
+                    let mut p = [[0.0f32; LANES]; 3];
+                    for (k, q) in points.iter().enumerate() {
+                        [p[0][k], p[1][k], p[2][k]] = q.xyz();
                     }
-                    let packed = binner.bin_block(xs, ys);
-                    bins.copy_from_slice(&packed[..bins.len()]);
+                    let [px, py, pz] = &p;
+                    for k in 0..LANES {
+                        let (x, y, z) = (px[k], py[k], pz[k]);
+                        finite &= x.is_finite() & y.is_finite() & z.is_finite();
+                        out_of_bounds +=
+                            usize::from((x.abs() > bound) | (y.abs() > bound) | (z.abs() > bound));
+                    }
+                    let g = transform_block(&rows, &p);
+                    let w = gx.len();
+                    gx.copy_from_slice(&g[0][..w]);
+                    gy.copy_from_slice(&g[1][..w]);
+                    gz.copy_from_slice(&g[2][..w]);
+                    let packed = binner.bin_block(g[0].map(|v| v as f32), g[1].map(|v| v as f32));
+                    bins.copy_from_slice(&packed[..w]);
                 }
                 // A point beyond the bound was binned where it is (binning any value is
                 // harmless: selects, no lookups); it moves to the origin, binned near.
                 if out_of_bounds > 0 {
-                    for ((g, b), p) in ground.iter_mut().zip(bins.iter_mut()).zip(points) {
+                    let ground = gx.iter_mut().zip(gy.iter_mut()).zip(gz.iter_mut());
+                    for ((((x, y), z), b), p) in ground.zip(bins.iter_mut()).zip(points) {
                         if outside(p) {
-                            (*g, *b) = ([0.0; 3], NEAR);
+                            (*x, *y, *z, *b) = (0.0, 0.0, 0.0, NEAR);
                         }
                     }
                 }
