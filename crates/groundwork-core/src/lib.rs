@@ -16,6 +16,7 @@ pub mod error;
 mod fastmath;
 pub mod frame;
 pub mod gmm;
+mod grouping;
 pub mod height_filter;
 pub mod likelihood;
 pub mod method;

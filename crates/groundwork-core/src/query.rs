@@ -5,8 +5,8 @@
 //! responsibility-weighted likelihoods. With one frame this is exactly the single-frame
 //! query.
 //!
-//! Implementation: the points are grouped once by their segment in the query scan (counting
-//! sort). Each run is evaluated 16 points per SIMD vector, and each vector against every
+//! Implementation: the points are grouped by their segment in the query scan (with the
+//! fit's groups, see [`crate::grouping`]). Each run is evaluated 16 points per SIMD vector, and each vector against every
 //! frame while it stays in registers: against its own segment's components for the query
 //! scan's model; for a past frame the vector is moved into that frame, binned there and
 //! evaluated against each distinct segment it falls into. Per-point sums (Σw, Σw·p_λ,
@@ -18,13 +18,13 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use crate::config::BeyondRangePolicy;
-use crate::simd::{LANES, Vf, Vi, load};
+use crate::simd::{LANES, Vf, Vi, lane_min, load_f64};
 use wide::bytemuck::cast;
 
 use crate::fastmath::{exp2_from, exp2_v};
 use crate::gmm::half_precision_factor;
-use crate::model::FrameModel;
-use crate::segmenter::GroundPoints;
+use crate::grouping::QueryGroups;
+use crate::model::{FrameModel, SegmentedPoints};
 use crate::zones::LaneBinner;
 
 /// Packed bin of a point in its own scan (as [`LaneBinner::bin_block`] gives it): segment
@@ -33,7 +33,7 @@ pub(crate) const NEAR: u32 = u32::MAX;
 pub(crate) const BEYOND: u32 = 1 << 31;
 
 /// Segment whose model answers for a packed bin, or `None` if no model is asked.
-#[inline]
+#[cfg(test)]
 fn segment_of(packed: u32, policy: BeyondRangePolicy) -> Option<u32> {
     if packed == NEAR {
         None
@@ -161,15 +161,10 @@ fn probability(sum: f32, flat: f32, orient: f32, elev: f32) -> f32 {
 /// Reusable buffers of the query.
 #[derive(Debug, Default)]
 pub(crate) struct QueryScratch {
-    /// Queried points grouped by their segment in the query scan (f32, ground frame).
-    x: Vec<f32>,
-    y: Vec<f32>,
-    z: Vec<f32>,
-    /// Per input point, its place among the grouped points (`UNQUERIED` if it has none).
-    place: Vec<u32>,
-    /// Grouped points of segment s are at `start[s]..start[s+1]`.
-    start: Vec<u32>,
-    /// Ground probability per grouped point.
+    /// What the grouping wrote for the query (places, beyond-range points).
+    pub(crate) groups: QueryGroups,
+    /// Ground probability per grouped point: in-range points first (numbered as the fit's
+    /// groups), then beyond-range points.
     prob: Vec<f32>,
 }
 
@@ -182,8 +177,8 @@ pub(crate) struct OutputTally {
     pub ground: usize,
 }
 
-/// Ground probability of every point [`group`] grouped into `s` (the query scan's points in
-/// its ground-aligned frame, with their packed bins). Points near the sensor, beyond range
+/// Ground probability of every point [`group_points`] grouped into `sorted` and `s` (the
+/// query scan's points in its ground-aligned frame). Points near the sensor, beyond range
 /// under the `NonGround` policy, or in no fitted segment of any frame get 0. Returns the
 /// written probabilities' tally against `threshold` (taken on both cores while writing, not
 /// in a serial pass after).
@@ -195,28 +190,34 @@ pub(crate) fn query_grouped(
     frames: &[QueryFrame<'_>],
     policy: BeyondRangePolicy,
     threshold: f32,
+    sorted: &SegmentedPoints,
     s: &mut QueryScratch,
     out: &mut [f32],
 ) -> OutputTally {
-    s.prob.resize(s.x.len(), 0.0);
-    let runs = split_runs(&s.start, &mut s.prob);
-    let (xs, ys, zs) = (&s.x, &s.y, &s.z);
+    let g = &s.groups;
+    let in_range = sorted.xs.len();
+    s.prob.resize(in_range + g.beyond.x.len(), 0.0);
+    let (near, far) = s.prob.split_at_mut(in_range);
+    let mut runs = split_runs(&sorted.start, [&sorted.xs, &sorted.ys, &sorted.zs], near);
+    runs.extend(split_runs(
+        &g.beyond_start,
+        [&g.beyond.x, &g.beyond.y, &g.beyond.z],
+        far,
+    ));
+    // Big runs first: rayon then balances the cores well.
+    runs.sort_unstable_by_key(|r| std::cmp::Reverse(r.prob.len()));
     let tables: Vec<(&QueryTable, Option<Move>)> = frames
         .iter()
         .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
         .collect();
     runs.into_par_iter()
         .with_max_len(1)
-        .for_each(|(seg, a, prob)| {
-            let r = a..a + prob.len();
-            let (x, y, z) = (&xs[r.clone()], &ys[r.clone()], &zs[r]);
-            eval_run(binner, &tables, policy, seg, x, y, z, prob);
-        });
+        .for_each(|r| eval_run(binner, &tables, policy, r.seg, r.xyz, r.prob));
     // Back into input order: a gather per input point, so both cores share it.
     let prob = &s.prob;
     let (non_finite, ground) = out
         .par_chunks_mut(GATHER_CHUNK)
-        .zip(s.place.par_chunks(GATHER_CHUNK))
+        .zip(s.groups.place.par_chunks(GATHER_CHUNK))
         .map(|(out, place)| {
             let (mut non_finite, mut ground) = (0, 0);
             for (o, &j) in out.iter_mut().zip(place) {
@@ -231,139 +232,32 @@ pub(crate) fn query_grouped(
     OutputTally { non_finite, ground }
 }
 
-/// An input point that no model answers for.
-const UNQUERIED: u32 = u32::MAX;
-
 /// Input points per task of the final gather.
 const GATHER_CHUNK: usize = 16 * 1024;
 
-/// Per-segment views of the probabilities, with each segment's index and offset.
-fn split_runs<'a>(start: &[u32], mut prob: &'a mut [f32]) -> Vec<(u32, usize, &'a mut [f32])> {
+/// The grouped points of one segment and their probabilities.
+struct Run<'a> {
+    seg: u32,
+    xyz: [&'a [f64]; 3],
+    prob: &'a mut [f32],
+}
+
+/// Per-segment runs of grouped points (`start` their offsets, an empty `start` none).
+fn split_runs<'a>(start: &[u32], xyz: [&'a [f64]; 3], mut prob: &'a mut [f32]) -> Vec<Run<'a>> {
     let mut runs = Vec::new();
     for (seg, w) in start.windows(2).enumerate() {
-        let len = (w[1] - w[0]) as usize;
-        let (head, tail) = prob.split_at_mut(len);
+        let (a, b) = (w[0] as usize, w[1] as usize);
+        let (head, tail) = prob.split_at_mut(b - a);
         prob = tail;
-        if len > 0 {
-            runs.push((seg as u32, w[0] as usize, head));
+        if b > a {
+            runs.push(Run {
+                seg: seg as u32,
+                xyz: xyz.map(|v| &v[a..b]),
+                prob: head,
+            });
         }
     }
-    // Big runs first: rayon then balances the cores well.
-    runs.sort_unstable_by_key(|r| std::cmp::Reverse(r.2.len()));
     runs
-}
-
-/// Points per segment of a scan, in range and beyond it (its bins' first pass of a counting
-/// sort, taken while binning, a chunk of the scan per task, so that neither sort reads the
-/// bins twice).
-#[derive(Debug, Clone, Default)]
-pub(crate) struct SegmentCounts {
-    /// In-range points of segment s at `[s]`, beyond-range points whose outer-ring segment
-    /// is s at `[segments + s]`.
-    counts: Vec<u32>,
-}
-
-impl SegmentCounts {
-    /// The counts of `bins` (packed) in a zone model of `segments` segments.
-    pub(crate) fn of(bins: &[u32], segments: usize) -> Self {
-        let mut counts = vec![0; 2 * segments];
-        // Consecutive points mostly share a segment (a sensor sweeps one sector after the
-        // other): a run is counted in a register and added once. A memory increment per
-        // point waited on the previous one's store.
-        let (mut run_key, mut run) = (0usize, 0u32);
-        for &b in bins {
-            if b != NEAR {
-                let key = (b & !BEYOND) as usize + if b & BEYOND != 0 { segments } else { 0 };
-                if key != run_key {
-                    counts[run_key] += run;
-                    (run_key, run) = (key, 0);
-                }
-                run += 1;
-            }
-        }
-        if let Some(c) = counts.get_mut(run_key) {
-            *c += run;
-        }
-        Self { counts }
-    }
-
-    /// Points in range and points beyond it (the bins that are not `NEAR`).
-    pub(crate) fn totals(&self) -> (usize, usize) {
-        let (inside, outside) = self.counts.split_at(self.counts.len() / 2);
-        let sum = |c: &[u32]| c.iter().map(|&n| n as usize).sum::<usize>();
-        (sum(inside), sum(outside))
-    }
-
-    /// The counts of two chunks of one scan together.
-    pub(crate) fn add(mut self, o: &Self) -> Self {
-        if self.counts.is_empty() {
-            return o.clone();
-        }
-        for (a, b) in self.counts.iter_mut().zip(&o.counts) {
-            *a += b;
-        }
-        self
-    }
-
-    /// The counting sort's offsets: `start[s]..start[s+1]` will hold the in-range points of
-    /// segment s and, with `beyond`, the beyond-range points answered by it. Returns their
-    /// number.
-    pub(crate) fn offsets(&self, segments: usize, beyond: bool, start: &mut Vec<u32>) -> usize {
-        start.clear();
-        start.push(0);
-        let (inside, outside) = self.counts.split_at(self.counts.len() / 2);
-        let mut total = 0;
-        for s in 0..segments {
-            let beyond = if beyond { outside.get(s) } else { None };
-            total += inside.get(s).copied().unwrap_or(0) + beyond.copied().unwrap_or(0);
-            start.push(total);
-        }
-        total as usize
-    }
-}
-
-/// Counting sort of the queried points by the segment that answers for them in the query
-/// scan, into f32 structure-of-arrays (`points` in the query scan's ground-aligned frame,
-/// `bins` their packed bins).
-pub(crate) fn group(
-    s: &mut QueryScratch,
-    points: &GroundPoints,
-    bins: &[u32],
-    counts: &SegmentCounts,
-    segments: usize,
-    policy: BeyondRangePolicy,
-) {
-    let outer_ring = policy == BeyondRangePolicy::OuterRing;
-    let total = counts.offsets(segments, outer_ring, &mut s.start);
-    s.place.resize(bins.len(), UNQUERIED);
-    s.x.resize(total, 0.0);
-    s.y.resize(total, 0.0);
-    s.z.resize(total, 0.0);
-    let mut cursor = s.start[..segments].to_vec();
-    // Local slices: through `s` the compiler would reload every pointer after each store.
-    let (xs, ys, zs) = (&mut s.x[..], &mut s.y[..], &mut s.z[..]);
-    // The current run's segment keeps its cursor in a register (see `SegmentCounts::of`).
-    let (mut run_seg, mut j) = (usize::MAX, 0usize);
-    let points = points.x.iter().zip(&points.y).zip(&points.z);
-    for ((&b, ((&x, &y), &z)), place) in bins.iter().zip(points).zip(&mut s.place) {
-        *place = match segment_of(b, policy) {
-            Some(seg) => {
-                let seg = seg as usize;
-                if seg != run_seg {
-                    if let Some(c) = cursor.get_mut(run_seg) {
-                        *c = j as u32;
-                    }
-                    (run_seg, j) = (seg, cursor[seg] as usize);
-                }
-                xs[j] = x as f32;
-                ys[j] = y as f32;
-                zs[j] = z as f32;
-                j += 1;
-                j as u32 - 1
-            }
-            None => UNQUERIED,
-        };
-    }
 }
 
 /// A rigid transform as f32 lanes: rows of [R | t].
@@ -397,9 +291,7 @@ fn eval_run(
     frames: &[(&QueryTable, Option<Move>)],
     policy: BeyondRangePolicy,
     seg: u32,
-    xs: &[f32],
-    ys: &[f32],
-    zs: &[f32],
+    [xs, ys, zs]: [&[f64]; 3],
     prob: &mut [f32],
 ) {
     let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
@@ -410,7 +302,7 @@ fn eval_run(
     let mut guess = vec![[u32::MAX; 2]; frames.len()];
     for j in (0..prob.len()).step_by(LANES) {
         let w = LANES.min(prob.len() - j);
-        let (x, y, z) = (load(xs, j, w), load(ys, j, w), load(zs, j, w));
+        let (x, y, z) = (load_f64(xs, j, w), load_f64(ys, j, w), load_f64(zs, j, w));
         let real = lane_index.simd_lt(Vi::splat(w as i32));
         let real_f: Vf = cast(real);
         let last_lane = 1u32 << (w - 1);
@@ -426,11 +318,7 @@ fn eval_run(
                 if !comps.is_empty() {
                     sums = sums.merge(eval_lanes(comps, x, y, z));
                 }
-                low = real_f
-                    .select(sums.max, Vf::splat(f32::INFINITY))
-                    .to_array()
-                    .into_iter()
-                    .fold(f32::INFINITY, f32::min);
+                low = lane_min(real_f.select(sums.max, Vf::splat(f32::INFINITY)));
                 continue;
             };
             let moved = mv.apply(x, y, z);
@@ -654,41 +542,11 @@ mod tests {
     #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
     use super::*;
+    use crate::grouping::{GroundPoints, SegmentCounts, group_points};
     use crate::point::mount_transform;
     use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};
     use nalgebra::{Point3, Translation3, UnitQuaternion};
-
-    #[test]
-    fn segment_counts_summed_over_chunks_give_each_sorts_offsets() {
-        // In range, near, and beyond range (bit 31) in runs and alone, over 5 segments.
-        let bins: Vec<u32> = [0, 0, 3, NEAR, 3, 4 | BEYOND, 4 | BEYOND, 1, NEAR, BEYOND, 4]
-            .into_iter()
-            .cycle()
-            .take(1000)
-            .collect();
-        let whole = SegmentCounts::of(&bins, 5);
-        let summed = bins
-            .chunks(37)
-            .map(|c| SegmentCounts::of(c, 5))
-            .fold(SegmentCounts::default(), |a, b| a.add(&b));
-        for beyond in [false, true] {
-            let mut want = vec![0u32; 6];
-            for &b in &bins {
-                if b != NEAR && (beyond || b & BEYOND == 0) {
-                    want[(b & !BEYOND) as usize + 1] += 1;
-                }
-            }
-            for k in 1..6 {
-                want[k] += want[k - 1];
-            }
-            let (mut a, mut b) = (Vec::new(), Vec::new());
-            assert_eq!(whole.offsets(5, beyond, &mut a), want[5] as usize);
-            assert_eq!(summed.offsets(5, beyond, &mut b), want[5] as usize);
-            assert_eq!(a, want);
-            assert_eq!(b, want);
-        }
-    }
 
     /// [`Bin`] in the packed form (for the direct evaluation in tests).
     fn pack(bin: Bin) -> u32 {
@@ -703,8 +561,12 @@ mod tests {
     /// box and a wall, seen from `x0` metres further along x, the road raised by `lift`.
     fn scene(x0: f32, lift: f32) -> Vec<Point> {
         let mut pts = Vec::new();
-        for ring in 0..64 {
-            let r = 3.0 + ring as f32 * 0.6;
+        // Rings every 0.6 m to 40.8 m, every 2 m to 80 m (the default max range), and
+        // three beyond it, which the outer ring answers for.
+        let radii = (0..64)
+            .map(|ring| 3.0 + ring as f32 * 0.6)
+            .chain((0..23).map(|ring| 42.0 + ring as f32 * 2.0));
+        for (ring, r) in radii.enumerate() {
             for k in 0..720 {
                 let a = k as f32 * std::f32::consts::TAU / 720.0;
                 let (x, y) = (r * a.cos(), r * a.sin());
@@ -802,15 +664,29 @@ mod tests {
             y: ground.iter().map(|p| p[1]).collect(),
             z: ground.iter().map(|p| p[2]).collect(),
         };
-        group(
-            &mut scratch,
+        let mut sorted = SegmentedPoints::default();
+        group_points(
+            &mut sorted,
+            &mut scratch.groups,
             &soa,
             &bins,
             &counts,
             binner.segment_count(),
-            policy,
+            Some(policy),
         );
-        let tally = query_grouped(&binner, &frames, policy, 0.5, &mut scratch, &mut out);
+        assert!(
+            !scratch.groups.beyond.x.is_empty(),
+            "the scene must have beyond-range points"
+        );
+        let tally = query_grouped(
+            &binner,
+            &frames,
+            policy,
+            0.5,
+            &sorted,
+            &mut scratch,
+            &mut out,
+        );
         assert_eq!(
             tally.non_finite,
             out.iter().filter(|p| !p.is_finite()).count()

@@ -11,68 +11,13 @@ use tracing::{debug, info, warn};
 
 use crate::config::SegmenterConfig;
 use crate::error::{ConfigError, SegmentError};
+use crate::grouping::{GroundPoints, SegmentCounts, group_points};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
-use crate::query::{
-    BEYOND, NEAR, OutputTally, QueryFrame, QueryScratch, SegmentCounts, query_grouped,
-};
+use crate::query::{NEAR, OutputTally, QueryFrame, QueryScratch, query_grouped};
 use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
-
-/// Counting sort of the in-range points (`ground`, binned `bins`) into contiguous runs per
-/// segment, in input order within each run.
-fn group_in_range(
-    s: &mut SegmentedPoints,
-    bins: &[u32],
-    ground: &GroundPoints,
-    counts: &SegmentCounts,
-    segments: usize,
-) {
-    let total = counts.offsets(segments, false, &mut s.start);
-    s.xs.resize(total, 0.0);
-    s.ys.resize(total, 0.0);
-    s.zs.resize(total, 0.0);
-    let mut cursor: Vec<u32> = s.start[..segments].to_vec();
-    // Local slices: through `s` the compiler would reload every pointer after each store.
-    let (xs, ys, zs) = (&mut s.xs[..], &mut s.ys[..], &mut s.zs[..]);
-    // Consecutive points mostly share a segment: the current run's cursor stays in a
-    // register (a memory increment per point waited on the previous one's store).
-    let (mut run_seg, mut i) = (usize::MAX, 0usize);
-    let points = ground.x.iter().zip(&ground.y).zip(&ground.z);
-    for (&b, ((&x, &y), &z)) in bins.iter().zip(points) {
-        if b & BEYOND == 0 {
-            let seg = b as usize;
-            if seg != run_seg {
-                if let Some(c) = cursor.get_mut(run_seg) {
-                    *c = i as u32;
-                }
-                (run_seg, i) = (seg, cursor[seg] as usize);
-            }
-            xs[i] = x;
-            ys[i] = y;
-            zs[i] = z;
-            i += 1;
-        }
-    }
-}
-
-/// A scan's points in the ground-aligned frame, in input order (structure of arrays: the
-/// transform writes whole vectors of each coordinate).
-#[derive(Debug, Clone, Default)]
-pub(crate) struct GroundPoints {
-    pub(crate) x: Vec<f64>,
-    pub(crate) y: Vec<f64>,
-    pub(crate) z: Vec<f64>,
-}
-
-impl GroundPoints {
-    fn resize(&mut self, n: usize) {
-        for v in [&mut self.x, &mut self.y, &mut self.z] {
-            v.resize(n, 0.0);
-        }
-    }
-}
 
 /// Rows of [R | t] applied to a block of points (structure of arrays), in f64. Written as
 /// plain loops over the lanes so that they become f64 vector operations.
@@ -298,7 +243,7 @@ impl Segmenter {
         crate::workers::with_workers_awake(|| {
             let out = vec![0.0; points.len()];
             self.check_and_bin(points, None, &out)?;
-            self.group_by_segment();
+            self.group(false);
             Ok(self.fit_grouped().0)
         })
     }
@@ -313,7 +258,7 @@ impl Segmenter {
     ) -> Result<(), SegmentError> {
         crate::workers::with_workers_awake(|| {
             self.check_and_bin(points, None, out)?;
-            self.group_for_query();
+            self.group(true);
             self.query_frames(model, None, out);
             Ok(())
         })
@@ -332,7 +277,7 @@ impl Segmenter {
     ) -> Result<usize, SegmentError> {
         crate::workers::with_workers_awake(|| {
             self.check_and_bin(points, Some(pose), out)?;
-            self.group_for_query();
+            self.group(true);
             let pose = (self.pose_jump(pose).is_none()).then_some(pose);
             Ok(self.query_frames(model, pose, out).0)
         })
@@ -374,21 +319,23 @@ impl Segmenter {
             &frames,
             self.cfg.zones.beyond_max_range,
             self.cfg.ground.ground_threshold,
+            &self.sorted,
             &mut self.query_scratch,
             out,
         );
         (frames.len(), tally)
     }
 
-    /// Groups the binned points for the query ([`query_grouped`]).
-    fn group_for_query(&mut self) {
-        crate::query::group(
-            &mut self.query_scratch,
+    /// Groups the binned points for the fit and, with `query`, for the query too.
+    fn group(&mut self, query: bool) {
+        group_points(
+            &mut self.sorted,
+            &mut self.query_scratch.groups,
             &self.ground,
             &self.bins,
             &self.counts,
-            self.binner.segment_count(),
-            self.cfg.zones.beyond_max_range,
+            self.zones.segment_count(),
+            query.then_some(self.cfg.zones.beyond_max_range),
         );
     }
 
@@ -459,7 +406,7 @@ impl Segmenter {
         if let Some(t) = sensor_time_ns {
             report.history_cleared |= self.check_time_gap(t);
         }
-        self.group_for_fit_and_query();
+        self.group(true);
         let (model, stats) = self.fit_grouped();
         self.update_height_filter(&model);
         report.fit_time = t0.elapsed();
@@ -651,30 +598,6 @@ impl Segmenter {
             );
         self.counts = counts;
         (out_of_bounds, finite)
-    }
-
-    /// Counting sort of the in-range points into contiguous per-segment runs.
-    fn group_by_segment(&mut self) {
-        group_in_range(
-            &mut self.sorted,
-            &self.bins,
-            &self.ground,
-            &self.counts,
-            self.zones.segment_count(),
-        );
-    }
-
-    /// [`Segmenter::group_by_segment`] and [`Segmenter::group_for_query`] side by side: two
-    /// serial counting sorts of the same binned points, one per core.
-    fn group_for_fit_and_query(&mut self) {
-        let (bins, ground, counts) = (&self.bins, &self.ground, &self.counts);
-        let (sorted, scratch) = (&mut self.sorted, &mut self.query_scratch);
-        let (segments, query_segments) = (self.zones.segment_count(), self.binner.segment_count());
-        let policy = self.cfg.zones.beyond_max_range;
-        rayon::join(
-            || group_in_range(sorted, bins, ground, counts, segments),
-            || crate::query::group(scratch, ground, bins, counts, query_segments, policy),
-        );
     }
 
     /// Feeds each zone-1 segment's ground-component height (weight-averaged over components
