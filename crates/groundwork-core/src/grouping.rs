@@ -28,6 +28,12 @@ impl GroundPoints {
             v.resize(n, 0.0);
         }
     }
+
+    pub(crate) fn truncate(&mut self, n: usize) {
+        for v in [&mut self.x, &mut self.y, &mut self.z] {
+            v.truncate(n);
+        }
+    }
 }
 
 /// Points per segment of a scan, in range and beyond it: the counting sort's first pass,

@@ -530,8 +530,12 @@ impl Segmenter {
     /// coordinate is finite (a non-finite one is binned harmlessly: selects, no lookups).
     fn bin_points<P: PointXyz + Sync>(&mut self, points: &[P]) -> (usize, bool) {
         let n = points.len();
-        self.ground.resize(n);
-        self.bins.resize(n, 0);
+        // Whole blocks throughout (padded, truncated to the scan after): copies of a fixed
+        // length stay inline, where a last partial block made every block's copy a
+        // `memcpy` call (2 % of a scan).
+        let padded = n.div_ceil(LANES) * LANES;
+        self.ground.resize(padded);
+        self.bins.resize(padded, 0);
         // A rotation matrix costs 9 multiply-adds per point, a unit quaternion about 30.
         let r = self.mount.rotation.to_rotation_matrix().into_inner();
         let t = self.mount.translation.vector;
@@ -557,8 +561,9 @@ impl Segmenter {
                 let (mut finite, mut out_of_bounds) = (true, 0);
                 // Transformed and binned a block at a time, in lanes: the block's x and y
                 // go to the binning as f32 lanes straight from the transform.
-                let blocks = gx.chunks_mut(LANES).zip(gy.chunks_mut(LANES));
-                let blocks = blocks.zip(gz.chunks_mut(LANES)).zip(bins.chunks_mut(LANES));
+                let blocks = gx.chunks_exact_mut(LANES).zip(gy.chunks_exact_mut(LANES));
+                let blocks = blocks.zip(gz.chunks_exact_mut(LANES));
+                let blocks = blocks.zip(bins.chunks_exact_mut(LANES));
                 for ((((gx, gy), gz), bins), points) in blocks.zip(points.chunks(LANES)) {
                     let mut p = [[0.0f32; LANES]; 3];
                     for (k, q) in points.iter().enumerate() {
@@ -572,12 +577,12 @@ impl Segmenter {
                             usize::from((x.abs() > bound) | (y.abs() > bound) | (z.abs() > bound));
                     }
                     let g = transform_block(&rows, &p);
-                    let w = gx.len();
-                    gx.copy_from_slice(&g[0][..w]);
-                    gy.copy_from_slice(&g[1][..w]);
-                    gz.copy_from_slice(&g[2][..w]);
-                    let packed = binner.bin_block(g[0].map(|v| v as f32), g[1].map(|v| v as f32));
-                    bins.copy_from_slice(&packed[..w]);
+                    gx.copy_from_slice(&g[0]);
+                    gy.copy_from_slice(&g[1]);
+                    gz.copy_from_slice(&g[2]);
+                    bins.copy_from_slice(
+                        &binner.bin_block(g[0].map(|v| v as f32), g[1].map(|v| v as f32)),
+                    );
                 }
                 // A point beyond the bound was binned where it is (binning any value is
                 // harmless: selects, no lookups); it moves to the origin, binned near.
@@ -589,7 +594,7 @@ impl Segmenter {
                         }
                     }
                 }
-                let counts = SegmentCounts::of(bins, segments);
+                let counts = SegmentCounts::of(&bins[..points.len()], segments);
                 (out_of_bounds, finite, counts)
             })
             .reduce(
@@ -597,6 +602,8 @@ impl Segmenter {
                 |a, b| (a.0 + b.0, a.1 & b.1, a.2.add(&b.2)),
             );
         self.counts = counts;
+        self.ground.truncate(n);
+        self.bins.truncate(n);
         (out_of_bounds, finite)
     }
 
