@@ -170,36 +170,41 @@ pub struct EmScratch {
     counts: Vec<u32>,
 }
 
-/// Sorts `v` by hash, every hash at most `max_key`. Hashes spread evenly, so a counting
-/// sort on their top bits (about one bucket per element) leaves only neighbours out of
-/// order, which an insertion sort then fixes: linear time, against n·log n comparisons
-/// of a general sort (4 % of a scan's time). Equal hashes keep their order.
+/// Sorts `src` by hash into `dst[..src.len()]` (`dst` grows as needed, never shrinks:
+/// refilling it per segment was a memset of every point), every hash at most `max_key`.
+/// Hashes spread evenly, so a counting sort on their top bits (about one bucket per
+/// element) leaves only neighbours out of order, which an insertion sort then fixes:
+/// linear time, against n·log n comparisons of a general sort (4 % of a scan's time).
+/// Equal hashes keep their order.
 fn sort_by_hash(
-    v: &mut Vec<(u64, u32)>,
-    spare: &mut Vec<(u64, u32)>,
+    src: &[(u64, u32)],
+    dst: &mut Vec<(u64, u32)>,
     counts: &mut Vec<u32>,
     max_key: u64,
 ) {
-    let m = v.len();
-    if m > 16 {
+    let m = src.len();
+    if dst.len() < m {
+        dst.resize(m, (0, 0));
+    }
+    let v = &mut dst[..m];
+    if m <= 16 {
+        v.copy_from_slice(src);
+    } else {
         let bits = usize::BITS - (m - 1).leading_zeros(); // 2^bits ≥ m
         let shift = (u64::BITS - max_key.leading_zeros()).saturating_sub(bits);
         counts.clear();
         counts.resize((max_key >> shift) as usize + 2, 0);
-        for e in v.iter() {
+        for e in src {
             counts[(e.0 >> shift) as usize + 1] += 1;
         }
         for b in 1..counts.len() {
             counts[b] += counts[b - 1];
         }
-        spare.clear();
-        spare.resize(m, (0, 0));
-        for e in v.iter() {
+        for e in src {
             let slot = &mut counts[(e.0 >> shift) as usize];
-            spare[*slot as usize] = *e;
+            v[*slot as usize] = *e;
             *slot += 1;
         }
-        std::mem::swap(v, spare);
     }
     for i in 1..m {
         let e = v[i];
@@ -289,23 +294,26 @@ pub fn fit_segment_with(
             .zip(zs)
             .map(|((&x, &y), &z)| point_hash(x, y, z)),
     );
-    s.order.clear();
-    s.order.resize(n, (0, 0));
+    // The kept points go to `spare` (grown as needed, never cleared), sorted into `order`.
+    if s.spare.len() < n {
+        s.spare.resize(n, (0, 0));
+    }
     let mut kept = 0;
     for (i, &h) in s.hashes.iter().enumerate() {
-        s.order[kept] = (h, i as u32);
+        s.spare[kept] = (h, i as u32);
         kept += usize::from(h <= threshold);
     }
-    s.order.truncate(kept);
-    if s.order.is_empty() {
+    if kept == 0 {
         // Astronomically unlikely; fall back to one point rather than fit nothing.
-        s.order.push((0, 0));
+        s.spare[0] = (0, 0);
+        kept = 1;
     }
     // Equal hashes mean equal coordinates (or a 2^-64 collision): their order is moot.
-    sort_by_hash(&mut s.order, &mut s.spare, &mut s.counts, threshold);
-    let m = s.order.len();
+    sort_by_hash(&s.spare[..kept], &mut s.order, &mut s.counts, threshold);
+    let order = &s.order[..kept];
+    let m = kept;
     let mut centroid = [0.0; 3];
-    for &(_, i) in &s.order {
+    for &(_, i) in order {
         let i = i as usize;
         centroid[0] += xs[i];
         centroid[1] += ys[i];
@@ -315,7 +323,7 @@ pub fn fit_segment_with(
     for v in [&mut s.x, &mut s.y, &mut s.z] {
         v.clear();
     }
-    for &(_, i) in &s.order {
+    for &(_, i) in order {
         let i = i as usize;
         s.x.push((xs[i] - centroid[0]) as f32);
         s.y.push((ys[i] - centroid[1]) as f32);
@@ -688,7 +696,8 @@ mod tests {
     fn the_hash_sort_orders_like_a_comparison_sort() {
         use rand::Rng;
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
-        let (mut spare, mut counts) = (Vec::new(), Vec::new());
+        // One output buffer for all, longer than needed after the 1000 keys.
+        let (mut dst, mut counts) = (Vec::new(), Vec::new());
         for (m, max_key) in [
             (0, u64::MAX),
             (1, u64::MAX),
@@ -708,8 +717,8 @@ mod tests {
             }
             let mut want = v.clone();
             want.sort_by_key(|e| e.0); // stable, as the hash sort is
-            sort_by_hash(&mut v, &mut spare, &mut counts, max_key);
-            assert_eq!(v, want, "{m} keys up to {max_key}");
+            sort_by_hash(&v, &mut dst, &mut counts, max_key);
+            assert_eq!(&dst[..m], &want[..], "{m} keys up to {max_key}");
         }
     }
 
