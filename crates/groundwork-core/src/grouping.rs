@@ -54,15 +54,12 @@ impl SegmentCounts {
         // other): a run is counted in a register and added once. A memory increment per
         // point waited on the previous one's store.
         let (mut run_key, mut run) = (0usize, 0u32);
-        for &b in bins {
-            if b != NEAR {
-                let key = (b & !BEYOND) as usize + if b & BEYOND != 0 { segments } else { 0 };
-                if key != run_key {
-                    counts[run_key] += run;
-                    (run_key, run) = (key, 0);
-                }
-                run += 1;
+        for key in bins.iter().filter_map(|&b| bin_key(b, segments)) {
+            if key != run_key {
+                counts[run_key] += run;
+                (run_key, run) = (key, 0);
             }
+            run += 1;
         }
         if let Some(c) = counts.get_mut(run_key) {
             *c += run;
@@ -99,6 +96,14 @@ impl SegmentCounts {
     pub(crate) fn beyond_offsets(&self, segments: usize, start: &mut Vec<u32>) -> usize {
         prefix_sums(&self.counts[self.counts.len() / 2..], segments, start)
     }
+}
+
+/// A packed bin's key among the counts: its segment for a point in range, `segments` plus
+/// the outer-ring segment that answers for it beyond range, `None` near the sensor.
+#[inline(always)]
+fn bin_key(b: u32, segments: usize) -> Option<usize> {
+    let beyond = if b & BEYOND != 0 { segments } else { 0 };
+    (b != NEAR).then_some((b & !BEYOND) as usize + beyond)
 }
 
 /// `start` = 0 and the running sums of the first `segments` counts; returns the last.
@@ -261,15 +266,8 @@ impl Copy<'_> {
         let QueryGroups { place, beyond, .. } = q;
         let (mut run_key, mut j) = (usize::MAX, 0usize);
         for (i, (&b, place)) in bins.iter().zip(place.iter_mut()).enumerate() {
-            let key = if b == NEAR {
-                None
-            } else if b & BEYOND == 0 {
-                Some(b as usize)
-            } else if outer_ring {
-                Some((b & !BEYOND) as usize + segments)
-            } else {
-                None
-            };
+            // Beyond-range points are asked only under the outer-ring policy.
+            let key = bin_key(b, segments).filter(|&k| k < segments || outer_ring);
             let Some(key) = key else {
                 *place = UNQUERIED;
                 continue;

@@ -6,8 +6,8 @@
 //! query.
 //!
 //! Implementation: the points are grouped by their segment in the query scan (with the
-//! fit's groups, see [`crate::grouping`]). Each run is evaluated 16 points per SIMD vector, and each vector against every
-//! frame while it stays in registers: against its own segment's components for the query
+//! fit's groups, see [`crate::grouping`]). Each run is evaluated 16 points per SIMD
+//! vector, and each vector against every frame while it stays in registers: against its own segment's components for the query
 //! scan's model; for a past frame the vector is moved into that frame, binned there and
 //! evaluated against each distinct segment it falls into. Per-point sums (Σw, Σw·p_λ,
 //! Σw·p_θ, Σw·p_e) are kept relative to a reference log-density, the query scan's best
@@ -31,21 +31,6 @@ use crate::zones::LaneBinner;
 /// index, `BEYOND` flag, or `NEAR`.
 pub(crate) const NEAR: u32 = u32::MAX;
 pub(crate) const BEYOND: u32 = 1 << 31;
-
-/// Segment whose model answers for a packed bin, or `None` if no model is asked.
-#[cfg(test)]
-fn segment_of(packed: u32, policy: BeyondRangePolicy) -> Option<u32> {
-    if packed == NEAR {
-        None
-    } else if packed & BEYOND != 0 {
-        match policy {
-            BeyondRangePolicy::OuterRing => Some(packed & !BEYOND),
-            BeyondRangePolicy::NonGround => None,
-        }
-    } else {
-        Some(packed)
-    }
-}
 
 // Log-densities are in bits (log2) throughout: weights are then 2^d, without a
 // multiplication by log2(e) in every exponential.
@@ -547,6 +532,20 @@ mod tests {
     use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};
     use nalgebra::{Point3, Translation3, UnitQuaternion};
+
+    /// Segment whose model answers for a packed bin, or `None` if no model is asked.
+    fn segment_of(packed: u32, policy: BeyondRangePolicy) -> Option<u32> {
+        if packed == NEAR {
+            None
+        } else if packed & BEYOND != 0 {
+            match policy {
+                BeyondRangePolicy::OuterRing => Some(packed & !BEYOND),
+                BeyondRangePolicy::NonGround => None,
+            }
+        } else {
+            Some(packed)
+        }
+    }
 
     /// [`Bin`] in the packed form (for the direct evaluation in tests).
     fn pack(bin: Bin) -> u32 {
