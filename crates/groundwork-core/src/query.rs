@@ -7,9 +7,10 @@
 //!
 //! Implementation: the points are grouped by their segment in the query scan (with the
 //! fit's groups, see [`crate::grouping`]). Each run is evaluated 16 points per SIMD
-//! vector, and each vector against every frame while it stays in registers: against its own segment's components for the query
-//! scan's model; for a past frame the vector is moved into that frame, binned there and
-//! evaluated against each distinct segment it falls into. Per-point sums (Σw, Σw·p_λ,
+//! vector, and each vector against every frame while it stays in registers: against its
+//! own segment's components for the query scan's model; for a past frame the vector is
+//! moved into that frame, binned there and evaluated against each distinct segment it
+//! falls into. Per-point sums (Σw, Σw·p_λ,
 //! Σw·p_θ, Σw·p_e) are kept relative to a reference log-density, the query scan's best
 //! component; past frames add to them without rescaling, and a log-sum-exp merge takes over
 //! only where a component would exceed the reference by 2^86 (e^60).
@@ -325,13 +326,14 @@ fn eval_run(
                     }
                 }
                 // The next vector continues where this one ends: its cell first.
-                *guess = if in0.to_bitmask() & last_lane != 0 {
-                    [g0, g1, g2]
+                let last = if in0.to_bitmask() & last_lane != 0 {
+                    g0
                 } else if in1.to_bitmask() & last_lane != 0 {
-                    [g1, g0, g2]
+                    g1
                 } else {
-                    [g2, g0, g1]
+                    g2
                 };
+                *guess = most_recent_first(*guess, last);
                 continue;
             }
             // Answering segment per lane, −1 for none (near, beyond under `NonGround`, padding).
@@ -345,16 +347,9 @@ fn eval_run(
             let lanes = keys.to_array();
             let mut todo = !cast::<Vi, Vf>(keys.simd_eq(no_key)).to_bitmask() & ((1 << LANES) - 1);
             if todo != 0 {
-                // The last lane's segment first, then the others by recency.
+                // The last lane's segment first.
                 let last = lanes[31 - todo.leading_zeros() as usize] as u32;
-                let [a, b, c] = *guess;
-                *guess = if last == a {
-                    [a, b, c]
-                } else if last == b {
-                    [b, a, c]
-                } else {
-                    [last, a, b]
-                };
+                *guess = most_recent_first(*guess, last);
             }
             while todo != 0 {
                 let seg = lanes[todo.trailing_zeros() as usize];
@@ -369,6 +364,19 @@ fn eval_run(
         for (k, p) in prob[j..j + w].iter_mut().enumerate() {
             *p = probability(sum[k], flat[k], orient[k], elev[k]);
         }
+    }
+}
+
+/// The guesses with `seg` moved to the front, the others kept in order of recency (the
+/// oldest drops out if `seg` was not among them).
+#[inline(always)]
+fn most_recent_first([a, b, c]: [u32; 3], seg: u32) -> [u32; 3] {
+    if seg == a {
+        [a, b, c]
+    } else if seg == b {
+        [b, a, c]
+    } else {
+        [seg, a, b]
     }
 }
 
@@ -558,6 +566,14 @@ mod tests {
         } else {
             Some(packed)
         }
+    }
+
+    #[test]
+    fn a_guess_moves_to_the_front_and_the_oldest_drops_out() {
+        assert_eq!(most_recent_first([1, 2, 3], 1), [1, 2, 3]);
+        assert_eq!(most_recent_first([1, 2, 3], 2), [2, 1, 3]);
+        assert_eq!(most_recent_first([1, 2, 3], 3), [3, 1, 2]);
+        assert_eq!(most_recent_first([1, 2, 3], 9), [9, 1, 2]);
     }
 
     /// [`Bin`] in the packed form (for the direct evaluation in tests).
