@@ -445,13 +445,13 @@ impl SegmenterConfig {
             ));
         }
         let s = &self.sensor;
-        if let Some(c) = s.max_coordinate {
-            if !(c.is_finite() && c > z.max_range.max(z.min_range)) {
-                return Err(ConfigError::invalid(
-                    "sensor.max_coordinate",
-                    "must be finite and larger than zones.max_range",
-                ));
-            }
+        if let Some(c) = s.max_coordinate
+            && !(c.is_finite() && c > z.max_range.max(z.min_range))
+        {
+            return Err(ConfigError::invalid(
+                "sensor.max_coordinate",
+                "must be finite and larger than zones.max_range",
+            ));
         }
         if !(s.ego_radius.is_finite() && s.ego_radius >= 0.0) {
             return Err(ConfigError::invalid(

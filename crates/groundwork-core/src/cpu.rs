@@ -5,6 +5,9 @@
 //! kills the process with SIGILL and no message. Binaries call [`check`] first thing and
 //! exit with a clear error instead. The check itself uses only `cpuid` and integer tests, so
 //! it runs on any x86-64 CPU.
+//!
+//! Beyond that level, one loop has a second copy chosen at run time: the multi-frame
+//! query's past components, in 512-bit registers where the CPU has AVX-512 (`query::avx512`).
 
 /// The features the compiler was told it may use, by name, with how to test for them.
 #[cfg(target_arch = "x86_64")]

@@ -62,12 +62,12 @@ pub fn exp_nonpositive(x: f32) -> f32 {
 /// 2^22 + 127 + i, and shifting them left by 23 drops everything but 127 + i, the biased
 /// exponent of 2^i. (A float-to-int cast would do, but a saturating `as i32` turns into a
 /// scalar conversion per lane.)
-const EXP2_ROUND: f32 = 12_583_039.0; // 1.5·2^23 + 127
+pub(crate) const EXP2_ROUND: f32 = 12_583_039.0; // 1.5·2^23 + 127
 
 /// 2^f = 1 + f·(c1 + f·(c2 + …)) on |f| ≤ 1/2: degree 5, minimax for the relative error
 /// of e^y on |y| ≤ ln2/2 with y = f·ln 2 folded into the coefficients: below 1.1e-7
 /// before rounding.
-const EXP2_POLY: [f32; 5] = [
+pub(crate) const EXP2_POLY: [f32; 5] = [
     0.001_330_027_2,
     0.009_669_71,
     0.055_505_6,

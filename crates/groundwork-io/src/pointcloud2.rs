@@ -304,7 +304,7 @@ fn decode_with(
 }
 
 fn put_u32(out: &mut Vec<u8>, v: u32) {
-    while (out.len() - 4) % 4 != 0 {
+    while !(out.len() - 4).is_multiple_of(4) {
         out.push(0);
     }
     out.extend_from_slice(&v.to_le_bytes());

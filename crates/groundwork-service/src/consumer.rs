@@ -171,10 +171,10 @@ impl ConsumerStage {
         }
         let r = &mut self.report;
         r.scans += 1;
-        if let Some((e, s)) = self.last_scan {
-            if e == h.producer_epoch {
-                r.scan_fate.dropped += sequence_gap(s, h.sequence);
-            }
+        if let Some((e, s)) = self.last_scan
+            && e == h.producer_epoch
+        {
+            r.scan_fate.dropped += sequence_gap(s, h.sequence);
         }
         self.last_scan = Some((h.producer_epoch, h.sequence));
         let key = (h.producer_epoch, h.sequence);
@@ -193,10 +193,10 @@ impl ConsumerStage {
         let r = &mut self.report;
         r.masks += 1;
         let key = (h.segmenter_epoch, h.producer_epoch);
-        if let Some((g, e, s)) = self.last_mask {
-            if (g, e) == key {
-                r.dropped_masks += sequence_gap(s, h.scan_sequence);
-            }
+        if let Some((g, e, s)) = self.last_mask
+            && (g, e) == key
+        {
+            r.dropped_masks += sequence_gap(s, h.scan_sequence);
         }
         self.last_mask = Some((h.segmenter_epoch, h.producer_epoch, h.scan_sequence));
         if self.segmenter_epochs.insert(h.segmenter_epoch) {
@@ -306,19 +306,19 @@ impl ConsumerStage {
                 });
             slot.insert(l);
             self.label_order.push_back(index);
-            if self.label_order.len() > LABEL_CACHE {
-                if let Some(old) = self.label_order.pop_front() {
-                    self.labels.remove(&old);
-                }
+            if self.label_order.len() > LABEL_CACHE
+                && let Some(old) = self.label_order.pop_front()
+            {
+                self.labels.remove(&old);
             }
         }
-        if let Some(Some(l)) = self.labels.get(&index) {
-            if l.len() == probs.len() {
-                let c = Confusion::from_predictions(probs, l, Protocol::Gmm, 0.5);
-                self.confusion
-                    .get_or_insert_with(Confusion::default)
-                    .merge(&c);
-            }
+        if let Some(Some(l)) = self.labels.get(&index)
+            && l.len() == probs.len()
+        {
+            let c = Confusion::from_predictions(probs, l, Protocol::Gmm, 0.5);
+            self.confusion
+                .get_or_insert_with(Confusion::default)
+                .merge(&c);
         }
     }
 
@@ -339,11 +339,11 @@ impl ConsumerStage {
 
     /// Ends the run: scans still waiting for a mask are unanswered; a recording is closed.
     pub fn finish(mut self, seconds: f64) -> ConsumerReport {
-        if let Some(OutputTarget::Recording(writer)) = self.out.take() {
-            if let Err(e) = writer.finish() {
-                self.report.write_failures += 1;
-                warn!("{e}");
-            }
+        if let Some(OutputTarget::Recording(writer)) = self.out.take()
+            && let Err(e) = writer.finish()
+        {
+            self.report.write_failures += 1;
+            warn!("{e}");
         }
         self.report.scan_fate.unanswered += self.pending.len() as u64;
         self.report.dropped_scans = self.report.scan_fate.dropped;
@@ -467,21 +467,22 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
         if opts.count.is_some_and(|c| stage.report().masks >= c) {
             break;
         }
-        if let (Some(t), Some(_)) = (opts.idle_timeout, first) {
-            if last_mask.elapsed() > t {
-                info!("no mask for {t:?}: stopping");
+        if let (Some(t), Some(_)) = (opts.idle_timeout, first)
+            && last_mask.elapsed() > t
+        {
+            info!("no mask for {t:?}: stopping");
+            break;
+        }
+        if let Some(after) = opts.stall_after
+            && !stalled
+            && stage.report().masks >= after
+        {
+            stalled = true;
+            info!(seconds = opts.stall.as_secs_f64(), "stalling: not reading");
+            if !signals::sleep(opts.stall) {
                 break;
             }
-        }
-        if let Some(after) = opts.stall_after {
-            if !stalled && stage.report().masks >= after {
-                stalled = true;
-                info!(seconds = opts.stall.as_secs_f64(), "stalling: not reading");
-                if !signals::sleep(opts.stall) {
-                    break;
-                }
-                info!("resuming");
-            }
+            info!("resuming");
         }
         let before = stage.report().masks;
         if !transport::wait_or_stop(&mask_listener, Duration::from_millis(200))? {

@@ -52,11 +52,11 @@ pub fn pipeline_nodes(cfg: &ServiceConfig) -> Vec<(String, bool, i32)> {
             NodeState::Dead(v) => (v.details(), v.id(), false),
             _ => return CallbackProgression::Continue,
         };
-        if let Some(d) = view_details {
-            if let Some(stage) = d.name().as_str().strip_prefix(&own) {
-                let pid = id.pid::<ipc::Service>().map_or(0, |p| p.value());
-                found.push((stage.to_string(), alive, pid));
-            }
+        if let Some(d) = view_details
+            && let Some(stage) = d.name().as_str().strip_prefix(&own)
+        {
+            let pid = id.pid::<ipc::Service>().map_or(0, |p| p.value());
+            found.push((stage.to_string(), alive, pid));
         }
         CallbackProgression::Continue
     });
@@ -73,14 +73,14 @@ pub fn pipeline_nodes(cfg: &ServiceConfig) -> Vec<(String, bool, i32)> {
 pub fn node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Service>> {
     let name = node_name(cfg, stage);
     let before = pipeline_nodes(cfg);
-    if matches!(stage, "producer" | "segmenter" | "detector") {
-        if let Some((_, _, pid)) = before.iter().find(|(s, alive, _)| s == stage && *alive) {
-            anyhow::bail!(
-                "another {stage} of pipeline \"{}\" is running (pid {pid}): refusing to start a \
+    if matches!(stage, "producer" | "segmenter" | "detector")
+        && let Some((_, _, pid)) = before.iter().find(|(s, alive, _)| s == stage && *alive)
+    {
+        anyhow::bail!(
+            "another {stage} of pipeline \"{}\" is running (pid {pid}): refusing to start a \
                  second one (use another --prefix to run a second pipeline)",
-                cfg.prefix
-            );
-        }
+            cfg.prefix
+        );
     }
     let stale = before.iter().filter(|(_, alive, _)| !alive).count();
     let node = NodeBuilder::new()
