@@ -9,9 +9,10 @@
 #![allow(unsafe_code)] // intrinsics, and the run-time dispatch into them
 
 use core::arch::x86_64::{
-    __m512, _mm512_add_ps, _mm512_castps_si512, _mm512_castsi512_ps, _mm512_cmpneq_epi32_mask,
-    _mm512_fmadd_ps, _mm512_fmsub_ps, _mm512_fnmadd_ps, _mm512_maskz_mov_ps, _mm512_max_ps,
-    _mm512_mul_ps, _mm512_set1_ps, _mm512_setzero_si512, _mm512_slli_epi32, _mm512_sub_ps,
+    __m512, __mmask16, _mm512_add_ps, _mm512_castps_si512, _mm512_castsi512_ps,
+    _mm512_cmpneq_epi32_mask, _mm512_fmadd_ps, _mm512_fmsub_ps, _mm512_fnmadd_ps,
+    _mm512_maskz_mov_ps, _mm512_max_ps, _mm512_mul_ps, _mm512_set1_ps, _mm512_setzero_si512,
+    _mm512_slli_epi32, _mm512_sub_ps,
 };
 
 use super::{LOG_FLOOR, QComp};
@@ -43,9 +44,10 @@ pub(super) type Sums = [Vf; 4];
 /// `p` relative to `reference` (see the portable `LaneSums::add_component`).
 ///
 /// # Safety
-/// The CPU must have AVX-512F ([`available`]).
-#[target_feature(enable = "avx512f")]
-#[inline]
+/// The CPU must have AVX-512F ([`available`]). Call it only from a function compiled with
+/// AVX-512F enabled: it is inlined there, and its intrinsics with it (a caller without the
+/// feature gets no inlined intrinsics, only slow calls).
+#[inline(always)]
 pub(super) unsafe fn add_fixed(
     comps: &[QComp],
     p: &[Vf; 3],
@@ -53,13 +55,38 @@ pub(super) unsafe fn add_fixed(
     hit: Vf,
     sums: Sums,
 ) -> Sums {
-    let [x, y, z] = p.map(wide);
-    let reference = wide(reference);
-    let hit = _mm512_cmpneq_epi32_mask(_mm512_castps_si512(wide(hit)), _mm512_setzero_si512());
-    let [mut sum, mut flat, mut orient, mut elev] = sums.map(wide);
-    let s = _mm512_set1_ps;
-    let weight = |q: &QComp| {
-        // log_density (bits), as the portable version computes it.
+    // SAFETY: the caller runs with AVX-512F enabled.
+    unsafe {
+        let p = p.map(wide);
+        let reference = wide(reference);
+        let hit = _mm512_cmpneq_epi32_mask(_mm512_castps_si512(wide(hit)), _mm512_setzero_si512());
+        let mut acc = sums.map(wide);
+        // Two components at a time: their dependency chains overlap.
+        let mut pairs = comps.chunks_exact(2);
+        for pair in &mut pairs {
+            let w0 = weight(&pair[0], &p, reference, hit);
+            let w1 = weight(&pair[1], &p, reference, hit);
+            accumulate(&mut acc, w0, &pair[0]);
+            accumulate(&mut acc, w1, &pair[1]);
+        }
+        for q in pairs.remainder() {
+            accumulate(&mut acc, weight(q, &p, reference, hit), q);
+        }
+        acc.map(narrow)
+    }
+}
+
+/// Weight of component `q` at points `[x, y, z]` relative to `reference`, in the lanes of
+/// `hit` (0 elsewhere): `LaneSums::add_component`'s, operation for operation.
+///
+/// # Safety
+/// As [`add_fixed`].
+#[inline(always)]
+unsafe fn weight(q: &QComp, &[x, y, z]: &[__m512; 3], reference: __m512, hit: __mmask16) -> __m512 {
+    // SAFETY: as the caller's.
+    unsafe {
+        let s = _mm512_set1_ps;
+        // log_density (bits).
         let u = q.u;
         let u3 = _mm512_fmsub_ps(s(u[5]), z, s(q.b[2]));
         let u2 = _mm512_fmadd_ps(s(u[3]), y, _mm512_fmsub_ps(s(u[4]), z, s(q.b[1])));
@@ -74,7 +101,7 @@ pub(super) unsafe fn add_fixed(
             _mm512_fnmadd_ps(u2, u2, _mm512_fnmadd_ps(u3, u3, s(q.c))),
         );
         let t = _mm512_max_ps(_mm512_sub_ps(l, reference), s(-LOG_FLOOR));
-        // exp2_from, as in fastmath.
+        // exp2_from (fastmath).
         let round = s(EXP2_ROUND);
         let shifted = _mm512_add_ps(t, round);
         let f = _mm512_sub_ps(t, _mm512_sub_ps(shifted, round));
@@ -86,24 +113,23 @@ pub(super) unsafe fn add_fixed(
         let e = _mm512_fmadd_ps(f, e, s(1.0));
         let scale = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_castps_si512(shifted)));
         _mm512_maskz_mov_ps(hit, _mm512_mul_ps(e, scale))
-    };
-    let mut add = |w: __m512, q: &QComp| {
-        sum = _mm512_add_ps(sum, w);
-        flat = _mm512_fmadd_ps(w, s(q.flat), flat);
-        orient = _mm512_fmadd_ps(w, s(q.orient), orient);
-        elev = _mm512_fmadd_ps(w, s(q.elev), elev);
-    };
-    // Two components at a time: their dependency chains overlap.
-    let mut pairs = comps.chunks_exact(2);
-    for pair in &mut pairs {
-        let (w0, w1) = (weight(&pair[0]), weight(&pair[1]));
-        add(w0, &pair[0]);
-        add(w1, &pair[1]);
     }
-    for q in pairs.remainder() {
-        add(weight(q), q);
+}
+
+/// Adds weights `w` of component `q` to the sums (`LaneSums::add_weight`).
+///
+/// # Safety
+/// As [`add_fixed`].
+#[inline(always)]
+unsafe fn accumulate([sum, flat, orient, elev]: &mut [__m512; 4], w: __m512, q: &QComp) {
+    // SAFETY: as the caller's.
+    unsafe {
+        let s = _mm512_set1_ps;
+        *sum = _mm512_add_ps(*sum, w);
+        *flat = _mm512_fmadd_ps(w, s(q.flat), *flat);
+        *orient = _mm512_fmadd_ps(w, s(q.orient), *orient);
+        *elev = _mm512_fmadd_ps(w, s(q.elev), *elev);
     }
-    [sum, flat, orient, elev].map(narrow)
 }
 
 #[cfg(test)]
