@@ -287,7 +287,7 @@ fn eval_run(
     #[cfg(target_arch = "x86_64")]
     if frames.len() > 1 && avx512::available() {
         #[allow(unsafe_code)]
-        // SAFETY: the CPU has AVX-512F.
+        // SAFETY: the CPU has every feature eval_run_avx512 is compiled with.
         unsafe {
             eval_run_avx512(binner, frames, policy, seg, xyz, prob)
         };

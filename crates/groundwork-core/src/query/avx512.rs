@@ -19,10 +19,15 @@ use super::{LOG_FLOOR, QComp};
 use crate::fastmath::{EXP2_POLY, EXP2_ROUND};
 use crate::simd::Vf;
 
-/// Whether this CPU runs [`add_fixed`] (checked once; `is_x86_feature_detected` caches).
+/// Whether this CPU runs `eval_run_avx512` and [`add_fixed`] (`is_x86_feature_detected`
+/// caches the answer).
 #[inline]
 pub(super) fn available() -> bool {
+    // What `eval_run_avx512` is compiled with.
     std::is_x86_feature_detected!("avx512f")
+        && std::is_x86_feature_detected!("avx512vl")
+        && std::is_x86_feature_detected!("avx512bw")
+        && std::is_x86_feature_detected!("avx512dq")
 }
 
 #[inline(always)]
