@@ -488,10 +488,8 @@ impl LaneSums {
     /// returns the log-density over the reference.
     #[inline(always)]
     fn add_component(&mut self, q: &QComp, x: Vf, y: Vf, z: Vf, reference: Vf, hit: Vf) -> Vf {
-        let d = log_density(q, x, y, z) - reference;
-        // Below the floor a weight counts as 2^-86 (≤ 1e-26 of the sums, which hold the
-        // reference's weight 1): no compare, and no denormal products.
-        self.add_weight(exp2_from(d.fast_max(Vf::splat(-LOG_FLOOR))) & hit, q);
+        let (d, w) = weight(q, x, y, z, reference, hit);
+        self.add_weight(w, q);
         d
     }
 
@@ -524,7 +522,16 @@ impl LaneSums {
                 (self.sum, self.flat, self.orient, self.elev) = (sum, flat, orient, elev);
                 return;
             }
-            for q in comps {
+            // Two components at a time: their dependency chains overlap (−1.5 % on one
+            // thread, 16 frames, AVX2 code on Zen 4).
+            let mut pairs = comps.chunks_exact(2);
+            for pair in &mut pairs {
+                let (_, w0) = weight(&pair[0], x, y, z, reference, hit);
+                let (_, w1) = weight(&pair[1], x, y, z, reference, hit);
+                self.add_weight(w0, &pair[0]);
+                self.add_weight(w1, &pair[1]);
+            }
+            for q in pairs.remainder() {
                 self.add_component(q, x, y, z, reference, hit);
             }
             return;
@@ -541,6 +548,16 @@ impl LaneSums {
             next
         };
     }
+}
+
+/// Component `q`'s log-density over `reference` at one vector of points, and its weight
+/// relative to the reference in the lanes of `hit` (0 elsewhere).
+#[inline(always)]
+fn weight(q: &QComp, x: Vf, y: Vf, z: Vf, reference: Vf, hit: Vf) -> (Vf, Vf) {
+    let d = log_density(q, x, y, z) - reference;
+    // Below the floor a weight counts as 2^-86 (≤ 1e-26 of the sums, which hold the
+    // reference's weight 1): no compare, and no denormal products.
+    (d, exp2_from(d.fast_max(Vf::splat(-LOG_FLOOR))) & hit)
 }
 
 /// Log-density (bits) of one vector of points under one component.

@@ -82,7 +82,7 @@ pub(super) unsafe fn add_fixed(
 }
 
 /// Weight of component `q` at points `[x, y, z]` relative to `reference`, in the lanes of
-/// `hit` (0 elsewhere): `LaneSums::add_component`'s, operation for operation.
+/// `hit` (0 elsewhere): the portable `weight`'s, operation for operation.
 ///
 /// # Safety
 /// As [`add_fixed`].
