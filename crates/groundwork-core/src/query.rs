@@ -166,7 +166,7 @@ pub(crate) struct OutputTally {
     pub ground: usize,
 }
 
-/// Ground probability of every point [`group_points`] grouped into `sorted` and `s` (the
+/// Ground probability of every point [`group_points`](crate::grouping::group_points) grouped into `sorted` and `s` (the
 /// query scan's points in its ground-aligned frame). Points near the sensor, beyond range
 /// under the `NonGround` policy, or in no fitted segment of any frame get 0. Returns the
 /// written probabilities' tally against `threshold` (taken on both cores while writing, not
@@ -311,7 +311,8 @@ fn eval_run_avx512(
     eval_run_with::<true>(binner, frames, policy, seg, xyz, prob)
 }
 
-/// [`eval_run`]; `AVX512`: the CPU has AVX-512F.
+/// [`eval_run`]; `AVX512` only inside [`eval_run_avx512`] (the past components' loop is then
+/// [`avx512::add_fixed`], which must be inlined into code compiled with AVX-512).
 #[inline(always)]
 fn eval_run_with<const AVX512: bool>(
     binner: &LaneBinner,
@@ -424,8 +425,8 @@ fn most_recent_first([a, b, c]: [u32; 3], seg: u32) -> [u32; 3] {
 /// Components evaluated together per chunk of points; more are merged block by block.
 const BLOCK: usize = 8;
 
-/// [`Sums`] of one vector of points; `max` is the reference: the largest log-density when
-/// the sums were last rescaled.
+/// The sums (Σw, Σw·p_λ, Σw·p_θ, Σw·p_e) of one vector of points; `max` is the reference:
+/// the largest log-density when the sums were last rescaled.
 #[derive(Debug, Clone, Copy)]
 struct LaneSums {
     max: Vf,
@@ -516,7 +517,8 @@ impl LaneSums {
             if AVX512 {
                 let sums = [self.sum, self.flat, self.orient, self.elev];
                 #[allow(unsafe_code)]
-                // SAFETY: `AVX512` is set only after the CPU was found to have AVX-512F.
+                // SAFETY: `AVX512` is set only inside `eval_run_avx512`, which is compiled with
+                // AVX-512F and called only after `avx512::available`.
                 let [sum, flat, orient, elev] =
                     unsafe { avx512::add_fixed(comps, p, reference, hit, sums) };
                 (self.sum, self.flat, self.orient, self.elev) = (sum, flat, orient, elev);

@@ -32,7 +32,8 @@ pub(super) fn available() -> bool {
 
 #[inline(always)]
 fn wide(v: Vf) -> __m512 {
-    // SAFETY: both are 16 f32 lanes, 64 bytes, no padding, any bit pattern valid.
+    // SAFETY: both are 16 f32 lanes in 64 bytes (`wide`'s is `repr(C)`: lanes 0–7, then
+    // 8–15), no padding, any bit pattern valid.
     unsafe { core::mem::transmute::<Vf, __m512>(v) }
 }
 
@@ -46,7 +47,7 @@ fn narrow(v: __m512) -> Vf {
 pub(super) type Sums = [Vf; 4];
 
 /// Adds, in the lanes of `hit` (all bits set or clear), the weights of `comps` at points
-/// `p` relative to `reference` (see the portable `LaneSums::add_component`).
+/// `p` relative to `reference`, as the portable loop in `LaneSums::add_segment` does.
 ///
 /// # Safety
 /// The CPU must have AVX-512F ([`available`]). Call it only from a function compiled with
