@@ -166,11 +166,11 @@ pub(crate) struct OutputTally {
     pub ground: usize,
 }
 
-/// Ground probability of every point [`group_points`](crate::grouping::group_points) grouped into `sorted` and `s` (the
-/// query scan's points in its ground-aligned frame). Points near the sensor, beyond range
-/// under the `NonGround` policy, or in no fitted segment of any frame get 0. Returns the
-/// written probabilities' tally against `threshold` (taken on both cores while writing, not
-/// in a serial pass after).
+/// Ground probability of every point [`group_points`](crate::grouping::group_points)
+/// grouped into `sorted` and `s` (the query scan's points in its ground-aligned frame).
+/// Points near the sensor, beyond range under the `NonGround` policy, or in no fitted
+/// segment of any frame get 0. Returns the written probabilities' tally against `threshold`
+/// (taken on both cores while writing, not in a serial pass after).
 ///
 /// The points are grouped once by their segment in the query scan, so that a vector of
 /// them is a compact patch of ground, mostly in one cell of every past frame too.
@@ -195,13 +195,17 @@ pub(crate) fn query_grouped(
     ));
     // Big runs first: rayon then balances the cores well.
     runs.sort_unstable_by_key(|r| std::cmp::Reverse(r.prob.len()));
-    let tables: Vec<(&QueryTable, Option<Move>)> = frames
-        .iter()
-        .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
-        .collect();
+    let asked = Asked {
+        binner,
+        frames: frames
+            .iter()
+            .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
+            .collect(),
+        policy,
+    };
     runs.into_par_iter()
         .with_max_len(1)
-        .for_each(|r| eval_run(binner, &tables, policy, r.seg, r.xyz, r.prob));
+        .for_each(|r| eval_run(&asked, r));
     // Back into input order: a gather per input point, so both cores share it.
     let prob = &s.prob;
     let (non_finite, ground) = out
@@ -229,6 +233,14 @@ struct Run<'a> {
     seg: u32,
     xyz: [&'a [f64]; 3],
     prob: &'a mut [f32],
+}
+
+/// What every run of one query asks: the frames' tables (with the move into each past
+/// frame), the binning, and the beyond-range policy.
+struct Asked<'a> {
+    binner: &'a LaneBinner,
+    frames: Vec<(&'a QueryTable, Option<Move>)>,
+    policy: BeyondRangePolicy,
 }
 
 /// Per-segment runs of grouped points (`start` their offsets, an empty `start` none).
@@ -274,53 +286,43 @@ impl Move {
 /// and evaluated against the components of each distinct segment it falls into (points of
 /// one compact current segment are neighbours, so nearly every vector falls into a single
 /// past segment).
-fn eval_run(
-    binner: &LaneBinner,
-    frames: &[(&QueryTable, Option<Move>)],
-    policy: BeyondRangePolicy,
-    seg: u32,
-    xyz: [&[f64]; 3],
-    prob: &mut [f32],
-) {
+fn eval_run(asked: &Asked<'_>, run: Run<'_>) {
     // With one frame there are no past components, and the AVX-512 build of the rest
     // measured 1–4 % slower.
     #[cfg(target_arch = "x86_64")]
-    if frames.len() > 1 && avx512::available() {
+    if asked.frames.len() > 1 && avx512::available() {
         #[allow(unsafe_code)]
         // SAFETY: the CPU has every feature eval_run_avx512 is compiled with.
         unsafe {
-            eval_run_avx512(binner, frames, policy, seg, xyz, prob)
+            eval_run_avx512(asked, run)
         };
         return;
     }
-    eval_run_with::<false>(binner, frames, policy, seg, xyz, prob)
+    eval_run_with::<false>(asked, run)
 }
 
 /// [`eval_run`] compiled for AVX-512: 32 vector registers for the portable code, and the
 /// past components' loop in 512-bit registers ([`avx512::add_fixed`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq")]
-fn eval_run_avx512(
-    binner: &LaneBinner,
-    frames: &[(&QueryTable, Option<Move>)],
-    policy: BeyondRangePolicy,
-    seg: u32,
-    xyz: [&[f64]; 3],
-    prob: &mut [f32],
-) {
-    eval_run_with::<true>(binner, frames, policy, seg, xyz, prob)
+fn eval_run_avx512(asked: &Asked<'_>, run: Run<'_>) {
+    eval_run_with::<true>(asked, run)
 }
 
 /// [`eval_run`]; `AVX512` only inside [`eval_run_avx512`] (the past components' loop is then
 /// [`avx512::add_fixed`], which must be inlined into code compiled with AVX-512).
 #[inline(always)]
 fn eval_run_with<const AVX512: bool>(
-    binner: &LaneBinner,
-    frames: &[(&QueryTable, Option<Move>)],
-    policy: BeyondRangePolicy,
-    seg: u32,
-    [xs, ys, zs]: [&[f64]; 3],
-    prob: &mut [f32],
+    &Asked {
+        binner,
+        ref frames,
+        policy,
+    }: &Asked<'_>,
+    Run {
+        seg,
+        xyz: [xs, ys, zs],
+        prob,
+    }: Run<'_>,
 ) {
     let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
     let no_key = Vi::splat(-1);
