@@ -1,4 +1,6 @@
-//! Query time against N_f = 1, 2, 4, 8, 16 fitted frames for KITTI frame 5 (124k points).
+//! Query time against N_f = 1, 2, 4, 8, 16 fitted frames for KITTI frame 5 (124k points),
+//! with the default (regridded) past query, and with the per-frame one at 16 frames
+//! (`per_frame/16`).
 //!
 //! History: the six vendored scans, then copies of them placed 0.8 m apart behind the
 //! vehicle (KITTI's speed at 10 Hz) to reach 15 past frames. Frame 5 is fitted once and
@@ -10,6 +12,7 @@
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use groundwork_benches::{kitti_frame, kitti_sequence, preset};
+use groundwork_core::config::PastQuery;
 use groundwork_core::{Pose, Segmenter};
 use nalgebra::{Translation3, Vector3};
 
@@ -22,9 +25,14 @@ fn multi_frame(c: &mut Criterion) {
     let query_pose = poses[5];
     let mut g = c.benchmark_group("multi_frame_query_kitti_frame5");
     g.sample_size(20);
-    for nf in [1u32, 2, 4, 8, 16] {
+    let cases = [1u32, 2, 4, 8, 16]
+        .map(|nf| (nf, PastQuery::Regridded))
+        .into_iter()
+        .chain([(16, PastQuery::PerFrame)]);
+    for (nf, past) in cases {
         let mut cfg = preset().expect("preset");
         cfg.history.frames = nf;
+        cfg.history.query = past;
         let mut seg = Segmenter::new(cfg).expect("config");
         // Oldest first: frame k steps behind the query pose.
         for k in (1..nf as usize).rev() {
@@ -39,7 +47,11 @@ fn multi_frame(c: &mut Criterion) {
         let pts = &scans[5];
         let model = seg.fit(pts).expect("fit");
         let mut out = vec![0.0; pts.len()];
-        g.bench_with_input(BenchmarkId::from_parameter(nf), &nf, |b, _| {
+        let id = match past {
+            PastQuery::Regridded => BenchmarkId::from_parameter(nf),
+            PastQuery::PerFrame => BenchmarkId::new("per_frame", nf),
+        };
+        g.bench_with_input(id, &nf, |b, _| {
             b.iter(|| {
                 let frames = seg
                     .query_model_posed(&model, pts, &query_pose, &mut out)

@@ -15,7 +15,7 @@ use crate::grouping::{GroundPoints, SegmentCounts, group_points};
 use crate::height_filter::HeightFilter;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
-use crate::query::{NEAR, OutputTally, QueryFrame, QueryScratch, query_grouped};
+use crate::query::{NEAR, OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
 use crate::simd::LANES;
 use crate::zones::{LaneBinner, ZoneModel};
 
@@ -317,7 +317,11 @@ impl Segmenter {
         let tally = query_grouped(
             &self.binner,
             &frames,
-            self.cfg.zones.beyond_max_range,
+            QueryRules {
+                beyond: self.cfg.zones.beyond_max_range,
+                past: self.cfg.history.query,
+                spread: self.cfg.history.spread,
+            },
             self.cfg.ground.ground_threshold,
             &self.sorted,
             &mut self.query_scratch,

@@ -237,6 +237,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("sensor.toml"), "{e}");
+        let e = parse_config(p, "[history]\nquery = \"per_point\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("sensor.toml") && e.contains("per_point"), "{e}");
+        let c = parse_config(p, "[history]\nquery = \"per_frame\"\n").unwrap();
+        assert_eq!(
+            c.history.query,
+            groundwork_core::config::PastQuery::PerFrame
+        );
         let c = parse_config(p, "[gmm]\nk_max = 4\n").unwrap();
         assert_eq!(c.gmm.k_max, 4);
         assert_eq!(c.gmm.n_min, 20, "unspecified fields keep their defaults");
