@@ -30,9 +30,9 @@ mod regrid;
 use regrid::RegriddedTable;
 
 use crate::fastmath::{exp2_from, exp2_v};
-use crate::gmm::{Sym3, half_precision_factor};
+use crate::gmm::half_precision_factor;
 use crate::grouping::QueryGroups;
-use crate::model::{FrameModel, GroundComponent, SegmentedPoints};
+use crate::model::{FrameModel, SegmentedPoints};
 use crate::zones::LaneBinner;
 
 /// Packed bin of a point in its own scan (as [`LaneBinner::bin_block`] gives it): segment
@@ -83,33 +83,25 @@ struct QComp {
     elev: f32,
 }
 
-impl QComp {
-    /// Component `g` with precision and mean given in the frame it is queried in (its own
-    /// scan's, or the query scan's for a moved component).
-    fn new(precision: &Sym3, mean: &[f64; 3], g: &GroundComponent) -> Self {
-        let (u, b) = half_precision_factor(precision, mean);
-        // Scaling U and b by √log2(e) puts |U·x − b|² in bits.
-        let bits = std::f64::consts::LOG2_E.sqrt();
-        QComp {
-            u: u.map(|v| (v * bits) as f32),
-            b: b.map(|v| (v * bits) as f32),
-            c: (g.eval.log_coef * std::f64::consts::LOG2_E) as f32,
-            flat: g.flatness as f32,
-            orient: g.orientation as f32,
-            elev: g.elevation as f32,
-        }
-    }
-}
-
 impl QueryTable {
     pub(crate) fn new(model: &FrameModel) -> Self {
         let mut start = Vec::with_capacity(model.segment_count() + 1);
         let mut comps: Vec<QComp> = Vec::with_capacity(model.components().len());
         let mut peak = Vec::with_capacity(model.segment_count());
         start.push(0);
+        // Scaling U and b by √log2(e) puts |U·x − b|² in bits.
+        let bits = std::f64::consts::LOG2_E.sqrt();
         for s in 0..model.segment_count() {
             for g in model.segment(s as u32) {
-                comps.push(QComp::new(&g.eval.precision, &g.eval.mean, g));
+                let (u, b) = half_precision_factor(&g.eval.precision, &g.eval.mean);
+                comps.push(QComp {
+                    u: u.map(|v| (v * bits) as f32),
+                    b: b.map(|v| (v * bits) as f32),
+                    c: (g.eval.log_coef * std::f64::consts::LOG2_E) as f32,
+                    flat: g.flatness as f32,
+                    orient: g.orientation as f32,
+                    elev: g.elevation as f32,
+                });
             }
             let first = *start.last().unwrap_or(&0) as usize;
             peak.push(comps[first..].iter().map(|q| q.c).fold(EMPTY, f32::max));
@@ -701,6 +693,7 @@ mod tests {
 
     use super::*;
     use crate::grouping::{GroundPoints, SegmentCounts, group_points};
+    use crate::model::GroundComponent;
     use crate::point::mount_transform;
     use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};

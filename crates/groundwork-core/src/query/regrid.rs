@@ -1,12 +1,13 @@
 //! The past frames' components regridded into the query scan
 //! ([`PastQuery::Regridded`](crate::config::PastQuery::Regridded)).
 //!
-//! Each past component is moved into the query scan's ground-aligned frame once per query
-//! (its precision turned by the rotation, its mean moved), and given to every query-scan
-//! segment its footprint reaches: the segments of its mean and of the mean ± `spread` σ
-//! along x, y and the diagonals. A point is then normalised against its own segment's
-//! components and that segment's past list, in registers, with no move or binning per point
-//! and past frame. The per-frame query (the paper's) bins every point in every past frame;
+//! Once per query, each past component's mean and horizontal σ are moved into the query
+//! scan's ground-aligned frame, and the component is listed in every query-scan segment its
+//! footprint reaches: the segments of its mean and of the mean ± `spread` σ along x, y and
+//! the diagonals. A point is then normalised against its own segment's components and that
+//! segment's past list, one run per past frame, each component evaluated in its own frame on
+//! the point moved there (the per-frame query's arithmetic): no binning per point and past
+//! frame. The per-frame query (the paper's) bins every point in every past frame;
 //! a vector of neighbours straddles a past cell's edge in 4 of 10 frames there, and each
 //! side costs a full vector's evaluation.
 
