@@ -14,9 +14,9 @@
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::{EMPTY, LANES, Move, QComp, QueryFrame, answering_segment};
+use super::{EMPTY, LANES, Move, NEAR, QComp, QueryFrame, answering_segment};
 use crate::config::BeyondRangePolicy;
-use crate::gmm::Sym3;
+use crate::gmm::{Sym3, quad_form};
 use crate::zones::LaneBinner;
 
 /// Footprint samples, in σ along x and y: the mean, the four axis points and the four
@@ -174,14 +174,19 @@ fn reached_segments(
                 ys[k][i] = (mean.y + dy * spread * sigma[1]) as f32;
             }
         }
-        let keys: Vec<[u32; LANES]> = (0..samples.len())
-            .map(|k| binner.bin_block(xs[k], ys[k]))
-            .collect();
+        // Only the samples in use are binned (spread 0: the mean alone).
+        let keys: [[u32; LANES]; SAMPLES.len()] = std::array::from_fn(|k| {
+            if k < samples.len() {
+                binner.bin_block(xs[k], ys[k])
+            } else {
+                [NEAR; LANES]
+            }
+        });
         for i in 0..block.len() {
             let index = (b * LANES + i) as u32;
             let mut seen = [u32::MAX; SAMPLES.len()];
             let mut n = 0;
-            for k in &keys {
+            for k in &keys[..samples.len()] {
                 let Some(seg) = answering_segment(k[i], policy) else {
                     continue;
                 };
@@ -199,11 +204,8 @@ fn reached_segments(
 /// Standard deviations along the query scan's x and y of a past covariance Σ, turned by
 /// the query → past rotation R: the diagonal of RᵀΣR, i.e. cᵀΣc for R's columns c.
 fn horizontal_sigma(cov: &Sym3, r: &Matrix3<f64>) -> [f64; 2] {
-    let full = Matrix3::new(
-        cov[0], cov[1], cov[2], cov[1], cov[3], cov[4], cov[2], cov[4], cov[5],
-    );
-    [0, 1].map(|c| {
-        let col = r.column(c);
-        col.dot(&(full * col)).max(0.0).sqrt()
+    [0, 1].map(|k| {
+        let c = r.column(k);
+        quad_form(cov, c.x, c.y, c.z).max(0.0).sqrt()
     })
 }
