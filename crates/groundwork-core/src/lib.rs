@@ -18,6 +18,7 @@ pub mod frame;
 pub mod gmm;
 mod grouping;
 pub mod height_filter;
+mod history;
 pub mod likelihood;
 pub mod method;
 pub mod model;

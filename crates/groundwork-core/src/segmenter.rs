@@ -2,17 +2,17 @@
 //! state that lives between frames. The same stage runs in tests, benchmarks, the offline
 //! CLI and the service process.
 
-use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use nalgebra::Isometry3;
 use rayon::prelude::*;
 use tracing::{debug, info, warn};
 
-use crate::config::SegmenterConfig;
+use crate::config::{PastQuery, SegmenterConfig};
 use crate::error::{ConfigError, SegmentError};
 use crate::grouping::{GroundPoints, SegmentCounts, group_points};
 use crate::height_filter::HeightFilter;
+use crate::history::History;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
 use crate::query::{NEAR, OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
@@ -98,14 +98,6 @@ pub struct SegmenterCounters {
     pub non_finite_outputs: u64,
 }
 
-/// A past frame kept for multi-frame queries.
-#[derive(Debug, Clone)]
-struct PastFrame {
-    model: FrameModel,
-    /// World from sensor.
-    pose: Pose,
-}
-
 /// Why the multi-frame history was cleared.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HistoryReset {
@@ -126,7 +118,7 @@ pub struct Segmenter {
     binner: LaneBinner,
     mount: Isometry3<f64>,
     height: HeightFilter,
-    history: VecDeque<PastFrame>,
+    history: History,
     /// Sensor time of the last stamped scan, ns.
     last_time_ns: Option<u64>,
     counters: SegmenterCounters,
@@ -147,7 +139,7 @@ impl Segmenter {
         let mount = mount_transform(&cfg.sensor.mount)?;
         let height = HeightFilter::new(cfg.height_filter.clone(), zones.first_zone_segments());
         Ok(Self {
-            history: VecDeque::with_capacity(cfg.history.frames as usize),
+            history: History::default(),
             last_time_ns: None,
             cfg,
             binner: LaneBinner::new(&zones),
@@ -190,10 +182,7 @@ impl Segmenter {
 
     /// Component count over all stored frames: memory use of the history is proportional.
     pub fn history_components(&self) -> usize {
-        self.history
-            .iter()
-            .map(|f| f.model.components().len())
-            .sum()
+        self.history.components()
     }
 
     /// Forgets the history and the height filter (e.g. on a new sequence); counted as a
@@ -292,28 +281,17 @@ impl Segmenter {
         pose: Option<&Pose>,
         out: &mut [f32],
     ) -> (usize, OutputTally) {
-        let transforms: Vec<Isometry3<f64>> = match pose {
-            Some(pose) => self
-                .history
-                .iter()
-                .map(|f| self.mount * f.pose.inverse() * pose * self.mount.inverse())
-                .collect(),
+        let transforms = match pose {
+            Some(pose) => self.history.transforms(&self.mount, pose),
             None => Vec::new(),
         };
         let mut frames = Vec::with_capacity(self.history.len() + 1);
         frames.push(QueryFrame {
             model,
             transform: None,
+            anchored: None,
         });
-        frames.extend(
-            self.history
-                .iter()
-                .zip(&transforms)
-                .map(|(f, t)| QueryFrame {
-                    model: &f.model,
-                    transform: Some(t),
-                }),
-        );
+        frames.extend(self.history.query_frames(&transforms));
         let tally = query_grouped(
             &self.binner,
             &frames,
@@ -434,13 +412,11 @@ impl Segmenter {
             Some(pose) => {
                 report.history_cleared |= self.check_pose_jump(pose);
                 (report.frames_queried, tally) = self.query_frames(&model, Some(pose), out);
-                let keep = self.cfg.history.frames as usize - 1;
-                if keep > 0 {
-                    if self.history.len() == keep {
-                        self.history.pop_back();
-                    }
-                    self.history.push_front(PastFrame { model, pose: *pose });
-                }
+                let h = &self.cfg.history;
+                let keep = h.frames as usize - 1;
+                let share_anchors = h.query == PastQuery::Regridded;
+                self.history
+                    .push(model, *pose, keep, share_anchors, &self.mount);
             }
             None => {
                 self.counters.without_pose += 1;
@@ -632,8 +608,8 @@ impl Segmenter {
     /// Translation and rotation from the newest stored pose to `pose`, if beyond the
     /// configured jump limits.
     fn pose_jump(&self, pose: &Pose) -> Option<(f64, f64)> {
-        let last = self.history.front()?;
-        let rel = last.pose.inverse() * pose;
+        let last = self.history.newest_pose()?;
+        let rel = last.inverse() * pose;
         let dt = rel.translation.vector.norm();
         let dr = rel.rotation.angle();
         let h = &self.cfg.history;

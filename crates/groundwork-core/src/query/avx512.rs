@@ -9,12 +9,15 @@
 #![allow(unsafe_code)] // intrinsics, and the run-time dispatch into them
 
 use core::arch::x86_64::{
-    __m512, __mmask16, _mm512_add_ps, _mm512_castps_si512, _mm512_castsi512_ps,
-    _mm512_cmpneq_epi32_mask, _mm512_fmadd_ps, _mm512_fmsub_ps, _mm512_fnmadd_ps,
-    _mm512_maskz_mov_ps, _mm512_max_ps, _mm512_mul_ps, _mm512_set1_ps, _mm512_setzero_si512,
-    _mm512_slli_epi32, _mm512_sub_ps,
+    __m512, __mmask16, _CMP_GE_OQ, _mm512_abs_ps, _mm512_add_epi32, _mm512_add_ps,
+    _mm512_castps_si512, _mm512_castsi512_ps, _mm512_cmp_ps_mask, _mm512_cmpneq_epi32_mask,
+    _mm512_fmadd_ps, _mm512_fmsub_ps, _mm512_fnmadd_ps, _mm512_maskz_compress_epi32,
+    _mm512_maskz_mov_ps, _mm512_max_ps, _mm512_mul_ps, _mm512_set1_epi32, _mm512_set1_ps,
+    _mm512_setr_epi32, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_slli_epi32,
+    _mm512_storeu_si512, _mm512_sub_ps,
 };
 
+use super::regrid::BoundBlock;
 use super::{LOG_FLOOR, QComp};
 use crate::fastmath::{EXP2_POLY, EXP2_ROUND};
 use crate::simd::Vf;
@@ -54,8 +57,8 @@ pub(super) type Sums = [Vf; 4];
 /// AVX-512F enabled: it is inlined there, and its intrinsics with it (a caller without the
 /// feature gets no inlined intrinsics, only slow calls).
 #[inline(always)]
-pub(super) unsafe fn add_fixed(
-    comps: &[QComp],
+pub(super) unsafe fn add_fixed<'c>(
+    comps: impl Iterator<Item = &'c QComp>,
     p: &[Vf; 3],
     reference: Vf,
     hit: Vf,
@@ -68,17 +71,72 @@ pub(super) unsafe fn add_fixed(
         let hit = _mm512_cmpneq_epi32_mask(_mm512_castps_si512(wide(hit)), _mm512_setzero_si512());
         let mut acc = sums.map(wide);
         // Two components at a time: their dependency chains overlap.
-        let mut pairs = comps.chunks_exact(2);
-        for pair in &mut pairs {
-            let w0 = weight(&pair[0], &p, reference, hit);
-            let w1 = weight(&pair[1], &p, reference, hit);
-            accumulate(&mut acc, w0, &pair[0]);
-            accumulate(&mut acc, w1, &pair[1]);
-        }
-        for q in pairs.remainder() {
-            accumulate(&mut acc, weight(q, &p, reference, hit), q);
+        let mut comps = comps;
+        while let Some(q0) = comps.next() {
+            let Some(q1) = comps.next() else {
+                accumulate(&mut acc, weight(q0, &p, reference, hit), q0);
+                break;
+            };
+            let w0 = weight(q0, &p, reference, hit);
+            let w1 = weight(q1, &p, reference, hit);
+            accumulate(&mut acc, w0, q0);
+            accumulate(&mut acc, w1, q1);
         }
         acc.map(narrow)
+    }
+}
+
+/// [`list_reaching`](super::regrid::list_reaching) in 512-bit registers, with the same
+/// arithmetic (so the same lists); the indices of the reaching lanes are packed with one
+/// compress per block.
+///
+/// # Safety
+/// As [`add_fixed`].
+#[inline(always)]
+pub(super) unsafe fn list_reaching(
+    blocks: &[BoundBlock],
+    lo: [f32; 3],
+    hi: [f32; 3],
+    floor: f32,
+    live: &mut [u32],
+) -> usize {
+    // SAFETY: as the caller's; every store is to `live[n..n + 16]`, checked.
+    unsafe {
+        let s = _mm512_set1_ps;
+        let [cx, cy, cz] = std::array::from_fn(|k| s(0.5 * (lo[k] + hi[k])));
+        let [hx, hy, hz] = std::array::from_fn(|k| s(0.5 * (hi[k] - lo[k])));
+        let floor = s(floor);
+        let zero = _mm512_setzero_ps();
+        let mut index = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        let step = _mm512_set1_epi32(16);
+        let mut n = 0;
+        for block in blocks {
+            let [u0, u1, u2, u3, u4, u5] = block.u.map(wide);
+            let [a0, a1, a2, a3, a4, a5] = block.abs_u.map(wide);
+            let [b0, b1, b2] = block.b.map(wide);
+            let m1 = _mm512_fmadd_ps(u0, cx, _mm512_fmadd_ps(u1, cy, _mm512_fmsub_ps(u2, cz, b0)));
+            let r1 = _mm512_fmadd_ps(a0, hx, _mm512_fmadd_ps(a1, hy, _mm512_mul_ps(a2, hz)));
+            let m2 = _mm512_fmadd_ps(u3, cy, _mm512_fmsub_ps(u4, cz, b1));
+            let r2 = _mm512_fmadd_ps(a3, hy, _mm512_mul_ps(a4, hz));
+            let m3 = _mm512_fmsub_ps(u5, cz, b2);
+            let r3 = _mm512_mul_ps(a5, hz);
+            let near = |m, r| _mm512_max_ps(_mm512_sub_ps(_mm512_abs_ps(m), r), zero);
+            let (d1, d2, d3) = (near(m1, r1), near(m2, r2), near(m3, r3));
+            let top = _mm512_fnmadd_ps(
+                d1,
+                d1,
+                _mm512_fnmadd_ps(d2, d2, _mm512_fnmadd_ps(d3, d3, wide(block.c))),
+            );
+            let reach = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(top, floor);
+            let out = &mut live[n..n + 16];
+            _mm512_storeu_si512(
+                out.as_mut_ptr().cast(),
+                _mm512_maskz_compress_epi32(reach, index),
+            );
+            n += reach.count_ones() as usize;
+            index = _mm512_add_epi32(index, step);
+        }
+        n
     }
 }
 
@@ -141,7 +199,7 @@ unsafe fn accumulate([sum, flat, orient, elev]: &mut [__m512; 4], w: __m512, q: 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::query::{LaneSums, log_density};
+    use crate::query::{LaneSums, log_density, regrid};
     use proptest::prelude::*;
 
     fn comp() -> impl Strategy<Value = QComp> {
@@ -162,6 +220,28 @@ mod tests {
     }
 
     proptest! {
+        /// The AVX-512 lists of reaching components are the portable ones (same order).
+        #[test]
+        fn lists_the_components_the_portable_bound_lists(
+            comps in proptest::collection::vec(comp(), 0..40),
+            lo in proptest::array::uniform3(-40.0f32..40.0),
+            size in proptest::array::uniform3(0.0f32..5.0),
+            floor in -60.0f32..10.0,
+        ) {
+            if !available() {
+                return Ok(());
+            }
+            let hi = std::array::from_fn(|k| lo[k] + size[k]);
+            let blocks: Vec<BoundBlock> = comps.chunks(16).map(BoundBlock::of).collect();
+            let mut want = vec![0; comps.len() + 16];
+            let n = regrid::list_reaching::<false>(&blocks, lo, hi, floor, &mut want);
+            let mut got = vec![0; comps.len() + 16];
+            #[allow(unsafe_code)]
+            // SAFETY: checked above.
+            let m = unsafe { list_reaching(&blocks, lo, hi, floor, &mut got) };
+            prop_assert_eq!(&got[..m], &want[..n]);
+        }
+
         /// The AVX-512 loop gives the portable loop's sums bit for bit (on a CPU without
         /// AVX-512 there is nothing to compare, and the case passes).
         #[test]
@@ -190,7 +270,7 @@ mod tests {
             }
             #[allow(unsafe_code)]
             // SAFETY: checked above.
-            let got = unsafe { add_fixed(&comps, &p, reference, hit, start.map(Vf::splat)) };
+            let got = unsafe { add_fixed(comps.iter(), &p, reference, hit, start.map(Vf::splat)) };
             for (g, w) in got.iter().zip([want.sum, want.flat, want.orient, want.elev]) {
                 prop_assert_eq!(g.to_array().map(f32::to_bits), w.to_array().map(f32::to_bits));
             }
