@@ -111,8 +111,8 @@ impl RegriddedTable {
             .map(|f| reached_segments(binner, f, policy, spread))
             .collect();
         // Counting sort by segment, stable: within a segment the frames' order, so the table
-        // (and the sums' rounding) does not depend on the threads, and each frame's
-        // components are one run.
+        // (and the sums' rounding) does not depend on the threads, and the components of
+        // the (consecutive) frames of one anchor are one run.
         let segments = binner.segment_count();
         let mut count = vec![0u32; segments + 1];
         for &(seg, _) in keyed.iter().flatten() {
