@@ -233,6 +233,8 @@ pub(crate) struct QueryScratch {
     /// Ground probability per grouped point: in-range points first (numbered as the fit's
     /// groups), then beyond-range points.
     prob: Vec<f32>,
+    /// The past frames' regridded table, rebuilt in place by each regridded query.
+    regridded: RegriddedTable,
 }
 
 /// What the query wrote, counted while writing it.
@@ -276,15 +278,11 @@ pub(crate) fn query_grouped(
     // Regridded: the past frames become one table over the query scan's segments, and each
     // point is asked only there.
     let (frames, regridded) = match (rules.past, frames.split_first()) {
-        (PastQuery::Regridded, Some((own, past))) if !past.is_empty() => (
-            std::slice::from_ref(own),
-            Some(RegriddedTable::new(
-                binner,
-                past,
-                rules.beyond,
-                rules.spread,
-            )),
-        ),
+        (PastQuery::Regridded, Some((own, past))) if !past.is_empty() => {
+            s.regridded
+                .rebuild(binner, past, rules.beyond, rules.spread);
+            (std::slice::from_ref(own), Some(&s.regridded))
+        }
         _ => (frames, None),
     };
     let asked = Asked {
@@ -293,7 +291,7 @@ pub(crate) fn query_grouped(
             .iter()
             .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
             .collect(),
-        regridded: regridded.as_ref(),
+        regridded,
         policy: rules.beyond,
     };
     runs.into_par_iter()
@@ -1161,6 +1159,48 @@ mod tests {
             multi > 100,
             "only {multi} segments list more than one past frame"
         );
+    }
+
+    #[test]
+    fn a_rebuilt_table_is_the_new_one_whatever_came_before_and_whatever_the_threads() {
+        let (seg, model, past, transforms, ..) = query_scene(PastQuery::Regridded, 0.6, false);
+        let mut frames = frames_of(&model, &past, &transforms);
+        let binner = LaneBinner::new(seg.zones());
+        let policy = BeyondRangePolicy::OuterRing;
+        let on = |threads: usize, f: &(dyn Fn() -> RegriddedTable + Sync)| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            format!("{:?}", pool.install(f))
+        };
+        let own = on(1, &|| {
+            RegriddedTable::new(&binner, &frames[1..], policy, 0.6)
+        });
+        // The parallel fill splits the runs by the thread count: the table must not move.
+        assert_eq!(
+            on(3, &|| RegriddedTable::new(
+                &binner,
+                &frames[1..],
+                policy,
+                0.6
+            )),
+            own
+        );
+        let moved = moved_to_oldest(&past, &transforms);
+        let own_frames = frames.clone();
+        anchor_to_oldest(&mut frames, &moved, &transforms);
+        let shared = on(1, &|| {
+            RegriddedTable::new(&binner, &frames[1..], policy, 0.6)
+        });
+        assert_ne!(own, shared);
+        // In place, after a larger table and after a smaller one (no stale element left).
+        let mut t = RegriddedTable::new(&binner, &frames[1..], policy, 2.0);
+        t.rebuild(&binner, &own_frames[1..], policy, 0.6);
+        assert_eq!(format!("{t:?}"), own);
+        t.rebuild(&binner, &frames[1..2], policy, 0.0);
+        t.rebuild(&binner, &frames[1..], policy, 0.6);
+        assert_eq!(format!("{t:?}"), shared);
     }
 
     #[test]

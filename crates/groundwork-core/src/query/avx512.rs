@@ -112,7 +112,7 @@ pub(super) unsafe fn list_reaching(
         let mut n = 0;
         for block in blocks {
             let [u0, u1, u2, u3, u4, u5] = block.u.map(wide);
-            let [a0, a1, a2, a3, a4, a5] = block.abs_u.map(wide);
+            let [a0, a1, a2, a3, a4, a5] = block.u.map(|u| _mm512_abs_ps(wide(u)));
             let [b0, b1, b2] = block.b.map(wide);
             let m1 = _mm512_fmadd_ps(u0, cx, _mm512_fmadd_ps(u1, cy, _mm512_fmsub_ps(u2, cz, b0)));
             let r1 = _mm512_fmadd_ps(a0, hx, _mm512_fmadd_ps(a1, hy, _mm512_mul_ps(a2, hz)));

@@ -13,13 +13,16 @@
 //! a vector of neighbours straddles a past cell's edge in 4 of 10 frames there, and each
 //! side costs a full vector's evaluation.
 
-use nalgebra::{Matrix3, Vector3};
+use std::ops::Range;
+
 use rayon::prelude::*;
 
 use super::{EMPTY, LANES, Move, NEAR, QComp, QueryFrame, Vf, answering_segment};
 use crate::config::BeyondRangePolicy;
-use crate::gmm::{Sym3, quad_form};
+use crate::simd::Vi;
 use crate::zones::LaneBinner;
+use wide::bytemuck::cast;
+use wide::f64x4 as F64x4;
 
 /// Footprint samples, in σ along x and y: the mean, the four axis points and the four
 /// corners.
@@ -63,6 +66,14 @@ pub(super) struct PastRun {
     pub(super) peak: f32,
 }
 
+impl PastRun {
+    /// Its bound blocks' indices.
+    fn blocks(&self) -> Range<usize> {
+        let n = (self.end - self.start).div_ceil(LANES as u32);
+        self.block as usize..(self.block + n) as usize
+    }
+}
+
 impl RegriddedTable {
     /// The runs of past components that answer for segment `s`.
     #[inline]
@@ -92,101 +103,192 @@ impl RegriddedTable {
     /// A run's components as bound blocks: block k holds components 16k.. of the run.
     #[inline]
     pub(super) fn blocks(&self, run: &PastRun) -> &[BoundBlock] {
-        let n = (run.end - run.start).div_ceil(LANES as u32);
-        &self.blocks[run.block as usize..(run.block + n) as usize]
+        &self.blocks[run.blocks()]
     }
 
     /// The table for the past frames (each with its query → past transform, and its
     /// anchor): per segment, the components whose footprint reaches it, in the order of the
     /// frames and of each frame's components. Frames that share an anchor must be
     /// consecutive in `past`.
+    #[cfg(test)]
     pub(super) fn new(
         binner: &LaneBinner,
         past: &[QueryFrame<'_>],
         policy: BeyondRangePolicy,
         spread: f64,
     ) -> Self {
-        let keyed: Vec<Vec<(u32, u32)>> = past
-            .par_iter()
-            .map(|f| reached_segments(binner, f, policy, spread))
-            .collect();
-        // Counting sort by segment, stable: within a segment the frames' order, so the table
-        // (and the sums' rounding) does not depend on the threads, and the components of
-        // the (consecutive) frames of one anchor are one run.
+        let mut table = Self::default();
+        table.rebuild(binner, past, policy, spread);
+        table
+    }
+
+    /// [`RegriddedTable::new`] in place: the buffers are kept, and every element is written
+    /// once (no clearing pass over the previous query's).
+    pub(super) fn rebuild(
+        &mut self,
+        binner: &LaneBinner,
+        past: &[QueryFrame<'_>],
+        policy: BeyondRangePolicy,
+        spread: f64,
+    ) {
         let segments = binner.segment_count();
-        let mut count = vec![0u32; segments + 1];
-        for &(seg, _) in keyed.iter().flatten() {
-            count[seg as usize + 1] += 1;
-        }
-        for s in 0..segments {
-            count[s + 1] += count[s];
-        }
-        // Per past frame, where its components are evaluated: consecutive frames with one
-        // anchor share a move.
-        let mut moves = Vec::new();
+        let reached: Vec<BySegment> = past
+            .par_iter()
+            .map(|f| BySegment::of(&reached_segments(binner, f, policy, spread), segments))
+            .collect();
+        // Where each past frame's components are evaluated: consecutive frames with one
+        // anchor are one group, with one move.
+        let moves = &mut self.moves;
+        moves.clear();
+        let mut groups: Vec<Range<usize>> = Vec::new();
+        let mut tables = Vec::with_capacity(past.len());
         let mut last = None;
-        let mut sources = Vec::with_capacity(past.len());
-        for f in past {
+        for (k, f) in past.iter().enumerate() {
             let (table, anchor, to) = match f.anchored {
                 Some(a) => (a.table, Some(a.anchor), Some(a.transform)),
                 None => (f.model.query_table(), None, f.transform),
             };
-            if anchor.is_none() || anchor != last {
-                moves.push(to.map_or(Move::IDENTITY, Move::new));
+            match groups.last_mut() {
+                Some(g) if anchor.is_some() && anchor == last => g.end = k + 1,
+                _ => {
+                    moves.push(to.map_or(Move::IDENTITY, Move::new));
+                    groups.push(k..k + 1);
+                }
             }
             last = anchor;
-            sources.push((table, moves.len() as u32 - 1));
+            tables.push(table);
         }
-        let mut next = count.clone();
-        let mut comps = vec![QComp::default(); count[segments] as usize];
-        let mut anchor_of = vec![0u32; comps.len()];
-        for (&(table, anchor), keys) in sources.iter().zip(&keyed) {
-            for &(seg, i) in keys {
-                let at = &mut next[seg as usize];
-                comps[*at as usize] = table.comps[i as usize];
-                anchor_of[*at as usize] = anchor;
-                *at += 1;
-            }
-        }
-        let mut seg_start = Vec::with_capacity(segments + 1);
-        let mut runs = Vec::new();
-        let mut blocks = Vec::with_capacity(comps.len() / 4);
-        for w in count.windows(2) {
+        // The layout, serially (a few thousand runs): per segment one run per group that
+        // reaches it, in the groups' order, so the table (and the sums' rounding) does not
+        // depend on the threads.
+        let (seg_start, runs) = (&mut self.seg_start, &mut self.runs);
+        seg_start.clear();
+        runs.clear();
+        let mut origin = Vec::new();
+        let (mut comps_len, mut blocks_len) = (0, 0);
+        for s in 0..segments {
             seg_start.push(runs.len() as u32);
-            let (mut a, b) = (w[0] as usize, w[1] as usize);
-            while a < b {
-                let anchor = anchor_of[a];
-                let end = a + anchor_of[a..b].iter().take_while(|&&f| f == anchor).count();
-                let peak = comps[a..end].iter().map(|q| q.c).fold(EMPTY, f32::max);
-                runs.push(PastRun {
-                    anchor,
-                    start: a as u32,
-                    end: end as u32,
-                    block: blocks.len() as u32,
-                    peak,
-                });
-                blocks.extend(comps[a..end].chunks(LANES).map(BoundBlock::of));
-                a = end;
+            for (g, frames) in groups.iter().enumerate() {
+                let n: usize = reached[frames.clone()]
+                    .iter()
+                    .map(|r| r.segment(s).len())
+                    .sum();
+                if n > 0 {
+                    runs.push(PastRun {
+                        anchor: g as u32,
+                        start: comps_len as u32,
+                        end: (comps_len + n) as u32,
+                        block: blocks_len as u32,
+                        peak: EMPTY,
+                    });
+                    origin.push((s, frames.clone()));
+                    comps_len += n;
+                    blocks_len += n.div_ceil(LANES);
+                }
             }
         }
         seg_start.push(runs.len() as u32);
-        Self {
-            moves,
-            seg_start,
-            runs,
-            comps,
-            blocks,
+        // The copies and the bound blocks in parallel, in tasks of whole runs. Only new
+        // elements are initialised here: the tasks overwrite every one.
+        self.comps.resize(comps_len, QComp::default());
+        self.blocks.resize(blocks_len, BoundBlock::EMPTY);
+        let per_task = comps_len
+            .div_ceil(4 * rayon::current_num_threads())
+            .max(512);
+        let mut tasks = Vec::new();
+        let (mut runs, mut origin) = (&mut self.runs[..], &origin[..]);
+        let (mut comps, mut blocks) = (&mut self.comps[..], &mut self.blocks[..]);
+        while let Some(first) = runs.first() {
+            let (base, first_block) = (first.start, first.block as usize);
+            let k = runs
+                .iter()
+                .position(|r| (r.end - base) as usize >= per_task)
+                .map_or(runs.len(), |k| k + 1);
+            let end = runs[k - 1];
+            let (c, b) = (end.end - base, end.blocks().end - first_block);
+            tasks.push((
+                take(&mut runs, k),
+                origin.split_off(..k).unwrap_or(&[]),
+                take(&mut comps, c as usize),
+                take(&mut blocks, b),
+            ));
         }
+        tasks
+            .into_par_iter()
+            .for_each(|(runs, origin, comps, blocks)| {
+                let Some(&PastRun { start, block, .. }) = runs.first() else {
+                    return;
+                };
+                for (run, (s, frames)) in runs.iter_mut().zip(origin) {
+                    let out = &mut comps[(run.start - start) as usize..(run.end - start) as usize];
+                    let from = frames.clone().flat_map(|f| {
+                        let table = tables[f];
+                        reached[f]
+                            .segment(*s)
+                            .iter()
+                            .map(move |&i| table.comps[i as usize])
+                    });
+                    for (o, q) in out.iter_mut().zip(from) {
+                        *o = q;
+                    }
+                    run.peak = out.iter().map(|q| q.c).fold(EMPTY, f32::max);
+                    let at = run.blocks().start - block as usize;
+                    for (b, chunk) in blocks[at..].iter_mut().zip(out.chunks(LANES)) {
+                        b.fill(chunk);
+                    }
+                }
+            });
     }
 }
 
-/// Up to sixteen components' U (and |U|), b and c (as in [`QComp`]) as lanes, to bound
-/// their log-densities over a box of points at once. Lanes past the last component have
-/// c = −∞: they reach nothing.
+/// The first `n` elements of `v`, which keeps the rest.
+fn take<'a, T>(v: &mut &'a mut [T], n: usize) -> &'a mut [T] {
+    let (head, rest) = std::mem::take(v).split_at_mut(n);
+    *v = rest;
+    head
+}
+
+/// One past frame's reached components, grouped by query-scan segment (stably: in the
+/// frame's order within a segment).
+struct BySegment {
+    /// Components reaching segment s are `index[start[s]..start[s+1]]`.
+    start: Vec<u32>,
+    index: Vec<u32>,
+}
+
+impl BySegment {
+    /// Counting sort of (segment, component) pairs by segment.
+    fn of(keys: &[(u32, u32)], segments: usize) -> Self {
+        let mut start = vec![0u32; segments + 1];
+        for &(seg, _) in keys {
+            start[seg as usize + 1] += 1;
+        }
+        for s in 0..segments {
+            start[s + 1] += start[s];
+        }
+        let mut next = start.clone();
+        let mut index = vec![0; keys.len()];
+        for &(seg, i) in keys {
+            let at = &mut next[seg as usize];
+            index[*at as usize] = i;
+            *at += 1;
+        }
+        Self { start, index }
+    }
+
+    /// Indices of the components reaching segment `s`.
+    #[inline]
+    fn segment(&self, s: usize) -> &[u32] {
+        &self.index[self.start[s] as usize..self.start[s + 1] as usize]
+    }
+}
+
+/// Up to sixteen components' U, b and c (as in [`QComp`]) as lanes, to bound their
+/// log-densities over a box of points at once. Lanes past the last component have c = −∞:
+/// they reach nothing.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct BoundBlock {
     pub(super) u: [Vf; 6],
-    pub(super) abs_u: [Vf; 6],
     pub(super) b: [Vf; 3],
     pub(super) c: Vf,
 }
@@ -226,26 +328,41 @@ pub(super) fn list_reaching<const AVX512: bool>(
 }
 
 impl BoundBlock {
+    /// No components: every lane reaches nothing.
+    const EMPTY: BoundBlock = BoundBlock {
+        u: [Vf::ZERO; 6],
+        b: [Vf::ZERO; 3],
+        c: Vf::new([f32::NEG_INFINITY; LANES]),
+    };
+
+    /// The block of (up to the first sixteen of) `comps`.
+    #[cfg(test)]
     pub(super) fn of(comps: &[QComp]) -> Self {
-        let mut u = [[0.0; LANES]; 6];
-        let mut abs_u = [[0.0; LANES]; 6];
-        let mut b = [[0.0; LANES]; 3];
-        let mut c = [f32::NEG_INFINITY; LANES];
-        for (i, q) in comps.iter().take(LANES).enumerate() {
+        let mut block = Self::EMPTY;
+        block.fill(comps);
+        block
+    }
+
+    /// Overwrites every lane in place: the first sixteen of `comps`, then empty lanes.
+    fn fill(&mut self, comps: &[QComp]) {
+        let n = comps.len().min(LANES);
+        for (i, q) in comps[..n].iter().enumerate() {
             for (k, &v) in q.u.iter().enumerate() {
-                u[k][i] = v;
-                abs_u[k][i] = v.abs();
+                self.u[k].as_mut_array()[i] = v;
             }
             for (k, &v) in q.b.iter().enumerate() {
-                b[k][i] = v;
+                self.b[k].as_mut_array()[i] = v;
             }
-            c[i] = q.c;
+            self.c.as_mut_array()[i] = q.c;
         }
-        Self {
-            u: u.map(Vf::new),
-            abs_u: abs_u.map(Vf::new),
-            b: b.map(Vf::new),
-            c: Vf::new(c),
+        for i in n..LANES {
+            for u in &mut self.u {
+                u.as_mut_array()[i] = 0.0;
+            }
+            for b in &mut self.b {
+                b.as_mut_array()[i] = 0.0;
+            }
+            self.c.as_mut_array()[i] = f32::NEG_INFINITY;
         }
     }
 
@@ -259,7 +376,7 @@ impl BoundBlock {
         let [cx, cy, cz] = std::array::from_fn(|k| s(0.5 * (lo[k] + hi[k])));
         let [hx, hy, hz] = std::array::from_fn(|k| s(0.5 * (hi[k] - lo[k])));
         let [u0, u1, u2, u3, u4, u5] = self.u;
-        let [a0, a1, a2, a3, a4, a5] = self.abs_u;
+        let [a0, a1, a2, a3, a4, a5] = self.u.map(Vf::abs);
         let [b0, b1, b2] = self.b;
         let m1 = u0.mul_add(cx, u1.mul_add(cy, u2.mul_sub(cz, b0)));
         let r1 = a0.mul_add(hx, a1.mul_add(hy, a2 * hz));
@@ -296,28 +413,62 @@ fn reached_segments(
     };
     let components = frame.model.components();
     let mut out = Vec::with_capacity(components.len() * 2);
+    let v = F64x4::splat;
+    // Rᵀ's rows, and R's first two columns (the query scan's x and y axes in the past frame).
+    let rt: [[F64x4; 3]; 2] = std::array::from_fn(|i| std::array::from_fn(|j| v(r[(j, i)])));
+    let axes: [[F64x4; 3]; 2] = std::array::from_fn(|k| std::array::from_fn(|j| v(r[(j, k)])));
     // Sixteen components at a time: their footprint samples are binned as vectors.
     for (b, block) in components.chunks(LANES).enumerate() {
         let mut xs = [[0.0f32; LANES]; SAMPLES.len()];
         let mut ys = [[0.0f32; LANES]; SAMPLES.len()];
-        for (i, g) in block.iter().enumerate() {
-            let mean = r.transpose() * (Vector3::from(g.gaussian.mean) - shift);
-            let sigma = horizontal_sigma(&g.gaussian.covariance, &r);
+        // The means' x and y, and σ along x and y, four components at a time in f64.
+        for (q, four) in block.chunks(4).enumerate() {
+            let mut mean = [[0.0; 4]; 3];
+            let mut cov = [[0.0; 4]; 6];
+            for (l, g) in four.iter().enumerate() {
+                for (j, &m) in g.gaussian.mean.iter().enumerate() {
+                    mean[j][l] = m;
+                }
+                for (j, &c) in g.gaussian.covariance.iter().enumerate() {
+                    cov[j][l] = c;
+                }
+            }
+            let d: [F64x4; 3] = std::array::from_fn(|j| F64x4::new(mean[j]) - v(shift[j]));
+            let [mx, my] = rt.map(|[a, b, c]| a * d[0] + b * d[1] + c * d[2]);
+            let cov = cov.map(F64x4::new);
+            let [sx, sy] = axes.map(|[x, y, z]| quad_form_v(&cov, x, y, z).max(F64x4::ZERO).sqrt());
             for (k, (dx, dy)) in samples.iter().enumerate() {
-                xs[k][i] = (mean.x + dx * spread * sigma[0]) as f32;
-                ys[k][i] = (mean.y + dy * spread * sigma[1]) as f32;
+                let px = (mx + v(dx * spread) * sx).to_array();
+                let py = (my + v(dy * spread) * sy).to_array();
+                for l in 0..four.len() {
+                    xs[k][4 * q + l] = px[l] as f32;
+                    ys[k][4 * q + l] = py[l] as f32;
+                }
             }
         }
         // Only the samples in use are binned (spread 0: the mean alone).
-        let keys: [[u32; LANES]; SAMPLES.len()] = std::array::from_fn(|k| {
+        let keys: [Vi; SAMPLES.len()] = std::array::from_fn(|k| {
             if k < samples.len() {
-                binner.bin_block(xs[k], ys[k])
+                binner.bin(Vf::new(xs[k]), Vf::new(ys[k]))
             } else {
-                [NEAR; LANES]
+                Vi::splat(NEAR as i32)
             }
         });
+        // Lanes whose samples all fall into the mean's bin (56 % of the components, KITTI
+        // frame 5's history) reach one segment: no search for distinct ones.
+        let alike = keys[1..samples.len()]
+            .iter()
+            .fold(Vi::splat(-1), |m, k| m & k.simd_eq(keys[0]));
+        let alike = cast::<Vi, Vf>(alike).to_bitmask();
+        let keys: [[u32; LANES]; SAMPLES.len()] = keys.map(cast);
         for i in 0..block.len() {
             let index = (b * LANES + i) as u32;
+            if alike >> i & 1 == 1 {
+                if let Some(seg) = answering_segment(keys[0][i], policy) {
+                    out.push((seg, index));
+                }
+                continue;
+            }
             let mut seen = [u32::MAX; SAMPLES.len()];
             let mut n = 0;
             for k in &keys[..samples.len()] {
@@ -335,13 +486,14 @@ fn reached_segments(
     out
 }
 
-/// Standard deviations along the query scan's x and y of a past covariance Σ, turned by
-/// the query → past rotation R: the diagonal of RᵀΣR, i.e. cᵀΣc for R's columns c.
-fn horizontal_sigma(cov: &Sym3, r: &Matrix3<f64>) -> [f64; 2] {
-    [0, 1].map(|k| {
-        let c = r.column(k);
-        quad_form(cov, c.x, c.y, c.z).max(0.0).sqrt()
-    })
+/// [`quad_form`](crate::gmm::quad_form) of four covariances (lanes) at one vector, with
+/// the same operations in the same order.
+#[inline(always)]
+fn quad_form_v(p: &[F64x4; 6], dx: F64x4, dy: F64x4, dz: F64x4) -> F64x4 {
+    p[0] * dx * dx
+        + p[3] * dy * dy
+        + p[5] * dz * dz
+        + F64x4::splat(2.0) * (p[1] * dx * dy + p[2] * dx * dz + p[4] * dy * dz)
 }
 
 #[cfg(test)]
