@@ -19,6 +19,8 @@
 //! component; past frames add to them without rescaling, and a log-sum-exp merge takes over
 //! only where a component would exceed the reference by 2^86 (e^60).
 
+use std::cell::RefCell;
+
 use nalgebra::{Isometry3, Matrix3, Point3};
 use rayon::prelude::*;
 
@@ -29,7 +31,7 @@ use wide::bytemuck::cast;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
 mod regrid;
-use regrid::RegriddedTable;
+use regrid::{RegriddedTable, SegmentRuns};
 
 use crate::fastmath::{exp2_from, exp2_v};
 use crate::gmm::{Evaluator, Sym3, half_precision_factor};
@@ -233,8 +235,6 @@ pub(crate) struct QueryScratch {
     /// Ground probability per grouped point: in-range points first (numbered as the fit's
     /// groups), then beyond-range points.
     prob: Vec<f32>,
-    /// The past frames' regridded table, rebuilt in place by each regridded query.
-    regridded: RegriddedTable,
 }
 
 /// What the query wrote, counted while writing it.
@@ -278,11 +278,15 @@ pub(crate) fn query_grouped(
     // Regridded: the past frames become one table over the query scan's segments, and each
     // point is asked only there.
     let (frames, regridded) = match (rules.past, frames.split_first()) {
-        (PastQuery::Regridded, Some((own, past))) if !past.is_empty() => {
-            s.regridded
-                .rebuild(binner, past, rules.beyond, rules.spread);
-            (std::slice::from_ref(own), Some(&s.regridded))
-        }
+        (PastQuery::Regridded, Some((own, past))) if !past.is_empty() => (
+            std::slice::from_ref(own),
+            Some(RegriddedTable::new(
+                binner,
+                past,
+                rules.beyond,
+                rules.spread,
+            )),
+        ),
         _ => (frames, None),
     };
     let asked = Asked {
@@ -291,12 +295,12 @@ pub(crate) fn query_grouped(
             .iter()
             .map(|f| (f.model.query_table(), f.transform.map(Move::new)))
             .collect(),
-        regridded,
+        regridded: regridded.as_ref(),
         policy: rules.beyond,
     };
     runs.into_par_iter()
         .with_max_len(1)
-        .for_each(|r| eval_run(&asked, r));
+        .for_each(|r| PAST_RUNS.with_borrow_mut(|past| eval_run(&asked, r, past)));
     // Back into input order: a gather per input point, so both cores share it.
     let prob = &s.prob;
     let (non_finite, ground) = out
@@ -316,6 +320,11 @@ pub(crate) fn query_grouped(
     OutputTally { non_finite, ground }
 }
 
+thread_local! {
+    /// Per worker, the buffers a segment's past components are gathered into.
+    static PAST_RUNS: RefCell<SegmentRuns> = RefCell::default();
+}
+
 /// Input points per task of the final gather.
 const GATHER_CHUNK: usize = 16 * 1024;
 
@@ -333,7 +342,7 @@ struct Asked<'a> {
     frames: Vec<(&'a QueryTable, Option<Move>)>,
     /// The past frames' components per query-scan segment ([`PastQuery::Regridded`]); the
     /// past frames are then not in `frames`.
-    regridded: Option<&'a RegriddedTable>,
+    regridded: Option<&'a RegriddedTable<'a>>,
     policy: BeyondRangePolicy,
 }
 
@@ -385,7 +394,7 @@ impl Move {
 /// and evaluated against the components of each distinct segment it falls into (points of
 /// one compact current segment are neighbours, so nearly every vector falls into a single
 /// past segment).
-fn eval_run(asked: &Asked<'_>, run: Run<'_>) {
+fn eval_run(asked: &Asked<'_>, run: Run<'_>, past: &mut SegmentRuns) {
     // With one frame there are no past components, and the AVX-512 build of the rest
     // measured 1–4 % slower.
     #[cfg(target_arch = "x86_64")]
@@ -393,19 +402,19 @@ fn eval_run(asked: &Asked<'_>, run: Run<'_>) {
         #[allow(unsafe_code)]
         // SAFETY: the CPU has every feature eval_run_avx512 is compiled with.
         unsafe {
-            eval_run_avx512(asked, run)
+            eval_run_avx512(asked, run, past)
         };
         return;
     }
-    eval_run_with::<false>(asked, run)
+    eval_run_with::<false>(asked, run, past)
 }
 
 /// [`eval_run`] compiled for AVX-512: 32 vector registers for the portable code, and the
 /// past components' loop in 512-bit registers ([`avx512::add_fixed`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq")]
-fn eval_run_avx512(asked: &Asked<'_>, run: Run<'_>) {
-    eval_run_with::<true>(asked, run)
+fn eval_run_avx512(asked: &Asked<'_>, run: Run<'_>, past: &mut SegmentRuns) {
+    eval_run_with::<true>(asked, run, past)
 }
 
 /// [`eval_run`]; `AVX512` only inside [`eval_run_avx512`] (the past components' loop is then
@@ -423,6 +432,7 @@ fn eval_run_with<const AVX512: bool>(
         xyz: [xs, ys, zs],
         prob,
     }: Run<'_>,
+    past: &mut SegmentRuns,
 ) {
     let lane_index = Vi::new(std::array::from_fn(|i| i as i32));
     let no_key = Vi::splat(-1);
@@ -432,7 +442,11 @@ fn eval_run_with<const AVX512: bool>(
     // made the 16-frame query 3 % faster than two.
     let mut guess = vec![[u32::MAX; 3]; frames.len()];
     // Indices of the past components of a run that can matter to the current vector.
-    let mut live = vec![0u32; regridded.map_or(0, |t| t.longest_run(seg) + LANES)];
+    // The segment's past components (regridded), gathered once for all its vectors.
+    if let Some(table) = regridded {
+        table.gather(seg, past);
+    }
+    let mut live = vec![0u32; regridded.map_or(0, |_| past.longest_run() + LANES)];
     for j in (0..prob.len()).step_by(LANES) {
         let w = LANES.min(prob.len() - j);
         let (x, y, z) = (load_f64(xs, j, w), load_f64(ys, j, w), load_f64(zs, j, w));
@@ -507,12 +521,12 @@ fn eval_run_with<const AVX512: bool>(
         if let Some(table) = regridded {
             // Every lane is in segment `seg`, and its past components are listed there, one
             // run per anchor; each is evaluated in its anchor's frame.
-            for run in table.runs(seg) {
+            for run in past.runs() {
                 let Some(mv) = table.moves.get(run.anchor as usize) else {
                     continue;
                 };
                 let moved = mv.apply(x, y, z);
-                let comps = table.comps(run);
+                let comps = past.comps(run);
                 if run.peak - low > LOG_HEADROOM {
                     // The rescaling path: every component.
                     sums.add_segment::<AVX512>((comps, run.peak), low, &moved, real_f);
@@ -525,7 +539,7 @@ fn eval_run_with<const AVX512: bool>(
                 let lo = moved.map(|v| lane_min(real_f.select(v, Vf::splat(f32::INFINITY))));
                 let hi = moved.map(|v| -lane_min(real_f.select(-v, Vf::splat(f32::INFINITY))));
                 let n = regrid::list_reaching::<AVX512>(
-                    table.blocks(run),
+                    past.blocks(run),
                     lo,
                     hi,
                     low - LOG_CUTOFF,
@@ -1147,13 +1161,12 @@ mod tests {
         anchor_to_oldest(&mut frames, &moved, &transforms);
         let shared = RegriddedTable::new(&binner, &frames[1..], policy, 0.6);
         assert_eq!((own.moves.len(), shared.moves.len()), (3, 1));
-        let listed =
-            |t: &RegriddedTable, s| -> usize { t.runs(s).iter().map(|r| t.comps(r).len()).sum() };
         let mut multi = 0;
         for s in 0..binner.segment_count() as u32 {
-            assert!(shared.runs(s).len() <= 1, "segment {s}");
-            multi += usize::from(own.runs(s).len() > 1);
-            assert_eq!(listed(&own, s), listed(&shared, s), "segment {s}");
+            let (own, shared) = (gathered(&own, s), gathered(&shared, s));
+            assert!(shared.runs().len() <= 1, "segment {s}");
+            multi += usize::from(own.runs().len() > 1);
+            assert_eq!(listed(&own), listed(&shared), "segment {s}");
         }
         assert!(
             multi > 100,
@@ -1162,45 +1175,40 @@ mod tests {
     }
 
     #[test]
-    fn a_rebuilt_table_is_the_new_one_whatever_came_before_and_whatever_the_threads() {
+    fn a_segment_gathered_into_used_buffers_is_gathered_as_into_new_ones() {
         let (seg, model, past, transforms, ..) = query_scene(PastQuery::Regridded, 0.6, false);
         let mut frames = frames_of(&model, &past, &transforms);
-        let binner = LaneBinner::new(seg.zones());
-        let policy = BeyondRangePolicy::OuterRing;
-        let on = |threads: usize, f: &(dyn Fn() -> RegriddedTable + Sync)| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            format!("{:?}", pool.install(f))
-        };
-        let own = on(1, &|| {
-            RegriddedTable::new(&binner, &frames[1..], policy, 0.6)
-        });
-        // The parallel fill splits the runs by the thread count: the table must not move.
-        assert_eq!(
-            on(3, &|| RegriddedTable::new(
-                &binner,
-                &frames[1..],
-                policy,
-                0.6
-            )),
-            own
-        );
         let moved = moved_to_oldest(&past, &transforms);
-        let own_frames = frames.clone();
-        anchor_to_oldest(&mut frames, &moved, &transforms);
-        let shared = on(1, &|| {
-            RegriddedTable::new(&binner, &frames[1..], policy, 0.6)
-        });
-        assert_ne!(own, shared);
-        // In place, after a larger table and after a smaller one (no stale element left).
-        let mut t = RegriddedTable::new(&binner, &frames[1..], policy, 2.0);
-        t.rebuild(&binner, &own_frames[1..], policy, 0.6);
-        assert_eq!(format!("{t:?}"), own);
-        t.rebuild(&binner, &frames[1..2], policy, 0.0);
-        t.rebuild(&binner, &frames[1..], policy, 0.6);
-        assert_eq!(format!("{t:?}"), shared);
+        anchor_to_oldest(&mut frames[..3], &moved, &transforms);
+        let binner = LaneBinner::new(seg.zones());
+        let table = RegriddedTable::new(&binner, &frames[1..], BeyondRangePolicy::OuterRing, 1.0);
+        let mut used = SegmentRuns::default();
+        let (mut longer, mut shorter) = (0, 0);
+        // Every segment after every other (so after longer and shorter lists alike).
+        for s in (0..binner.segment_count() as u32)
+            .rev()
+            .chain(0..binner.segment_count() as u32)
+        {
+            let before = listed(&used);
+            table.gather(s, &mut used);
+            let fresh = gathered(&table, s);
+            assert_eq!(format!("{used:?}"), format!("{fresh:?}"), "segment {s}");
+            longer += usize::from(before > listed(&fresh));
+            shorter += usize::from(before < listed(&fresh));
+        }
+        assert!(longer > 50 && shorter > 50, "{longer} {shorter}");
+    }
+
+    /// Segment `s`'s past components, gathered into new buffers.
+    fn gathered(table: &RegriddedTable<'_>, s: u32) -> SegmentRuns {
+        let mut out = SegmentRuns::default();
+        table.gather(s, &mut out);
+        out
+    }
+
+    /// Past components gathered for a segment.
+    fn listed(runs: &SegmentRuns) -> usize {
+        runs.runs().iter().map(|r| runs.comps(r).len()).sum()
     }
 
     #[test]
@@ -1212,7 +1220,7 @@ mod tests {
         let total = |spread| {
             let t = RegriddedTable::new(&binner, &frames[1..], policy, spread);
             (0..binner.segment_count() as u32)
-                .map(|s| t.runs(s).iter().map(|r| t.comps(r).len()).sum::<usize>())
+                .map(|s| listed(&gathered(&t, s)))
                 .sum::<usize>()
         };
         let all: usize = past.iter().map(|m| m.components().len()).sum();

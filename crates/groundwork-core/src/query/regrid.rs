@@ -4,20 +4,21 @@
 //! Once per query, each past component's mean and horizontal σ are moved into the query
 //! scan's ground-aligned frame, and the component is listed in every query-scan segment its
 //! footprint reaches: the segments of its mean and of the mean ± `spread` σ along x, y and
-//! the diagonals. A point is then normalised against its own segment's components and that
-//! segment's past list, one run per anchor (past frames that share one, see
+//! the diagonals (one task per past frame). A point is then normalised against its own
+//! segment's components and that segment's past list, gathered by the thread that
+//! evaluates the segment: one run per anchor (past frames that share one, see
 //! `crate::history`), each component evaluated in its anchor's frame on the point moved
-//! there: no binning per point and past frame, one move per anchor. Each run also holds its
-//! components sixteen at a time as lanes ([`BoundBlock`]): one bound per block and vector
-//! of points lists the components that can matter to the vector. The per-frame query (the paper's) bins every point in every past frame;
-//! a vector of neighbours straddles a past cell's edge in 4 of 10 frames there, and each
-//! side costs a full vector's evaluation.
-
-use std::ops::Range;
+//! there. So there is no binning per point and past frame, and one move per anchor. Each
+//! run also holds its components sixteen at a time as lanes ([`BoundBlock`]): one bound
+//! per block and vector of points lists the components that can matter to the vector.
+//!
+//! The per-frame query (the paper's) bins every point in every past frame; a vector of
+//! neighbours straddles a past cell's edge in 4 of 10 frames there, and each side costs a
+//! full vector's evaluation.
 
 use rayon::prelude::*;
 
-use super::{EMPTY, LANES, Move, NEAR, QComp, QueryFrame, Vf, answering_segment};
+use super::{EMPTY, LANES, Move, NEAR, QComp, QueryFrame, QueryTable, Vf, answering_segment};
 use crate::config::BeyondRangePolicy;
 use crate::simd::Vi;
 use crate::zones::LaneBinner;
@@ -38,15 +39,25 @@ const SAMPLES: [(f64, f64); 9] = [
     (-1.0, -1.0),
 ];
 
-/// The past frames' components per query-scan segment. A component is evaluated in its
-/// anchor's frame (its own frame if it has none), on a vector of points moved there: past
-/// frames that share an anchor are one run, and one move.
-#[derive(Debug, Default)]
-pub(super) struct RegriddedTable {
+/// The past frames' components per query-scan segment: for each past frame, the
+/// components whose footprint reaches each segment. A segment's components are gathered
+/// into [`SegmentRuns`] when its points are evaluated, on the thread that evaluates them
+/// (the copies are then hot in its cache, and nothing is gathered for segments without
+/// points). A component is evaluated in its anchor's frame (its own frame if it has none),
+/// on a vector of points moved there: past frames that share an anchor are one run, and
+/// one move.
+#[derive(Debug)]
+pub(super) struct RegriddedTable<'a> {
     /// Query scan → anchor frame, per anchor.
     pub(super) moves: Vec<Move>,
-    /// Runs of segment s are `seg_start[s]..seg_start[s+1]`.
-    seg_start: Vec<u32>,
+    /// Per anchor, its (consecutive) past frames: where their components are, and which
+    /// reach each segment.
+    anchors: Vec<Vec<(&'a QueryTable, BySegment)>>,
+}
+
+/// The past components of one segment, one run per anchor: reusable buffers.
+#[derive(Debug, Default)]
+pub(super) struct SegmentRuns {
     runs: Vec<PastRun>,
     comps: Vec<QComp>,
     /// Each run's components sixteen at a time, as lanes: `blocks[run.block..]`.
@@ -66,23 +77,11 @@ pub(super) struct PastRun {
     pub(super) peak: f32,
 }
 
-impl PastRun {
-    /// Its bound blocks' indices.
-    fn blocks(&self) -> Range<usize> {
-        let n = (self.end - self.start).div_ceil(LANES as u32);
-        self.block as usize..(self.block + n) as usize
-    }
-}
-
-impl RegriddedTable {
-    /// The runs of past components that answer for segment `s`.
+impl SegmentRuns {
+    /// The runs, in the anchors' order.
     #[inline]
-    pub(super) fn runs(&self, s: u32) -> &[PastRun] {
-        let s = s as usize;
-        match (self.seg_start.get(s), self.seg_start.get(s + 1)) {
-            (Some(&a), Some(&b)) => &self.runs[a as usize..b as usize],
-            _ => &[],
-        }
+    pub(super) fn runs(&self) -> &[PastRun] {
+        &self.runs
     }
 
     /// A run's components.
@@ -91,165 +90,101 @@ impl RegriddedTable {
         &self.comps[run.start as usize..run.end as usize]
     }
 
-    /// Components in the longest run of segment `s`.
-    pub(super) fn longest_run(&self, s: u32) -> usize {
-        self.runs(s)
+    /// A run's components as bound blocks: block k holds components 16k.. of the run.
+    #[inline]
+    pub(super) fn blocks(&self, run: &PastRun) -> &[BoundBlock] {
+        let n = (run.end - run.start).div_ceil(LANES as u32);
+        &self.blocks[run.block as usize..(run.block + n) as usize]
+    }
+
+    /// Components in the longest run.
+    pub(super) fn longest_run(&self) -> usize {
+        self.runs
             .iter()
             .map(|r| (r.end - r.start) as usize)
             .max()
             .unwrap_or(0)
     }
+}
 
-    /// A run's components as bound blocks: block k holds components 16k.. of the run.
-    #[inline]
-    pub(super) fn blocks(&self, run: &PastRun) -> &[BoundBlock] {
-        &self.blocks[run.blocks()]
-    }
-
+impl<'a> RegriddedTable<'a> {
     /// The table for the past frames (each with its query → past transform, and its
-    /// anchor): per segment, the components whose footprint reaches it, in the order of the
-    /// frames and of each frame's components. Frames that share an anchor must be
-    /// consecutive in `past`.
-    #[cfg(test)]
+    /// anchor). Frames that share an anchor must be consecutive in `past`.
     pub(super) fn new(
         binner: &LaneBinner,
-        past: &[QueryFrame<'_>],
+        past: &[QueryFrame<'a>],
         policy: BeyondRangePolicy,
         spread: f64,
     ) -> Self {
-        let mut table = Self::default();
-        table.rebuild(binner, past, policy, spread);
-        table
-    }
-
-    /// [`RegriddedTable::new`] in place: the buffers are kept, and every element is written
-    /// once (no clearing pass over the previous query's).
-    pub(super) fn rebuild(
-        &mut self,
-        binner: &LaneBinner,
-        past: &[QueryFrame<'_>],
-        policy: BeyondRangePolicy,
-        spread: f64,
-    ) {
         let segments = binner.segment_count();
-        let reached: Vec<BySegment> = past
+        let mut reached: Vec<BySegment> = past
             .par_iter()
             .map(|f| BySegment::of(&reached_segments(binner, f, policy, spread), segments))
             .collect();
-        // Where each past frame's components are evaluated: consecutive frames with one
-        // anchor are one group, with one move.
-        let moves = &mut self.moves;
-        moves.clear();
-        let mut groups: Vec<Range<usize>> = Vec::new();
-        let mut tables = Vec::with_capacity(past.len());
+        let mut moves = Vec::new();
+        let mut anchors: Vec<Vec<_>> = Vec::new();
         let mut last = None;
-        for (k, f) in past.iter().enumerate() {
+        for (f, by_segment) in past.iter().zip(reached.drain(..)) {
             let (table, anchor, to) = match f.anchored {
                 Some(a) => (a.table, Some(a.anchor), Some(a.transform)),
                 None => (f.model.query_table(), None, f.transform),
             };
-            match groups.last_mut() {
-                Some(g) if anchor.is_some() && anchor == last => g.end = k + 1,
+            match anchors.last_mut() {
+                Some(frames) if anchor.is_some() && anchor == last => {
+                    frames.push((table, by_segment));
+                }
                 _ => {
                     moves.push(to.map_or(Move::IDENTITY, Move::new));
-                    groups.push(k..k + 1);
+                    anchors.push(vec![(table, by_segment)]);
                 }
             }
             last = anchor;
-            tables.push(table);
         }
-        // The layout, serially (a few thousand runs): per segment one run per group that
-        // reaches it, in the groups' order, so the table (and the sums' rounding) does not
-        // depend on the threads.
-        let (seg_start, runs) = (&mut self.seg_start, &mut self.runs);
-        seg_start.clear();
-        runs.clear();
-        let mut origin = Vec::new();
-        let (mut comps_len, mut blocks_len) = (0, 0);
-        for s in 0..segments {
-            seg_start.push(runs.len() as u32);
-            for (g, frames) in groups.iter().enumerate() {
-                let n: usize = reached[frames.clone()]
-                    .iter()
-                    .map(|r| r.segment(s).len())
-                    .sum();
-                if n > 0 {
-                    runs.push(PastRun {
-                        anchor: g as u32,
-                        start: comps_len as u32,
-                        end: (comps_len + n) as u32,
-                        block: blocks_len as u32,
-                        peak: EMPTY,
-                    });
-                    origin.push((s, frames.clone()));
-                    comps_len += n;
-                    blocks_len += n.div_ceil(LANES);
+        Self { moves, anchors }
+    }
+
+    /// Gathers into `out` the past components that answer for segment `s`: one run per
+    /// anchor that reaches it, in the anchors' order, each in the order of its frames and
+    /// of each frame's components (so the sums' rounding does not depend on the threads).
+    pub(super) fn gather(&self, s: u32, out: &mut SegmentRuns) {
+        let s = s as usize;
+        out.runs.clear();
+        out.comps.clear();
+        out.blocks.clear();
+        for (anchor, frames) in self.anchors.iter().enumerate() {
+            let start = out.comps.len();
+            for (table, by_segment) in frames {
+                let listed = by_segment.segment(s).iter();
+                out.comps.extend(listed.map(|&i| table.comps[i as usize]));
+            }
+            let end = out.comps.len();
+            if end == start {
+                continue;
+            }
+            let block = out.blocks.len();
+            for chunk in out.comps[start..end].chunks(LANES) {
+                out.blocks.push(BoundBlock::EMPTY);
+                if let Some(b) = out.blocks.last_mut() {
+                    b.fill(chunk);
                 }
             }
-        }
-        seg_start.push(runs.len() as u32);
-        // The copies and the bound blocks in parallel, in tasks of whole runs. Only new
-        // elements are initialised here: the tasks overwrite every one.
-        self.comps.resize(comps_len, QComp::default());
-        self.blocks.resize(blocks_len, BoundBlock::EMPTY);
-        let per_task = comps_len
-            .div_ceil(4 * rayon::current_num_threads())
-            .max(512);
-        let mut tasks = Vec::new();
-        let (mut runs, mut origin) = (&mut self.runs[..], &origin[..]);
-        let (mut comps, mut blocks) = (&mut self.comps[..], &mut self.blocks[..]);
-        while let Some(first) = runs.first() {
-            let (base, first_block) = (first.start, first.block as usize);
-            let k = runs
-                .iter()
-                .position(|r| (r.end - base) as usize >= per_task)
-                .map_or(runs.len(), |k| k + 1);
-            let end = runs[k - 1];
-            let (c, b) = (end.end - base, end.blocks().end - first_block);
-            tasks.push((
-                take(&mut runs, k),
-                origin.split_off(..k).unwrap_or(&[]),
-                take(&mut comps, c as usize),
-                take(&mut blocks, b),
-            ));
-        }
-        tasks
-            .into_par_iter()
-            .for_each(|(runs, origin, comps, blocks)| {
-                let Some(&PastRun { start, block, .. }) = runs.first() else {
-                    return;
-                };
-                for (run, (s, frames)) in runs.iter_mut().zip(origin) {
-                    let out = &mut comps[(run.start - start) as usize..(run.end - start) as usize];
-                    let from = frames.clone().flat_map(|f| {
-                        let table = tables[f];
-                        reached[f]
-                            .segment(*s)
-                            .iter()
-                            .map(move |&i| table.comps[i as usize])
-                    });
-                    for (o, q) in out.iter_mut().zip(from) {
-                        *o = q;
-                    }
-                    run.peak = out.iter().map(|q| q.c).fold(EMPTY, f32::max);
-                    let at = run.blocks().start - block as usize;
-                    for (b, chunk) in blocks[at..].iter_mut().zip(out.chunks(LANES)) {
-                        b.fill(chunk);
-                    }
-                }
+            out.runs.push(PastRun {
+                anchor: anchor as u32,
+                start: start as u32,
+                end: end as u32,
+                block: block as u32,
+                peak: out.comps[start..end]
+                    .iter()
+                    .map(|q| q.c)
+                    .fold(EMPTY, f32::max),
             });
+        }
     }
-}
-
-/// The first `n` elements of `v`, which keeps the rest.
-fn take<'a, T>(v: &mut &'a mut [T], n: usize) -> &'a mut [T] {
-    let (head, rest) = std::mem::take(v).split_at_mut(n);
-    *v = rest;
-    head
 }
 
 /// One past frame's reached components, grouped by query-scan segment (stably: in the
 /// frame's order within a segment).
+#[derive(Debug)]
 struct BySegment {
     /// Components reaching segment s are `index[start[s]..start[s+1]]`.
     start: Vec<u32>,
