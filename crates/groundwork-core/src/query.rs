@@ -441,11 +441,11 @@ fn eval_run_with<const AVX512: bool>(
     // binned). More than one, because 43 % of vectors straddle a past cell's edge; three
     // made the 16-frame query 3 % faster than two.
     let mut guess = vec![[u32::MAX; 3]; frames.len()];
-    // Indices of the past components of a run that can matter to the current vector.
     // The segment's past components (regridded), gathered once for all its vectors.
     if let Some(table) = regridded {
         table.gather(seg, past);
     }
+    // Indices of the past components of a run that can matter to the current vector.
     let mut live = vec![0u32; regridded.map_or(0, |_| past.longest_run() + LANES)];
     for j in (0..prob.len()).step_by(LANES) {
         let w = LANES.min(prob.len() - j);

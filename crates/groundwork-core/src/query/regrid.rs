@@ -117,14 +117,14 @@ impl<'a> RegriddedTable<'a> {
         spread: f64,
     ) -> Self {
         let segments = binner.segment_count();
-        let mut reached: Vec<BySegment> = past
+        let reached: Vec<BySegment> = past
             .par_iter()
             .map(|f| BySegment::of(&reached_segments(binner, f, policy, spread), segments))
             .collect();
         let mut moves = Vec::new();
         let mut anchors: Vec<Vec<_>> = Vec::new();
         let mut last = None;
-        for (f, by_segment) in past.iter().zip(reached.drain(..)) {
+        for (f, by_segment) in past.iter().zip(reached) {
             let (table, anchor, to) = match f.anchored {
                 Some(a) => (a.table, Some(a.anchor), Some(a.transform)),
                 None => (f.model.query_table(), None, f.transform),
@@ -162,6 +162,7 @@ impl<'a> RegriddedTable<'a> {
                 continue;
             }
             let block = out.blocks.len();
+            // Each block filled in place, in the buffer it stays in.
             for chunk in out.comps[start..end].chunks(LANES) {
                 out.blocks.push(BoundBlock::EMPTY);
                 if let Some(b) = out.blocks.last_mut() {
@@ -278,10 +279,10 @@ impl BoundBlock {
         block
     }
 
-    /// Overwrites every lane in place: the first sixteen of `comps`, then empty lanes.
+    /// Writes the first sixteen of `comps` into the lanes of an empty block (the lanes past
+    /// them stay empty).
     fn fill(&mut self, comps: &[QComp]) {
-        let n = comps.len().min(LANES);
-        for (i, q) in comps[..n].iter().enumerate() {
+        for (i, q) in comps.iter().take(LANES).enumerate() {
             for (k, &v) in q.u.iter().enumerate() {
                 self.u[k].as_mut_array()[i] = v;
             }
@@ -289,15 +290,6 @@ impl BoundBlock {
                 self.b[k].as_mut_array()[i] = v;
             }
             self.c.as_mut_array()[i] = q.c;
-        }
-        for i in n..LANES {
-            for u in &mut self.u {
-                u.as_mut_array()[i] = 0.0;
-            }
-            for b in &mut self.b {
-                b.as_mut_array()[i] = 0.0;
-            }
-            self.c.as_mut_array()[i] = f32::NEG_INFINITY;
         }
     }
 
