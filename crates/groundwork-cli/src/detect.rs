@@ -9,7 +9,7 @@ use std::time::Instant;
 use anyhow::{Result, anyhow};
 use groundwork_detect::{Detections, Detector};
 use groundwork_eval::{ObjectScore, Sequence, median, score_objects};
-use groundwork_io::{MethodsConfig, write_detections};
+use groundwork_io::{MethodsConfig, OutputTarget, write_detections};
 use tracing::{error, info};
 
 use crate::methods::{self, MethodArg};
@@ -38,11 +38,18 @@ pub struct DetectJob<'a> {
 
 pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
     let mut detector = Detector::new(job.config.detector.clone(), &job.config.segmenter)?;
-    std::fs::create_dir_all(job.out)
-        .map_err(|e| anyhow!("{}: cannot create the folder: {e}", job.out.display()))?;
     let max = job.config.segmenter.sensor.max_points;
     let (sequences, mut failed) =
         crate::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref());
+    if !matches!(
+        crate::create_output(job.out, job.inputs, &sequences)?,
+        OutputTarget::Files(_)
+    ) {
+        anyhow::bail!(
+            "{}: detect writes a folder of .proposals.json and .clusters files, not a recording",
+            job.out.display()
+        );
+    }
     let known: Option<usize> = sequences.iter().map(Sequence::len_hint).sum();
     let pb = crate::progress(known.unwrap_or(0), "detect");
     let (mut scans, mut proposals) = (0usize, 0usize);

@@ -360,7 +360,7 @@ fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(code) => code,
         Err(e) => {
-            error!("{e:#}");
+            // Once, on stderr (a log line as well would print it twice).
             eprintln!("error: {e:#}");
             ExitCode::from(2)
         }
@@ -716,12 +716,18 @@ fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result
         cfg.max_points
     );
     check_shared_memory(&cfg)?;
+    if let Some(r) = rate {
+        groundwork_service::config::check_rate("--rate", r)?;
+    }
     let data = data.clone().unwrap_or_else(|| BUNDLED_DATA.into());
     anyhow::ensure!(
         data.exists(),
         "{}: no such folder or recording",
         data.display()
     );
+    if let Some(o) = &out {
+        groundwork_io::check_not_an_input(o, std::slice::from_ref(&data))?;
+    }
     let exe = std::env::current_exe().context("cannot find this executable")?;
     let stage = |name: &'static str| {
         let mut c = std::process::Command::new(&exe);
@@ -847,6 +853,31 @@ fn open_inputs(
     (sequences, skipped)
 }
 
+/// The output of an offline run, refused before anything is written where it would destroy
+/// an input (`--out rec.mcap rec.mcap`) or where two inputs' scans would write the same
+/// files of a folder (`000000.bin` in two folders): outputs are never overwritten in
+/// silence.
+fn create_output(
+    out: &Path,
+    inputs: &[PathBuf],
+    sequences: &[Sequence],
+) -> Result<groundwork_io::OutputTarget> {
+    let is_recording = out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+    if !is_recording {
+        let sources: Vec<_> = sequences.iter().map(|s| &s.source).collect();
+        groundwork_io::check_output_names(&sources)?;
+    }
+    let mut files: Vec<PathBuf> = inputs.to_vec();
+    for s in sequences {
+        if let groundwork_io::ScanSource::Files(f) = &s.source {
+            files.extend(f.iter().cloned());
+        }
+    }
+    Ok(groundwork_io::OutputTarget::create(out, &files)?)
+}
+
 fn progress(len: usize, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(len as u64);
     pb.set_style(
@@ -926,7 +957,12 @@ fn eval(
         (false, [one]) => print!("{}", one.to_table()),
         (false, _) => print!("{}", groundwork_eval::side_by_side(&reports)),
     }
-    Ok(ExitCode::SUCCESS)
+    // Scores of the readable scans are printed; a run that skipped any is incomplete.
+    Ok(if reports.iter().any(|r| !r.skipped.is_empty()) {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 #[cfg(test)]

@@ -190,13 +190,13 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
     let methods_cfg = load_methods(common, None)?;
     let cfg = methods_cfg.segmenter.clone();
     let max = cfg.sensor.max_points;
-    let mut output = OutputTarget::create(out)?;
     let (sequences, skipped_inputs) = open_inputs(
         inputs,
         common.poses.as_deref(),
         common.calib.as_deref(),
         common.topic.as_deref(),
     );
+    let mut output = crate::create_output(out, inputs, &sequences)?;
     let (mut engines, threshold) = match method {
         MethodArg::Gmm => {
             if cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {

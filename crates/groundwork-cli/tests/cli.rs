@@ -203,12 +203,14 @@ fn each_input_folder_starts_a_fresh_history() {
     let tmp = tempfile::tempdir().unwrap();
     // Two "sequences": the vendored one twice (both start at the identity pose, as every
     // KITTI sequence does, and the second starts where the first began).
+    // The second's scans are renamed: two inputs writing 000000.prob are refused.
     let mut args: Vec<PathBuf> = Vec::new();
-    for name in ["a", "b"] {
+    for (name, first) in [("a", 0), ("b", 1000)] {
         let seq = tmp.path().join(name);
         fs::create_dir_all(seq.join("velodyne")).unwrap();
         for n in 0..3 {
-            copy_scan(n, &seq.join("velodyne"));
+            let f = copy_scan(n, &seq.join("velodyne"));
+            fs::rename(&f, seq.join(format!("velodyne/{:06}.bin", first + n))).unwrap();
         }
         for f in ["poses.txt", "calib.txt"] {
             fs::copy(data().join(f), seq.join(f)).unwrap();
@@ -229,7 +231,7 @@ fn each_input_folder_starts_a_fresh_history() {
         "{err}"
     );
     // The second sequence's first scan is segmented exactly like a first scan.
-    let a = fs::read(out.join("000000.prob")).unwrap();
+    let a = fs::read(out.join("001000.prob")).unwrap();
     let single = tmp.path().join("single");
     let o = bin()
         .args(["segment", "--frames", "3", "--out"])

@@ -498,6 +498,7 @@ impl SegmenterConfig {
                 "height, roll, pitch and yaw must be finite",
             ));
         }
+        self.validate_ranges()?;
         if let Some(mat) = &m.matrix {
             if angles.iter().any(|&v| v != 0.0) {
                 return Err(ConfigError::invalid(
@@ -512,6 +513,159 @@ impl SegmenterConfig {
                 ));
             }
         }
+        Ok(())
+    }
+}
+
+/// A value in [lo, hi]; NaN and infinities are outside every range.
+fn within(field: &str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && (lo..=hi).contains(&v) {
+        return Ok(());
+    }
+    Err(ConfigError::invalid(
+        field,
+        &format!("{v} is outside its range [{lo}, {hi}]{unit}"),
+    ))
+}
+
+/// A value in (0, hi].
+fn positive(field: &str, v: f64, hi: f64, unit: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && v > 0.0 && v <= hi {
+        return Ok(());
+    }
+    Err(ConfigError::invalid(
+        field,
+        &format!("{v} is outside its range (0, {hi}]{unit}"),
+    ))
+}
+
+/// A mount angle in radians, with a hint where the value looks like degrees.
+fn angle(field: &str, v: f64, limit: f64, name: &str) -> Result<(), ConfigError> {
+    if v.abs() <= limit {
+        return Ok(());
+    }
+    Err(ConfigError::invalid(
+        field,
+        &format!(
+            "{v} is outside ±{limit:.4} rad ({name}): angles are in radians; if you meant {v}°, write {:.4}",
+            v.to_radians()
+        ),
+    ))
+}
+
+impl SegmenterConfig {
+    /// Every number's documented range (the field docs and `docs/configuration.md` state
+    /// them): values that parse but make the output meaningless (`flatness.beta = 0`: no
+    /// ground; `mount.height = 1e30`; a pitch in degrees) are refused by name.
+    fn validate_ranges(&self) -> Result<(), ConfigError> {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        let s = &self.sensor;
+        let m = &s.mount;
+        within("sensor.mount.height", m.height, 0.0, 100.0, " m")?;
+        angle("sensor.mount.roll", m.roll, FRAC_PI_2, "π/2")?;
+        angle("sensor.mount.pitch", m.pitch, FRAC_PI_2, "π/2")?;
+        angle("sensor.mount.yaw", m.yaw, PI, "π")?;
+        if let Some(mat) = &m.matrix {
+            for row in mat.iter().take(3) {
+                within(
+                    "sensor.mount.matrix (translation)",
+                    row[3],
+                    -100.0,
+                    100.0,
+                    " m",
+                )?;
+            }
+            crate::point::pose_from_matrix(mat)
+                .map_err(|e| ConfigError::invalid("sensor.mount.matrix", &e.to_string()))?;
+        }
+        within("sensor.ego_radius", s.ego_radius, 0.0, 50.0, " m")?;
+        if let Some(c) = s.max_coordinate {
+            within("sensor.max_coordinate", c, 0.0, 1e5, " m")?;
+        }
+        let z = &self.zones;
+        within("zones.min_range", z.min_range, 0.0, 1000.0, " m")?;
+        within("zones.max_range", z.max_range, 0.0, 10_000.0, " m")?;
+        let g = &self.gmm;
+        within("gmm.n_min", f64::from(g.n_min), 1.0, 10_000.0, "")?;
+        within("gmm.tau_n", f64::from(g.tau_n), 0.0, 10_000.0, "")?;
+        within(
+            "gmm.max_iterations",
+            f64::from(g.max_iterations),
+            1.0,
+            1000.0,
+            "",
+        )?;
+        within("gmm.tolerance", g.tolerance, 0.0, 1.0, " nats")?;
+        positive(
+            "gmm.covariance_regularization",
+            g.covariance_regularization,
+            1.0,
+            " m²",
+        )?;
+        if g.max_fit_points != 0 {
+            within(
+                "gmm.max_fit_points",
+                f64::from(g.max_fit_points),
+                16.0,
+                1e6,
+                " (0: every point)",
+            )?;
+        }
+        let gr = &self.ground;
+        positive("ground.flatness.alpha", gr.flatness.alpha, 1e4, " per m²")?;
+        positive("ground.flatness.beta", gr.flatness.beta, 10.0, " m²")?;
+        positive(
+            "ground.orientation.alpha",
+            gr.orientation.alpha,
+            1e3,
+            " per rad",
+        )?;
+        positive(
+            "ground.orientation.beta",
+            gr.orientation.beta,
+            FRAC_PI_2,
+            " rad",
+        )?;
+        positive("ground.elevation.alpha", gr.elevation.alpha, 1e3, " per m")?;
+        positive("ground.elevation.beta", gr.elevation.beta, 10.0, " m")?;
+        within(
+            "ground.outlier_threshold",
+            gr.outlier_threshold,
+            0.0,
+            10.0,
+            " m",
+        )?;
+        let h = &self.height_filter;
+        positive("height_filter.sigmas", h.sigmas, 100.0, "")?;
+        within("height_filter.min_std", h.min_std, 0.0, 10.0, " m")?;
+        within(
+            "height_filter.warmup_frames",
+            f64::from(h.warmup_frames),
+            0.0,
+            10_000.0,
+            "",
+        )?;
+        within(
+            "height_filter.min_ground_likelihood",
+            h.min_ground_likelihood,
+            0.0,
+            1.0,
+            "",
+        )?;
+        let hi = &self.history;
+        positive(
+            "history.max_translation_jump",
+            hi.max_translation_jump,
+            1000.0,
+            " m",
+        )?;
+        positive(
+            "history.max_rotation_jump",
+            hi.max_rotation_jump,
+            PI,
+            " rad",
+        )?;
+        positive("history.max_time_gap", hi.max_time_gap, 3600.0, " s")?;
         Ok(())
     }
 }
@@ -566,5 +720,60 @@ mod tests {
         let mut c = SegmenterConfig::default();
         c.zones.rings = vec![2, 4, 4];
         assert!(c.validate().is_err());
+    }
+
+    #[test]
+    fn values_that_parse_but_mean_nothing_are_refused_by_name() {
+        type Edit = fn(&mut SegmenterConfig);
+        let cases: [(&str, Edit); 10] = [
+            ("ground.flatness.beta", |c| c.ground.flatness.beta = 0.0),
+            ("gmm.covariance_regularization", |c| {
+                c.gmm.covariance_regularization = 1e300
+            }),
+            ("sensor.mount.height", |c| c.sensor.mount.height = 1e30),
+            ("height_filter.min_ground_likelihood", |c| {
+                c.height_filter.min_ground_likelihood = f64::NAN
+            }),
+            ("gmm.max_iterations", |c| {
+                c.gmm.max_iterations = 4_000_000_000
+            }),
+            ("gmm.max_fit_points", |c| c.gmm.max_fit_points = 3),
+            ("ground.orientation.beta", |c| {
+                c.ground.orientation.beta = 3.0
+            }),
+            ("ground.elevation.alpha", |c| {
+                c.ground.elevation.alpha = -4.0
+            }),
+            ("history.max_time_gap", |c| c.history.max_time_gap = 1e9),
+            ("sensor.ego_radius", |c| c.sensor.ego_radius = 1e6),
+        ];
+        for (field, edit) in cases {
+            let mut c = SegmenterConfig::default();
+            edit(&mut c);
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains(field) && e.contains("range"), "{field}: {e}");
+        }
+        // Degrees for radians: refused with the conversion.
+        let mut c = SegmenterConfig::default();
+        c.sensor.mount.pitch = -6.0;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("sensor.mount.pitch") && e.contains("radians") && e.contains("-0.1047"),
+            "{e}"
+        );
+        // A yaw of π (a sensor facing backwards) is a mount, not a mistake.
+        let mut c = SegmenterConfig::default();
+        c.sensor.mount.yaw = std::f64::consts::PI;
+        c.validate().unwrap();
+        // A scaled matrix is not a mount.
+        let mut c = SegmenterConfig::default();
+        c.sensor.mount.matrix = Some([
+            [2.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 1.7],
+            [0.0, 0.0, 0.0, 1.0],
+        ]);
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("rotation"), "{e}");
     }
 }

@@ -12,7 +12,7 @@ use groundwork_io::{
 };
 use serde::Serialize;
 use thiserror::Error;
-use tracing::warn;
+use tracing::{info, warn};
 
 use crate::metrics::{Confusion, Metrics, Protocol};
 
@@ -30,7 +30,7 @@ pub enum SequenceError {
         /// What is missing.
         message: String,
     },
-    /// A scan could not be read (an evaluation stops: its pooled figures would lie).
+    /// A scan could not be read (an evaluation skips it and lists it).
     #[error("{0}")]
     Scan(String),
     /// The segmenter rejected a scan.
@@ -63,8 +63,11 @@ pub struct Sequence {
 impl Sequence {
     /// Opens `<dir>` (with `velodyne/`), a plain folder of scans, a scan file or a
     /// recording. `poses`/`calib` override the default `<dir>/poses.txt` and
-    /// `<dir>/calib.txt` (a file or recording has no default); without both, scans have
-    /// no pose. Labels are `<dir>/labels/` where it exists (see [`Self::with_labels`]).
+    /// `<dir>/calib.txt` (a file or recording has no default). Poses with a calibration are
+    /// KITTI camera poses, moved into the LiDAR frame by its `Tr`; poses without one are
+    /// the LiDAR's own (as kiss-icp and most odometry write them), and the log says so.
+    /// Without poses, scans have no pose. Labels are `<dir>/labels/` where it exists (see
+    /// [`Self::with_labels`]).
     pub fn open(
         dir: &Path,
         poses: Option<&Path>,
@@ -80,26 +83,48 @@ impl Sequence {
         let calib_path = calib
             .map(Path::to_path_buf)
             .or_else(|| default("calib.txt"));
-        let explicit = poses.is_some() || calib.is_some();
+        // A file named on the command line must exist; the defaults are looked for.
+        for given in [poses, calib].into_iter().flatten() {
+            if !given.is_file() {
+                return Err(SequenceError::Layout {
+                    path: given.to_path_buf(),
+                    message: "no such file".into(),
+                });
+            }
+        }
+        let poses_path = poses_path.filter(|p| p.is_file());
+        let calib_path = calib_path.filter(|c| c.is_file());
         let poses = match (poses_path, calib_path) {
-            (Some(p), Some(c)) if p.is_file() && c.is_file() => {
-                let cam = read_poses(&p)?;
-                let tr = read_calib_tr(&c)?;
-                if let Some(n) = source.len_hint().filter(|&n| cam.len() < n) {
+            (Some(p), c) => {
+                let read = read_poses(&p)?;
+                if let Some(n) = source.len_hint().filter(|&n| read.len() < n) {
                     return Err(SequenceError::Layout {
                         path: p,
-                        message: format!("{} poses for {n} scans", cam.len()),
+                        message: format!("{} poses for {n} scans", read.len()),
                     });
                 }
-                Some(lidar_poses(&cam, &tr))
+                match c {
+                    Some(c) => {
+                        info!(
+                            "{}: KITTI camera poses, moved into the LiDAR frame by Tr of {}",
+                            p.display(),
+                            c.display()
+                        );
+                        Some(lidar_poses(&read, &read_calib_tr(&c)?))
+                    }
+                    None => {
+                        warn!(
+                            "{}: no calibration beside it: the poses are taken as the LiDAR's own (world from sensor); give --calib if they are KITTI camera poses",
+                            p.display()
+                        );
+                        Some(read)
+                    }
+                }
             }
-            (p, c) if explicit => {
-                let show = |x: Option<PathBuf>| {
-                    x.map_or("(not given)".to_string(), |x| x.display().to_string())
-                };
+            (None, Some(c)) if calib.is_some() => {
                 return Err(SequenceError::Layout {
-                    path: dir.to_path_buf(),
-                    message: format!("poses need both {} and {}", show(p), show(c)),
+                    path: c,
+                    message: "a calibration without poses: give --poses too".into(),
                 });
             }
             _ => None,
@@ -183,9 +208,21 @@ pub struct ScanResult {
     pub total_ms: f64,
 }
 
+/// A scan the evaluation could not score, and why.
+#[derive(Debug, Clone, Serialize)]
+pub struct SkippedScan {
+    /// Its name (file stem, or `<recording>_<index>`).
+    pub name: String,
+    /// Why: unreadable, rejected by the method, or labels that do not fit it.
+    pub reason: String,
+}
+
 /// A whole evaluation.
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
+    /// Scans that could not be scored (not in `scans`, not pooled): an evaluation with
+    /// any is incomplete, and the CLI says so and exits 1.
+    pub skipped: Vec<SkippedScan>,
     /// Method evaluated (`gmm`, `pseudolabeler`, `ransac`).
     pub method: &'static str,
     /// Protocol used.
@@ -211,7 +248,9 @@ fn ms(d: Duration) -> f64 {
 }
 
 /// Segments every scan of the sequence in order (so history builds up) with any method and
-/// scores the labeled ones. `on_scan` is called after each scan (progress reporting).
+/// scores the labeled ones. `on_scan` is called after each scan (progress reporting). A scan
+/// that cannot be read, is rejected, or whose labels do not fit is skipped and listed in
+/// [`EvalReport::skipped`]; the others are scored.
 pub fn evaluate(
     seq: &Sequence,
     segmenter: &mut dyn GroundMethod,
@@ -223,48 +262,24 @@ pub fn evaluate(
     let mut scans = Vec::with_capacity(seq.len_hint().unwrap_or(0));
     let mut pooled = Confusion::default();
     let mut probs = Vec::new();
+    let mut skipped = Vec::new();
     for item in seq.scans(max) {
-        let scan = item
-            .scan
-            .as_ref()
-            .map_err(|e| SequenceError::Scan(e.to_string()))?;
-        let points = &scan.points;
-        let pose = seq.pose(item.index);
-        probs.resize(points.len(), 0.0);
-        let t = Instant::now();
-        let report: FrameReport =
-            segmenter
-                .segment_scan(points, pose, &mut probs)
-                .map_err(|source| SequenceError::Segment {
-                    path: PathBuf::from(&item.name),
-                    source,
-                })?;
-        let total = t.elapsed();
-        let confusion = match seq.label_path(&item) {
-            Some(l) => {
-                // Labels are per record of the input: placeholders the reader left out are
-                // scored as the non-ground they were given (probability 0).
-                let labels = seq.label_map.read(&l, scan.records)?;
-                let all = scan.expand(&probs, 0.0);
-                Some(Confusion::from_predictions(&all, &labels, protocol, thr))
+        match score_one(seq, segmenter, protocol, thr, &item, &mut probs) {
+            Ok(r) => {
+                if let Some(c) = &r.confusion {
+                    pooled.merge(c);
+                }
+                on_scan(&r);
+                scans.push(r);
             }
-            None => None,
-        };
-        if let Some(c) = &confusion {
-            pooled.merge(c);
+            Err(e) => {
+                warn!("skipped: {e}");
+                skipped.push(SkippedScan {
+                    name: item.name.clone(),
+                    reason: e.to_string(),
+                });
+            }
         }
-        let r = ScanResult {
-            name: item.name.clone(),
-            points: points.len(),
-            metrics: confusion.as_ref().map(Confusion::metrics),
-            confusion,
-            frames_queried: report.frames_queried,
-            fit_ms: ms(report.fit_time),
-            query_ms: ms(report.query_time),
-            total_ms: ms(total),
-        };
-        on_scan(&r);
-        scans.push(r);
     }
     let labeled_scans = scans.iter().filter(|s| s.confusion.is_some()).count();
     if labeled_scans == 0 {
@@ -272,6 +287,7 @@ pub fn evaluate(
     }
     let median_ms = median(scans.iter().map(|s| s.total_ms).collect());
     Ok(EvalReport {
+        skipped,
         protocol,
         method: segmenter.name(),
         history_frames: segmenter.history_frames(),
@@ -286,6 +302,55 @@ pub fn evaluate(
         },
         scans,
     })
+}
+
+/// Segments and scores one scan.
+fn score_one(
+    seq: &Sequence,
+    segmenter: &mut dyn GroundMethod,
+    protocol: Protocol,
+    thr: f32,
+    item: &ScanItem,
+    probs: &mut Vec<f32>,
+) -> Result<ScanResult, SequenceError> {
+    {
+        let scan = item
+            .scan
+            .as_ref()
+            .map_err(|e| SequenceError::Scan(e.to_string()))?;
+        let points = &scan.points;
+        let pose = seq.pose(item.index);
+        probs.resize(points.len(), 0.0);
+        let t = Instant::now();
+        let report: FrameReport =
+            segmenter
+                .segment_scan(points, pose, probs)
+                .map_err(|source| SequenceError::Segment {
+                    path: PathBuf::from(&item.name),
+                    source,
+                })?;
+        let total = t.elapsed();
+        let confusion = match seq.label_path(item) {
+            Some(l) => {
+                // Labels are per record of the input: placeholders the reader left out are
+                // scored as the non-ground they were given (probability 0).
+                let labels = seq.label_map.read(&l, scan.records)?;
+                let all = scan.expand(probs, 0.0);
+                Some(Confusion::from_predictions(&all, &labels, protocol, thr))
+            }
+            None => None,
+        };
+        Ok(ScanResult {
+            name: item.name.clone(),
+            points: points.len(),
+            metrics: confusion.as_ref().map(Confusion::metrics),
+            confusion,
+            frames_queried: report.frames_queried,
+            fit_ms: ms(report.fit_time),
+            query_ms: ms(report.query_time),
+            total_ms: ms(total),
+        })
+    }
 }
 
 /// Several methods' pooled figures on the same scans, one row each.
@@ -322,6 +387,11 @@ pub fn side_by_side(reports: &[EvalReport]) -> String {
             m.miou,
             r.median_ms
         );
+    }
+    if let Some(r) = reports.first() {
+        for k in &r.skipped {
+            let _ = writeln!(s, "skipped {}: {}", k.name, k.reason);
+        }
     }
     s
 }
@@ -415,6 +485,9 @@ impl EvalReport {
             "median {:.2} ms per scan (fit + query) = {:.1} scans/s",
             self.median_ms, self.scans_per_second
         );
+        for k in &self.skipped {
+            let _ = writeln!(s, "skipped {}: {}", k.name, k.reason);
+        }
         s
     }
 }

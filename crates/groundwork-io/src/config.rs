@@ -1,7 +1,6 @@
 //! Loading the segmenter configuration from TOML: sensor presets (built in, from
 //! `config/sensors/`), and config files laid over a preset field by field.
 
-use std::fs;
 use std::path::{Path, PathBuf};
 
 use groundwork_core::SegmenterConfig;
@@ -135,7 +134,7 @@ pub fn load_methods_config_layers(
     // tested).
     let mut named = preset_path;
     if let Some(path) = path {
-        let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+        let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
         let overlay: toml::Table = toml::from_str(&text).map_err(|e| config_error(path, &e))?;
         merge(&mut merged, overlay);
         named = path.to_path_buf();
@@ -208,7 +207,7 @@ fn merge(base: &mut toml::Table, overlay: toml::Table) {
 /// Parses and validates a segmenter configuration. Unknown keys, wrong types and
 /// inconsistent values are errors naming the file (and the key, where TOML knows it).
 pub fn load_config(path: &Path) -> Result<SegmenterConfig, FormatError> {
-    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+    let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
     parse_config(path, &text)
 }
 
@@ -221,6 +220,7 @@ pub fn parse_config(path: &Path, text: &str) -> Result<SegmenterConfig, FormatEr
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs;
 
     #[test]
     fn unknown_keys_and_bad_values_are_errors_naming_the_file() {

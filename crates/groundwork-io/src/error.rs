@@ -90,6 +90,22 @@ pub enum FormatError {
         /// What is wrong, and where.
         message: String,
     },
+    /// A path that is not a regular file (a device, a FIFO, a socket, a folder).
+    #[error("{}: {kind}, not a regular file: refused (only regular files are read)", path.display())]
+    NotAFile {
+        /// The path.
+        path: PathBuf,
+        /// What it is.
+        kind: &'static str,
+    },
+    /// Outputs that would overwrite an input or each other.
+    #[error("{}: {message}", path.display())]
+    Collision {
+        /// The output, or the first of two inputs.
+        path: PathBuf,
+        /// What collides with what.
+        message: String,
+    },
     /// A file kind this crate does not read.
     #[error("{}: unsupported file type (expected {expected})", path.display())]
     Unsupported {

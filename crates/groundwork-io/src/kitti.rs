@@ -36,6 +36,25 @@ fn parse_row_major_3x4(path: &Path, line: usize, vals: &[f64]) -> Result<Pose, F
     pose_from_matrix(&m).map_err(|e| FormatError::parse(path, line, e.to_string()))
 }
 
+/// A TUM line: time, translation, unit quaternion (x, y, z, w).
+fn parse_tum(path: &Path, line: usize, v: &[f64]) -> Result<Pose, FormatError> {
+    let q = nalgebra::Quaternion::new(v[7], v[4], v[5], v[6]);
+    if (q.norm() - 1.0).abs() > 1e-3 {
+        return Err(FormatError::parse(
+            path,
+            line,
+            format!(
+                "TUM quaternion (qx qy qz qw) has norm {:.6}, not 1",
+                q.norm()
+            ),
+        ));
+    }
+    Ok(Pose::from_parts(
+        nalgebra::Translation3::new(v[1], v[2], v[3]),
+        nalgebra::UnitQuaternion::from_quaternion(q),
+    ))
+}
+
 fn parse_numbers(path: &Path, line: usize, text: &str) -> Result<Vec<f64>, FormatError> {
     text.split_whitespace()
         .map(|t| {
@@ -49,17 +68,23 @@ fn parse_numbers(path: &Path, line: usize, text: &str) -> Result<Vec<f64>, Forma
         .collect()
 }
 
-/// Reads KITTI odometry `poses.txt`: one 3×4 row-major camera pose per line (world from
-/// camera of frame i).
+/// Reads a trajectory, one pose per scan in scan order: KITTI odometry `poses.txt` (12
+/// numbers per line, a 3×4 row-major matrix: world from camera, or from the LiDAR where
+/// there is no calibration) or the TUM format (8 numbers per line: time, tx, ty, tz, qx,
+/// qy, qz, qw; time is not used, line i is scan i; lines starting with `#` are comments).
 pub fn read_poses(path: &Path) -> Result<Vec<Pose>, FormatError> {
-    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+    let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
     let mut poses = Vec::new();
     for (i, line) in text.lines().enumerate() {
-        if line.trim().is_empty() {
+        if line.trim().is_empty() || line.trim_start().starts_with('#') {
             continue;
         }
         let vals = parse_numbers(path, i + 1, line)?;
-        poses.push(parse_row_major_3x4(path, i + 1, &vals)?);
+        poses.push(if vals.len() == 8 {
+            parse_tum(path, i + 1, &vals)?
+        } else {
+            parse_row_major_3x4(path, i + 1, &vals)?
+        });
     }
     if poses.is_empty() {
         return Err(FormatError::Empty {
@@ -71,7 +96,7 @@ pub fn read_poses(path: &Path) -> Result<Vec<Pose>, FormatError> {
 
 /// Reads `Tr` (velodyne → camera) from a KITTI odometry `calib.txt`.
 pub fn read_calib_tr(path: &Path) -> Result<Pose, FormatError> {
-    let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+    let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
     for (i, line) in text.lines().enumerate() {
         if let Some(rest) = line.strip_prefix("Tr:") {
             let vals = parse_numbers(path, i + 1, rest)?;
@@ -159,6 +184,37 @@ mod tests {
         let labels = dir.path().join("0.label");
         write_labels(&labels, &[40 | (3 << 16), 10]).unwrap();
         assert_eq!(read_labels(&labels, 2).unwrap(), vec![40, 10]);
+    }
+
+    #[test]
+    fn tum_trajectories_read_as_the_same_poses_as_kitti_rows() {
+        let dir = tempfile::tempdir().unwrap();
+        // Identity, then 1 m forward turned 90° left about z.
+        let (h, c) = (
+            std::f64::consts::FRAC_1_SQRT_2,
+            "# time tx ty tz qx qy qz qw\n",
+        );
+        let tum = dir.path().join("traj.tum");
+        fs::write(
+            &tum,
+            format!("{c}0.0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 {h} {h}\n"),
+        )
+        .unwrap();
+        let kitti = dir.path().join("poses.txt");
+        fs::write(
+            &kitti,
+            "1 0 0 0 0 1 0 0 0 0 1 0\n0 -1 0 1 1 0 0 0 0 0 1 0\n",
+        )
+        .unwrap();
+        let (a, b) = (read_poses(&tum).unwrap(), read_poses(&kitti).unwrap());
+        assert_eq!(a.len(), 2);
+        for (p, q) in a.iter().zip(&b) {
+            let d = (p.to_homogeneous() - q.to_homogeneous()).abs().max();
+            assert!(d < 1e-9, "{p} vs {q}");
+        }
+        fs::write(&tum, "0.0 0 0 0 0 0 0 2\n").unwrap();
+        let e = read_poses(&tum).unwrap_err().to_string();
+        assert!(e.contains("traj.tum:1") && e.contains("norm"), "{e}");
     }
 
     #[test]

@@ -2,7 +2,6 @@
 //! onto the four classes ground segmentation is scored on. The maps are data, in
 //! `config/labels/` (built in); a user adds a TOML file for their own dataset.
 
-use std::fs;
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
@@ -127,7 +126,7 @@ impl LabelMap {
         }
         let path = Path::new(name_or_path);
         if path.is_file() {
-            let text = fs::read_to_string(path).map_err(|e| FormatError::io(path, e))?;
+            let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
             return Self::parse(path, &text);
         }
         Err(FormatError::Config {
@@ -193,6 +192,7 @@ impl LabelMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs;
 
     #[test]
     fn built_in_maps_parse_and_harmonise() {

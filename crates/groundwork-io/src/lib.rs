@@ -5,6 +5,7 @@
 
 pub mod config;
 pub mod error;
+pub mod file;
 pub mod input;
 pub mod kitti;
 pub mod labels;
@@ -27,8 +28,8 @@ pub use kitti::{
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{
-    OutputTarget, PROPOSALS_FRAME, outputs_complete, read_clusters, read_prob, write_atomic,
-    write_detections, write_outputs,
+    OutputTarget, PROPOSALS_FRAME, check_not_an_input, check_output_names, outputs_complete,
+    read_clusters, read_prob, write_atomic, write_detections, write_outputs,
 };
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::{InputKind, Scan, ScanFormat, list_scans, read_scan, scan_stem, write_kitti_bin};

@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 use groundwork_detect::Proposal;
 
 use crate::error::FormatError;
+use crate::input::ScanSource;
 use crate::recording::RecordingWriter;
+use crate::scan::scan_stem;
 
 /// Where per-scan results go: `.prob`/`.ground` files in a folder, or one MCAP recording
 /// (PointCloud2 with `ground_probability`) for a path ending in `.mcap`.
@@ -22,19 +24,22 @@ pub enum OutputTarget {
 
 impl OutputTarget {
     /// A recording for a path ending in `.mcap`, a folder otherwise; missing folders (the
-    /// recording's parent) are created.
-    pub fn create(path: &Path) -> Result<Self, FormatError> {
+    /// recording's parent) are created. Refused before anything is read or written: an
+    /// output that is one of `inputs` (the same file, however named), and a folder that
+    /// cannot be written to.
+    pub fn create(path: &Path, inputs: &[PathBuf]) -> Result<Self, FormatError> {
         let recording = path
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        check_not_an_input(path, inputs)?;
         let dir = if recording {
             path.parent().filter(|d| !d.as_os_str().is_empty())
         } else {
             Some(path)
         };
-        if let Some(dir) = dir {
-            fs::create_dir_all(dir).map_err(|e| FormatError::io(dir, e))?;
-        }
+        let dir = dir.unwrap_or(Path::new("."));
+        fs::create_dir_all(dir).map_err(|e| FormatError::io(dir, e))?;
+        check_writable(dir)?;
         Ok(if recording {
             Self::Recording(Box::new(RecordingWriter::create(path)?))
         } else {
@@ -61,13 +66,109 @@ pub fn write_outputs(
     write_atomic(&dir.join(format!("{stem}.ground")), &ground)
 }
 
-/// Writes `path` through `<path>.partial` and a rename: a reader never sees it half-written.
+/// Writes `path` through `<path>.partial` and a rename: a reader never sees it half-written,
+/// and a write that fails (a full disk) leaves neither name behind.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+    let tmp = partial_name(path);
+    let result = fs::write(&tmp, bytes)
+        .map_err(|e| FormatError::io(&tmp, e))
+        .and_then(|()| fs::rename(&tmp, path).map_err(|e| FormatError::io(path, e)));
+    if result.is_err() {
+        let _ = fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// `<path>.partial`: where an output is written before it is renamed to `path`.
+pub(crate) fn partial_name(path: &Path) -> PathBuf {
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(".partial");
-    let tmp = std::path::PathBuf::from(tmp);
-    fs::write(&tmp, bytes).map_err(|e| FormatError::io(&tmp, e))?;
-    fs::rename(&tmp, path).map_err(|e| FormatError::io(path, e))
+    PathBuf::from(tmp)
+}
+
+/// Refuses an output path that names the same file as an input (`--out rec.mcap rec.mcap`,
+/// or through a link): writing it would destroy the input before it is read.
+pub fn check_not_an_input(out: &Path, inputs: &[PathBuf]) -> Result<(), FormatError> {
+    use std::os::unix::fs::MetadataExt;
+    let Ok(o) = fs::metadata(out) else {
+        return Ok(());
+    };
+    for input in inputs {
+        if let Ok(i) = fs::metadata(input)
+            && (i.dev(), i.ino()) == (o.dev(), o.ino())
+        {
+            return Err(FormatError::Collision {
+                path: out.to_path_buf(),
+                message: format!(
+                    "the output is the input {} (writing it would destroy it): choose another --out",
+                    input.display()
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// A folder outputs go to must take a new file: tested by creating (and removing) one, so
+/// that a read-only folder is an error at the start, not one per scan.
+fn check_writable(dir: &Path) -> Result<(), FormatError> {
+    let probe = dir.join(format!(".groundwork-write-check-{}", std::process::id()));
+    fs::File::create(&probe).map_err(|e| FormatError::io(dir, e))?;
+    let _ = fs::remove_file(&probe);
+    Ok(())
+}
+
+/// Refuses, before anything is written, inputs whose scans would get the same output name
+/// in one folder (two folders that both hold `000000.bin`, or `x.pcd` and `x.ply`): the
+/// second would overwrite the first in silence. `names` is (output name, where it comes
+/// from) for every scan known before reading; a recording's scans are named
+/// `<stem>_<index:06>`, so a recording is listed as its `<stem>_` with `prefix` true.
+pub fn check_output_names(sources: &[&ScanSource]) -> Result<(), FormatError> {
+    let mut names = Vec::new();
+    for source in sources {
+        match source {
+            ScanSource::Files(files) => {
+                names.extend(files.iter().map(|f| (scan_stem(f), f.clone(), false)));
+            }
+            ScanSource::Recording { path, .. } => {
+                names.push((format!("{}_", scan_stem(path)), path.clone(), true));
+            }
+        }
+    }
+    check_names(&names)
+}
+
+fn check_names(names: &[(String, PathBuf, bool)]) -> Result<(), FormatError> {
+    let mut sorted: Vec<&(String, PathBuf, bool)> = names.iter().collect();
+    sorted.sort_by(|a, b| a.0.cmp(&b.0));
+    for w in sorted.windows(2) {
+        if w[0].0 == w[1].0 {
+            return Err(collision(&w[0].1, &w[1].1, &w[0].0));
+        }
+    }
+    // A recording `a.mcap` names its scans `a_000000`…: a file `a_000003.bin` would collide.
+    for (prefix, rec, _) in names.iter().filter(|n| n.2) {
+        let clash = names.iter().find(|(name, _, is_prefix)| {
+            !is_prefix
+                && name
+                    .strip_prefix(prefix.as_str())
+                    .is_some_and(|rest| rest.len() >= 6 && rest.bytes().all(|b| b.is_ascii_digit()))
+        });
+        if let Some((name, file, _)) = clash {
+            return Err(collision(rec, file, name));
+        }
+    }
+    Ok(())
+}
+
+fn collision(a: &Path, b: &Path, name: &str) -> FormatError {
+    FormatError::Collision {
+        path: a.to_path_buf(),
+        message: format!(
+            "{} would write the same outputs ({name}.*) in the output folder, overwriting one with the other: give them separate --out folders",
+            b.display()
+        ),
+    }
 }
 
 /// Whether `<dir>/<stem>.prob` and `.ground` are both complete outputs for one scan: present
@@ -124,7 +225,7 @@ pub fn read_clusters(path: &Path) -> Result<Vec<u32>, FormatError> {
 
 /// Reads a file of 4-byte little-endian records.
 fn read_words<T>(path: &Path, decode: fn([u8; 4]) -> T) -> Result<Vec<T>, FormatError> {
-    let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
+    let bytes = crate::file::read_regular(path, 4 * u64::from(u32::MAX))?;
     if bytes.len() % 4 != 0 {
         return Err(FormatError::Size {
             path: path.to_path_buf(),

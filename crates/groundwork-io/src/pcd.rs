@@ -252,10 +252,7 @@ fn value(b: &[u8], f: &Field) -> f32 {
 
 /// Reads a `.pcd` file; see the module documentation.
 pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
-    let size = fs::metadata(path)
-        .map_err(|e| FormatError::io(path, e))?
-        .len();
-    let mut file = fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+    let (mut file, size) = crate::file::open_regular(path)?;
     let mut head = Vec::new();
     (&mut file)
         .take(MAX_HEADER.min(size))

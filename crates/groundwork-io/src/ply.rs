@@ -1,7 +1,6 @@
 //! Stanford `.ply` files: the `vertex` element's x, y, z and (optionally) intensity, ascii
 //! or binary, parsed by `ply-rs-bw` straight into our point type (no per-vertex maps).
 
-use std::fs;
 use std::io::BufReader;
 use std::path::Path;
 
@@ -79,10 +78,7 @@ fn scalar_size(t: &ScalarType) -> u64 {
 /// Reads the vertices of a `.ply` file. Elements before `vertex` (rare) are read and
 /// dropped; elements after it (faces of a mesh) are not read at all.
 pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
-    let size = fs::metadata(path)
-        .map_err(|e| FormatError::io(path, e))?
-        .len();
-    let file = fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+    let (file, size) = crate::file::open_regular(path)?;
     let mut reader = Reader::new(BufReader::new(file));
     let parser = Parser::<Vertex>::new();
     let ply_err =
@@ -108,25 +104,37 @@ pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
             path: path.to_path_buf(),
         });
     }
-    // A binary file must hold at least count × record bytes (lists make records longer,
-    // never shorter), ascii at least two bytes per value: checked before the parser
-    // reserves anything for the claimed count.
-    let min_record: u64 = vertex
-        .properties
-        .values()
-        .map(|p| match (&p.data_type, &header.encoding) {
-            (_, Encoding::Ascii) => 2,
-            (PropertyType::Scalar(t), _) => scalar_size(t),
-            (PropertyType::List(len, _), _) => scalar_size(len),
-        })
-        .sum();
-    if (n as u64).saturating_mul(min_record) > size {
-        return Err(FormatError::malformed(
-            path,
-            format!(
-                "PLY header declares {n} vertices, more than its {size} bytes can hold (truncated, or a lying header)"
-            ),
-        ));
+    // Every element up to the vertices is read, so each must fit in the file: a binary
+    // record holds at least its scalars and list lengths (lists make it longer, never
+    // shorter), an ascii record at least two bytes per value and a line end; a record
+    // without properties still counts one byte, or `element junk 4000000000` would cost
+    // the parser 4e9 records for nothing. Checked before the parser reserves anything for
+    // a claimed count.
+    let mut declared = 0u64;
+    for element in header.elements.values() {
+        let min_record: u64 = element
+            .properties
+            .values()
+            .map(|p| match (&p.data_type, &header.encoding) {
+                (_, Encoding::Ascii) => 2,
+                (PropertyType::Scalar(t), _) => scalar_size(t),
+                (PropertyType::List(len, _), _) => scalar_size(len),
+            })
+            .sum();
+        declared =
+            declared.saturating_add((element.count as u64).saturating_mul(min_record.max(1)));
+        if declared > size {
+            return Err(FormatError::malformed(
+                path,
+                format!(
+                    "PLY header declares {} {:?} elements, more than its {size} bytes can hold (truncated, or a lying header)",
+                    element.count, element.name
+                ),
+            ));
+        }
+        if element.name == "vertex" {
+            break;
+        }
     }
     let mut vertices = Vec::new();
     for element in header.elements.values() {
@@ -145,6 +153,7 @@ pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs;
 
     #[test]
     fn ascii_vertices_with_double_coordinates() {
@@ -196,5 +205,25 @@ mod tests {
         fs::write(&p, "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").unwrap();
         let e = read(&p, 10).unwrap_err().to_string();
         assert!(e.contains("b.ply"), "{e}");
+    }
+
+    #[test]
+    fn a_huge_element_before_the_vertices_is_refused_before_allocating() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("bomb.ply");
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement junk 4000000000\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n".to_vec();
+        bytes.extend_from_slice(&[0; 12]);
+        fs::write(&p, &bytes).unwrap();
+        let e = read(&p, 10).unwrap_err().to_string();
+        assert!(
+            e.contains("bomb.ply") && e.contains("\"junk\"") && e.contains("lying header"),
+            "{e}"
+        );
+        // The same element with a count the file can hold is read and dropped.
+        let mut ok = b"ply\nformat binary_little_endian 1.0\nelement junk 2\nproperty uchar a\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n".to_vec();
+        ok.extend_from_slice(&[7, 8]);
+        ok.extend([1.0f32, 2.0, 3.0].iter().flat_map(|v| v.to_le_bytes()));
+        fs::write(&p, &ok).unwrap();
+        assert_eq!(read(&p, 10).unwrap().points[0], Point::new(1.0, 2.0, 3.0));
     }
 }

@@ -11,8 +11,10 @@ use std::path::{Path, PathBuf};
 use std::io::Read;
 
 use mcap::records::op;
+use mcap::sans_io::decompressor::{DecompressResult, Decompressor};
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use tracing::warn;
+use zstd::zstd_safe::{DStream, InBuffer, OutBuffer, ResetDirective};
 
 use crate::error::FormatError;
 use crate::pointcloud2::{self, SCHEMA_NAME, SCHEMA_TEXT};
@@ -61,6 +63,8 @@ pub struct RecordingReader {
     next_index: usize,
     other_clouds: BTreeSet<String>,
     done: bool,
+    /// Bytes of the file handed to the reader so far: where an error was met.
+    offset: u64,
 }
 
 impl std::fmt::Debug for RecordingReader {
@@ -106,13 +110,17 @@ impl RecordingReader {
     /// Opens a recording. With `topic` None, the first PointCloud2 topic met is read (and
     /// any other PointCloud2 topic named in a warning).
     pub fn open(path: &Path, topic: Option<&str>, max_points: usize) -> Result<Self, FormatError> {
-        let file = fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+        let (file, _) = crate::file::open_regular(path)?;
         let options =
             LinearReaderOptions::default().with_record_length_limit(Self::record_limit(max_points));
+        let mut reader = LinearReader::new_with_options(options);
+        reader
+            .add_decompressor(BoundedZstd::new(Self::chunk_limit(max_points)))
+            .map_err(|e| FormatError::malformed(path, format!("MCAP: {e}")))?;
         Ok(Self {
             path: path.to_path_buf(),
             file: BufReader::new(file),
-            reader: LinearReader::new_with_options(options),
+            reader,
             schemas: BTreeMap::new(),
             channels: BTreeMap::new(),
             topic: topic.map(str::to_string),
@@ -120,6 +128,7 @@ impl RecordingReader {
             next_index: 0,
             other_clouds: BTreeSet::new(),
             done: false,
+            offset: 0,
         })
     }
 
@@ -132,6 +141,16 @@ impl RecordingReader {
         max_points.saturating_mul(256).saturating_add(1 << 20)
     }
 
+    /// The most a zstd chunk may unpack to for scans of at most `max_points` points (a
+    /// chunk holds one scan or more; recorders close a chunk at 1 to 4 MiB): whatever a
+    /// chunk's header declares, unpacking stops there with an error. Together with the
+    /// ratio bound of [`MAX_ZSTD_RATIO`] it bounds the work a file can ask for by its size.
+    pub fn chunk_limit(max_points: usize) -> usize {
+        Self::record_limit(max_points)
+            .saturating_mul(2)
+            .saturating_add(64 << 20)
+    }
+
     /// The topic being read, once known.
     pub fn topic(&self) -> Option<&str> {
         self.topic.as_deref()
@@ -139,7 +158,13 @@ impl RecordingReader {
 
     fn broken(&mut self, what: impl std::fmt::Display) -> FormatError {
         self.done = true;
-        FormatError::malformed(&self.path, format!("MCAP: {what}"))
+        FormatError::malformed(
+            &self.path,
+            format!(
+                "MCAP: {what} (in the record read up to byte {})",
+                self.offset
+            ),
+        )
     }
 
     fn end_of_data(&mut self) -> Option<Result<RecordedScan, FormatError>> {
@@ -154,6 +179,107 @@ impl RecordingReader {
             None => format!("no {SCHEMA_NAME} messages (topics: {})", topics.join(", ")),
         };
         Some(Err(FormatError::malformed(&self.path, message)))
+    }
+}
+
+/// The most output a zstd chunk may produce per byte of its input (beyond a first MiB):
+/// point clouds compress 2 to 10 times, a chunk of identical tiny messages a few hundred
+/// times; a chunk claiming more is a decompression bomb (zstd turns 4 bytes into a 128 KiB
+/// block of zeros), refused before it costs minutes of CPU. lz4 needs no such bound: its
+/// format cannot expand more than 255 times.
+pub const MAX_ZSTD_RATIO: u64 = 1024;
+
+/// The zstd chunk decoder, with the work per chunk bounded: at most `limit` bytes out, and
+/// at most [`MAX_ZSTD_RATIO`] bytes out per byte in. (The `mcap` reader already stops at
+/// the chunk's declared uncompressed size; the declared size itself is what a bomb lies
+/// about.)
+struct BoundedZstd {
+    stream: Option<DStream<'static>>,
+    need: usize,
+    limit: u64,
+    consumed: u64,
+    wrote: u64,
+}
+
+impl BoundedZstd {
+    fn new(limit: usize) -> Self {
+        Self {
+            stream: None,
+            need: 0,
+            limit: limit as u64,
+            consumed: 0,
+            wrote: 0,
+        }
+    }
+}
+
+fn zstd_error(code: usize) -> mcap::McapError {
+    mcap::McapError::DecompressionError(zstd::zstd_safe::get_error_name(code).into())
+}
+
+impl Decompressor for BoundedZstd {
+    fn next_read_size(&self) -> usize {
+        self.need
+    }
+
+    fn decompress(&mut self, src: &[u8], dst: &mut [u8]) -> mcap::McapResult<DecompressResult> {
+        let stream = match &mut self.stream {
+            Some(s) => s,
+            None => {
+                let mut s = DStream::create();
+                s.init().map_err(zstd_error)?;
+                self.stream.insert(s)
+            }
+        };
+        let mut input = InBuffer::around(src);
+        let mut output = OutBuffer::around(dst);
+        self.need = stream
+            .decompress_stream(&mut output, &mut input)
+            .map_err(zstd_error)?;
+        self.consumed += input.pos as u64;
+        self.wrote += output.pos() as u64;
+        if self.wrote > self.limit {
+            return Err(mcap::McapError::DecompressionError(format!(
+                "a zstd chunk unpacks to more than {} bytes, the limit for scans of this size (a decompression bomb, or sensor.max_points too small)",
+                self.limit
+            )));
+        }
+        if self.wrote > self.consumed.saturating_mul(MAX_ZSTD_RATIO) + (1 << 20) {
+            return Err(mcap::McapError::DecompressionError(format!(
+                "a zstd chunk unpacks {} bytes from {} (more than {MAX_ZSTD_RATIO}:1: a decompression bomb)",
+                self.wrote, self.consumed
+            )));
+        }
+        Ok(DecompressResult {
+            consumed: input.pos,
+            wrote: output.pos(),
+        })
+    }
+
+    fn reset(&mut self) -> mcap::McapResult<()> {
+        self.need = 0;
+        self.consumed = 0;
+        self.wrote = 0;
+        if let Some(stream) = self.stream.as_mut() {
+            stream
+                .reset(ResetDirective::SessionOnly)
+                .map_err(zstd_error)?;
+        }
+        Ok(())
+    }
+
+    fn name(&self) -> &'static str {
+        "zstd"
+    }
+}
+
+/// An MCAP error with its cause (the crate's I/O error says only "I/O error from
+/// writing"; the disk being full is in its source).
+fn mcap_error(path: &Path, e: &mcap::McapError) -> FormatError {
+    use std::error::Error;
+    match e.source() {
+        Some(cause) => FormatError::malformed(path, format!("MCAP: {e}: {cause}")),
+        None => FormatError::malformed(path, format!("MCAP: {e}")),
     }
 }
 
@@ -272,6 +398,7 @@ impl Iterator for RecordingReader {
                             }
                         }
                     };
+                    self.offset += read as u64;
                     self.reader.notify_read(read);
                     continue;
                 }
@@ -293,9 +420,14 @@ impl Iterator for RecordingReader {
 }
 
 /// Writes scans with their ground probabilities as PointCloud2 messages.
+///
+/// The recording is written to `<path>.partial` and renamed to `path` by
+/// [`RecordingWriter::finish`]: a run that fails (a full disk) or is dropped unfinished
+/// removes the partial file and never leaves an unreadable recording under the final name.
 pub struct RecordingWriter {
     path: PathBuf,
-    writer: mcap::Writer<BufWriter<fs::File>>,
+    partial: PathBuf,
+    writer: Option<mcap::Writer<BufWriter<fs::File>>>,
     schema: u16,
     channels: BTreeMap<String, u16>,
     sequence: u32,
@@ -311,10 +443,12 @@ impl std::fmt::Debug for RecordingWriter {
 }
 
 impl RecordingWriter {
-    /// Creates (or truncates) an MCAP file, zstd-compressed chunks.
+    /// Starts an MCAP file (zstd-compressed chunks) at `<path>.partial`; `path` itself is
+    /// replaced only when [`RecordingWriter::finish`] succeeds.
     pub fn create(path: &Path) -> Result<Self, FormatError> {
-        let file = fs::File::create(path).map_err(|e| FormatError::io(path, e))?;
-        let err = |e: mcap::McapError| FormatError::malformed(path, format!("MCAP: {e}"));
+        let partial = crate::output::partial_name(path);
+        let file = fs::File::create(&partial).map_err(|e| FormatError::io(&partial, e))?;
+        let err = |e: mcap::McapError| mcap_error(path, &e);
         let mut writer = mcap::WriteOptions::new()
             .profile("ros2")
             .library(concat!("groundwork ", env!("CARGO_PKG_VERSION")))
@@ -325,7 +459,8 @@ impl RecordingWriter {
             .map_err(err)?;
         Ok(Self {
             path: path.to_path_buf(),
-            writer,
+            partial,
+            writer: Some(writer),
             schema,
             channels: BTreeMap::new(),
             sequence: 0,
@@ -341,12 +476,14 @@ impl RecordingWriter {
         probabilities: &[f32],
         log_time_ns: u64,
     ) -> Result<(), FormatError> {
-        let err = |e: mcap::McapError| FormatError::malformed(&self.path, format!("MCAP: {e}"));
+        let err = |e: mcap::McapError| mcap_error(&self.path, &e);
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
+        };
         let channel = match self.channels.get(topic) {
             Some(&c) => c,
             None => {
-                let c = self
-                    .writer
+                let c = writer
                     .add_channel(self.schema, topic, "cdr", &BTreeMap::new())
                     .map_err(err)?;
                 self.channels.insert(topic.to_string(), c);
@@ -367,17 +504,37 @@ impl RecordingWriter {
             publish_time: log_time_ns,
         };
         self.sequence = self.sequence.wrapping_add(1);
-        self.writer
+        writer
             .write_to_known_channel(&header, &data)
-            .map_err(|e| FormatError::malformed(&self.path, format!("MCAP: {e}")))
+            .map_err(|e| mcap_error(&self.path, &e))
     }
 
-    /// Writes the summary and closes the file.
+    /// Writes the summary, flushes, and renames the file to its final name.
     pub fn finish(mut self) -> Result<(), FormatError> {
-        self.writer
-            .finish()
-            .map_err(|e| FormatError::malformed(&self.path, format!("MCAP: {e}")))?;
-        Ok(())
+        let Some(mut writer) = self.writer.take() else {
+            return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
+        };
+        writer.finish().map_err(|e| mcap_error(&self.path, &e))?;
+        let file = writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| FormatError::io(&self.partial, e.into_error()))?;
+        file.sync_all()
+            .map_err(|e| FormatError::io(&self.partial, e))?;
+        drop(file);
+        fs::rename(&self.partial, &self.path).map_err(|e| FormatError::io(&self.path, e))
+    }
+}
+
+impl Drop for RecordingWriter {
+    fn drop(&mut self) {
+        // Unfinished (an error, a panic): the partial recording is not a result.
+        if let Some(writer) = self.writer.take() {
+            drop(writer);
+        }
+        if fs::exists(&self.partial).unwrap_or(false) {
+            let _ = fs::remove_file(&self.partial);
+        }
     }
 }
 

@@ -48,7 +48,8 @@ const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 impl InputKind {
     /// The kind its name says, if the extension is known.
     pub fn from_name(path: &Path) -> Option<Self> {
-        let name = path.file_name()?.to_str()?.to_ascii_lowercase();
+        // Lossy: a name that is not UTF-8 is still a scan by its extension.
+        let name = path.file_name()?.to_string_lossy().to_ascii_lowercase();
         let kind = if name.ends_with(".pcd.bin") {
             Self::Scan(ScanFormat::NuScenesBin)
         } else if name.ends_with(".bin") {
@@ -85,7 +86,7 @@ impl InputKind {
             return Ok(kind);
         }
         let mut head = [0u8; 16];
-        let mut file = fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+        let (mut file, _) = crate::file::open_regular(path)?;
         let mut n = 0;
         while n < head.len() {
             match file.read(&mut head[n..]) {
@@ -263,9 +264,7 @@ pub(crate) fn read_records(
     record: usize,
     check: impl FnOnce(u64) -> Result<(), FormatError>,
 ) -> Result<Vec<u8>, FormatError> {
-    let size = fs::metadata(path)
-        .map_err(|e| FormatError::io(path, e))?
-        .len();
+    let (file, size) = crate::file::open_regular(path)?;
     if size % record as u64 != 0 {
         return Err(FormatError::Size {
             path: path.to_path_buf(),
@@ -274,7 +273,10 @@ pub(crate) fn read_records(
         });
     }
     check(size / record as u64)?;
-    let bytes = fs::read(path).map_err(|e| FormatError::io(path, e))?;
+    let mut bytes = Vec::with_capacity(size as usize);
+    file.take(size)
+        .read_to_end(&mut bytes)
+        .map_err(|e| FormatError::io(path, e))?;
     if bytes.len() as u64 != size {
         return Err(FormatError::Size {
             path: path.to_path_buf(),
@@ -303,7 +305,32 @@ fn read_float_records(path: &Path, max_points: usize, floats: usize) -> Result<S
             intensity: f(r, 3),
         })
         .collect();
-    Scan::from_records(path, points, NonFinite::Reject)
+    let scan = Scan::from_records(path, points, NonFinite::Reject)?;
+    if let Some(why) = implausible_layout(&scan.points) {
+        tracing::warn!(
+            "{}: {why}: is it another layout (3 floats per point, doubles)? Headerless files are read as {floats} little-endian f32 per point; convert others to PCD or KITTI .bin (docs/formats.md)",
+            path.display()
+        );
+    }
+    Ok(scan)
+}
+
+/// Why the points of a headerless file do not look like a scan, if they do not: a file
+/// of another layout (3 floats per point, whose size happens to divide by 16) reads as
+/// points whose "intensity" is a coordinate, negative about half the time, where every
+/// sensor's intensity or reflectance is ≥ 0.
+pub fn implausible_layout(points: &[Point]) -> Option<String> {
+    let bad = points
+        .iter()
+        .filter(|p| !(p.intensity >= 0.0 && p.intensity.is_finite()))
+        .count();
+    // A few negative intensities occur in converted data; a tenth never does.
+    (bad * 10 > points.len()).then(|| {
+        format!(
+            "{bad} of {} points have a negative or non-finite intensity",
+            points.len()
+        )
+    })
 }
 
 /// Writes a KITTI `.bin` scan (used by tests and tools that generate scans).
@@ -320,12 +347,19 @@ pub fn write_kitti_bin(path: &Path, points: &[Point]) -> Result<(), FormatError>
 /// The single-scan files of a folder, any mix of formats, sorted by name. Files without a
 /// known extension are included when their magic bytes say they are scans; recordings are
 /// not scans of a folder (give them as inputs of their own).
+///
+/// An entry named as a scan is listed whatever it is, so that a dangling symlink, a FIFO
+/// or a device named `000042.bin` reaches the reader and is reported and counted as a
+/// scan that could not be read, never skipped in silence; names that are not UTF-8 are
+/// read too (outputs take their lossy name).
 pub fn list_scans(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
-    let mut files: Vec<PathBuf> = fs::read_dir(dir)
-        .map_err(|e| FormatError::io(dir, e))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && is_scan_file(p))
-        .collect();
+    let mut files = Vec::new();
+    for entry in fs::read_dir(dir).map_err(|e| FormatError::io(dir, e))? {
+        let path = entry.map_err(|e| FormatError::io(dir, e))?.path();
+        if is_scan_file(&path) {
+            files.push(path);
+        }
+    }
     files.sort();
     Ok(files)
 }
@@ -333,9 +367,12 @@ pub fn list_scans(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
 fn is_scan_file(path: &Path) -> bool {
     match InputKind::from_name(path) {
         Some(kind) => matches!(kind, InputKind::Scan(_)),
-        // Only unnamed kinds are sniffed: a `.label`, `.txt` or `.prob` is never a scan.
+        // Only unnamed regular files are sniffed: a `.label`, `.txt` or `.prob` is never
+        // a scan, and sniffing a FIFO would block.
         None => {
-            path.extension().is_none() && matches!(InputKind::detect(path), Ok(InputKind::Scan(_)))
+            path.extension().is_none()
+                && path.is_file()
+                && matches!(InputKind::detect(path), Ok(InputKind::Scan(_)))
         }
     }
 }
@@ -422,6 +459,56 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("a.txt") && e.contains("unsupported"), "{e}");
+    }
+
+    #[test]
+    fn odd_entries_of_a_folder_are_listed_to_be_reported_not_skipped() {
+        use std::os::unix::ffi::OsStrExt;
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        write_kitti_bin(&d.join("000000.bin"), &[Point::new(1.0, 0.0, 0.0)]).unwrap();
+        std::os::unix::fs::symlink(d.join("gone.bin"), d.join("000001.bin")).unwrap();
+        std::os::unix::fs::symlink("/dev/zero", d.join("000002.bin")).unwrap();
+        let odd = d.join(std::ffi::OsStr::from_bytes(b"00000\xff.bin"));
+        write_kitti_bin(&odd, &[Point::new(2.0, 0.0, 0.0)]).unwrap();
+        fs::write(d.join("notes.txt"), "not a scan").unwrap();
+        let files = list_scans(d).unwrap();
+        assert_eq!(files.len(), 4, "{files:?}");
+        let results: Vec<_> = files.iter().map(|f| read_scan(f, 10)).collect();
+        assert!(results[0].is_ok());
+        let dangling = results[1].as_ref().unwrap_err().to_string();
+        assert!(dangling.contains("000001.bin"), "{dangling}");
+        let zero = results[2].as_ref().unwrap_err().to_string();
+        assert!(
+            zero.contains("000002.bin") && zero.contains("device"),
+            "{zero}"
+        );
+        assert_eq!(results[3].as_ref().unwrap().points[0].x, 2.0);
+    }
+
+    #[test]
+    fn three_floats_per_point_read_as_four_are_flagged() {
+        // A scan of 8 points, x, y, z only: 96 bytes, which divides by 16.
+        let xyz: Vec<f32> = (0..8)
+            .flat_map(|i| [10.0 + i as f32, -3.0 + i as f32, -1.7])
+            .collect();
+        let as_four: Vec<Point> = xyz
+            .chunks_exact(4)
+            .map(|c| Point {
+                x: c[0],
+                y: c[1],
+                z: c[2],
+                intensity: c[3],
+            })
+            .collect();
+        assert!(implausible_layout(&as_four).is_some());
+        let real: Vec<Point> = (0..8)
+            .map(|i| Point {
+                intensity: 0.1 * i as f32,
+                ..Point::new(i as f32, 1.0, -1.7)
+            })
+            .collect();
+        assert_eq!(implausible_layout(&real), None);
     }
 
     #[test]

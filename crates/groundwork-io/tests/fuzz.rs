@@ -169,6 +169,56 @@ fn boundary(s: &str, i: usize) -> usize {
     i
 }
 
+/// A PLY whose header declares an element before `vertex` with `count` records and no
+/// properties, followed by one vertex.
+fn ply_with_junk_element(count: u64) -> Vec<u8> {
+    let mut b = format!("ply\nformat binary_little_endian 1.0\nelement junk {count}\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n").into_bytes();
+    b.extend_from_slice(&[0; 12]);
+    b
+}
+
+/// An MCAP file holding one zstd chunk that unpacks to `zeros` zero bytes (9-byte records
+/// of opcode 0: a reader that walks them finds nothing) and declares `declared` of them.
+fn zstd_bomb(zeros: usize, declared: u64) -> Vec<u8> {
+    use std::io::Write;
+    let mut enc = zstd::stream::Encoder::new(Vec::new(), 3).unwrap();
+    let block = vec![0u8; 1 << 16];
+    let mut left = zeros;
+    while left > 0 {
+        let n = left.min(block.len());
+        enc.write_all(&block[..n]).unwrap();
+        left -= n;
+    }
+    let compressed = enc.finish().unwrap();
+    let record = |out: &mut Vec<u8>, op: u8, body: &[u8]| {
+        out.push(op);
+        out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+        out.extend_from_slice(body);
+    };
+    let string = |b: &mut Vec<u8>, s: &str| {
+        b.extend_from_slice(&(s.len() as u32).to_le_bytes());
+        b.extend_from_slice(s.as_bytes());
+    };
+    let mut out = b"\x89MCAP0\r\n".to_vec();
+    let mut header = Vec::new();
+    string(&mut header, "ros2");
+    string(&mut header, "bomb");
+    record(&mut out, 0x01, &header);
+    let mut chunk = Vec::new();
+    chunk.extend_from_slice(&0u64.to_le_bytes()); // start time
+    chunk.extend_from_slice(&0u64.to_le_bytes()); // end time
+    chunk.extend_from_slice(&declared.to_le_bytes());
+    chunk.extend_from_slice(&0u32.to_le_bytes()); // no CRC
+    string(&mut chunk, "zstd");
+    chunk.extend_from_slice(&(compressed.len() as u64).to_le_bytes());
+    chunk.extend_from_slice(&compressed);
+    record(&mut out, 0x06, &chunk);
+    record(&mut out, 0x0F, &0u32.to_le_bytes());
+    record(&mut out, 0x02, &[0; 20]);
+    out.extend_from_slice(b"\x89MCAP0\r\n");
+    out
+}
+
 const POSES: &str = "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0.8 0 1 0 0 0 0 1 0.1\n";
 const CALIB: &str = "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0 0 0 -1 0 1 0 0 0\n";
 
@@ -257,6 +307,47 @@ proptest! {
             parse_config(p, &std::fs::read_to_string(p).unwrap())
         })?;
     }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Elements before the vertices must fit in the file, whatever their count.
+    #[test]
+    fn ply_elements_before_the_vertices_must_fit(count in 0u64..u64::from(u32::MAX)) {
+        let bytes = ply_with_junk_element(count);
+        let accepted = run("junk.ply", &bytes, |p| read_scan(p, MAX_POINTS))?;
+        // 12 bytes of vertex: at most that many header-declared junk records fit beside it.
+        prop_assert_eq!(accepted, count == 0);
+    }
+
+    /// A zstd chunk unpacks to at most what it declares, and never far more than its size.
+    #[test]
+    fn zstd_chunks_cost_what_they_declare(zeros in 0usize..(4 << 20), declared in 0u64..(1 << 40)) {
+        let bytes = zstd_bomb(zeros, declared);
+        let bound = RecordingReader::record_limit(MAX_POINTS);
+        prop_assert!(!run_bounded("bomb.mcap", &bytes, bound, read_any)?);
+    }
+}
+
+#[test]
+fn a_zstd_bomb_is_refused_as_one() {
+    // 256 MiB of zeros in about 10 KB: refused at the ratio bound after a MiB or two of
+    // output, not walked record by record (which took 115 s of CPU per MB of file).
+    let bytes = zstd_bomb(256 << 20, 256 << 20);
+    assert!(bytes.len() < 64 << 10, "{}", bytes.len());
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("bomb.mcap");
+    std::fs::write(&p, &bytes).unwrap();
+    let e = read_any(&p).unwrap_err().to_string();
+    assert!(
+        e.contains("bomb.mcap") && e.contains("decompression bomb"),
+        "{e}"
+    );
+    // A chunk may not unpack to more than it declares, either.
+    std::fs::write(&p, zstd_bomb(1 << 16, 1 << 10)).unwrap();
+    let e = read_any(&p).unwrap_err().to_string();
+    assert!(e.contains("bomb.mcap") && e.contains("decompress"), "{e}");
 }
 
 #[test]

@@ -35,7 +35,8 @@ pub struct ServiceConfig {
     pub overflow: OverflowPolicy,
     /// Subscribers per topic the memory is sized for.
     pub max_subscribers: usize,
-    /// Producer rate in scans per second (0 = as fast as possible).
+    /// Producer rate in scans per second (0 = as fast as possible). Range: 0, or
+    /// [`MIN_RATE_HZ`]..=[`MAX_RATE_HZ`].
     pub rate_hz: f64,
     /// Seconds between periodic state logs.
     pub report_interval_s: f64,
@@ -66,6 +67,22 @@ impl Default for ServiceConfig {
             sensor: None,
         }
     }
+}
+
+/// The slowest producer rate accepted (one scan an hour): slower is a typo, and a period
+/// beyond what a timer can add to the clock.
+pub const MIN_RATE_HZ: f64 = 1.0 / 3600.0;
+/// The fastest producer rate accepted (faster is "as fast as possible": 0).
+pub const MAX_RATE_HZ: f64 = 10_000.0;
+
+/// Checks a producer rate (`rate_hz`, `--rate`): 0 (flat out) or in
+/// [`MIN_RATE_HZ`]..=[`MAX_RATE_HZ`]; NaN and infinities are refused by name.
+pub fn check_rate(name: &str, rate: f64) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        rate == 0.0 || (MIN_RATE_HZ..=MAX_RATE_HZ).contains(&rate),
+        "{name} = {rate}: must be 0 (as fast as possible) or between {MIN_RATE_HZ:.6} (one scan an hour) and {MAX_RATE_HZ} scans per second"
+    );
+    Ok(())
 }
 
 impl ServiceConfig {
@@ -102,10 +119,7 @@ impl ServiceConfig {
             (1..=32).contains(&self.max_subscribers),
             "max_subscribers must be in 1..=32"
         );
-        anyhow::ensure!(
-            self.rate_hz.is_finite() && self.rate_hz >= 0.0,
-            "rate_hz must be finite and >= 0"
-        );
+        check_rate("rate_hz", self.rate_hz)?;
         anyhow::ensure!(
             self.report_interval_s.is_finite() && self.report_interval_s > 0.0,
             "report_interval_s must be > 0"

@@ -418,7 +418,11 @@ fn write_report(path: &Path, r: &ConsumerReport) -> anyhow::Result<()> {
 pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
     signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
-    let output = opts.out.as_deref().map(OutputTarget::create).transpose()?;
+    let output = opts
+        .out
+        .as_deref()
+        .map(|o| OutputTarget::create(o, &[]))
+        .transpose()?;
     let node = transport::node(cfg, "consumer")?;
     signals::install(&node)?;
     let scans = transport::scan_service(&node, cfg)?;
@@ -603,7 +607,7 @@ mod tests {
     fn a_recording_holds_each_segmented_scan_with_its_probabilities() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("sub/out.mcap");
-        let out = OutputTarget::create(&path).unwrap();
+        let out = OutputTarget::create(&path, &[]).unwrap();
         let mut c = ConsumerStage::new(None, Some(out), 0);
         let points = |s: u64| {
             (0..3)

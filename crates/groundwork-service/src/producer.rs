@@ -413,6 +413,9 @@ impl ProducerStage {
 
 /// Runs the producer until `count` scans are out or a termination signal arrives.
 pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<ProducerReport> {
+    if let Some(r) = opts.rate_hz {
+        crate::config::check_rate("--rate", r)?;
+    }
     signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
     let (frames, skipped) = Frames::load(&opts.source, cfg.max_points)?;
