@@ -46,7 +46,9 @@ class Segmenter:
     ) -> npt.NDArray[np.float32]:
         """Ground probability per point, in input order; ``pose`` (world from sensor) lets
         the scan be queried against the history, without it the scan is segmented
-        single-frame and the history is left as it is."""
+        single-frame and the history is left as it is. ``points`` is (N, 3) or (N, 4+):
+        x, y, z[, intensity], further columns ignored; rows with a NaN or inf coordinate
+        are "no return" placeholders and get probability 0 in place."""
 
     def ground(
         self,
@@ -84,7 +86,8 @@ class Segmenter:
     @property
     def counters(self) -> dict[str, int]:
         """scans, rejected, without_pose, history_resets (resets_pose_jump,
-        resets_time_gap, resets_requested), out_of_bounds_points, non_finite_outputs."""
+        resets_time_gap, resets_requested), out_of_bounds_points, non_finite_outputs,
+        placeholders (NaN/inf rows given probability 0)."""
 
     @property
     def height_filter(self) -> dict[str, Any]:

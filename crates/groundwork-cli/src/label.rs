@@ -13,12 +13,19 @@ use anyhow::{Context, Result, bail};
 use groundwork_core::{Point, SegmentError};
 use groundwork_io::{InputKind, MethodsConfig, outputs_complete, read_scan, scan_stem};
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{error, info};
 
-use crate::methods::MethodArg;
+/// The per-scan methods `label` runs.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LabelMethod {
+    /// TerraSeg's PseudoLabeler (per-scan MLP elevation map).
+    Pseudolabeler,
+    /// The RANSAC plane baseline.
+    Ransac,
+}
 
 /// Shard i of n.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -106,14 +113,19 @@ pub struct Summary {
     pub labelled_scans: Vec<String>,
     /// Scans skipped because their outputs were complete (a resumed run).
     pub skipped_complete: usize,
+    /// Scans of this shard whose labels are complete now (labelled + skipped_complete):
+    /// the figures below describe all of them, whichever run labelled them.
+    pub complete: usize,
     /// Scans that could not be labelled.
     pub failures: Vec<Failure>,
-    /// Points labelled.
+    /// Points of the complete scans (their `.ground` files).
     pub points: u64,
     /// Of which ground.
     pub ground_points: u64,
     /// ground_points / points.
     pub ground_fraction: f64,
+    /// Points labelled by this run.
+    pub points_labelled_now: u64,
     /// Wall time, s.
     pub seconds: f64,
     /// Scans labelled per second of wall time.
@@ -164,14 +176,18 @@ enum Outcome {
         ground: u64,
         ms: f64,
     },
-    Skipped,
+    /// Complete before this run: its points and ground points, from its `.ground` file.
+    Skipped {
+        points: u64,
+        ground: u64,
+    },
     Failed(Failure),
 }
 
 /// Runs the job; exit code 1 when some scan failed (all others are labelled).
 pub fn run(
     cfg: &MethodsConfig,
-    method: MethodArg,
+    method: LabelMethod,
     out: &Path,
     shard: Shard,
     overwrite: bool,
@@ -179,14 +195,10 @@ pub fn run(
 ) -> Result<ExitCode> {
     let frame = GroundFrame::from_config(&cfg.segmenter)?;
     let labeler = match method {
-        MethodArg::Pseudolabeler => {
+        LabelMethod::Pseudolabeler => {
             PerScan::PseudoLabeler(PseudoLabeler::new(cfg.pseudolabeler.clone(), frame)?)
         }
-        MethodArg::Ransac => PerScan::Ransac(Ransac::new(cfg.ransac.clone(), frame)?),
-        MethodArg::Gmm => bail!(
-            "label runs per-scan methods (pseudolabeler, ransac); the GMM keeps a history \
-             over scans in order: use `groundwork segment`"
-        ),
+        LabelMethod::Ransac => PerScan::Ransac(Ransac::new(cfg.ransac.clone(), frame)?),
     };
     let all = collect_scans(inputs)?;
     let mine: Vec<&PathBuf> = all
@@ -205,13 +217,9 @@ pub fn run(
         "labelling"
     );
     let pb = ProgressBar::new(mine.len() as u64);
-    pb.set_style(
-        ProgressStyle::with_template(
-            "label [{bar:30}] {pos}/{len} scans, {per_sec}, elapsed {elapsed}, eta {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
+    pb.set_style(crate::progress_style(
+        "label [{bar:30}] {pos}/{len} scans, {rate}, elapsed {elapsed}, eta {eta}",
+    ));
     let max = cfg.segmenter.sensor.max_points;
     let t = Instant::now();
     // Scans in parallel; each scan's own fit is deterministic whatever the thread count.
@@ -219,8 +227,14 @@ pub fn run(
         .par_iter()
         .map(|&path| {
             let stem = scan_stem(path);
-            let outcome = if !overwrite && outputs_complete(out, &stem) {
-                Outcome::Skipped
+            let done = (!overwrite && outputs_complete(out, &stem))
+                .then(|| std::fs::read(out.join(format!("{stem}.ground"))).ok())
+                .flatten();
+            let outcome = if let Some(mask) = done {
+                Outcome::Skipped {
+                    points: mask.len() as u64,
+                    ground: mask.iter().filter(|&&g| g == 1).count() as u64,
+                }
             } else {
                 let t = Instant::now();
                 let result = (|| -> Result<(u64, u64), String> {
@@ -267,10 +281,12 @@ pub fn run(
         labelled: 0,
         labelled_scans: Vec::new(),
         skipped_complete: 0,
+        complete: 0,
         failures: Vec::new(),
         points: 0,
         ground_points: 0,
         ground_fraction: 0.0,
+        points_labelled_now: 0,
         seconds,
         scans_per_second: 0.0,
         median_ms_per_scan: 0.0,
@@ -287,14 +303,20 @@ pub fn run(
                 s.labelled += 1;
                 s.labelled_scans.push(stem);
                 s.points += points;
+                s.points_labelled_now += points;
                 s.ground_points += ground;
                 times.push(ms);
             }
-            Outcome::Skipped => s.skipped_complete += 1,
+            Outcome::Skipped { points, ground } => {
+                s.skipped_complete += 1;
+                s.points += points;
+                s.ground_points += ground;
+            }
             Outcome::Failed(f) => s.failures.push(f),
         }
     }
     s.labelled_scans.sort();
+    s.complete = s.labelled + s.skipped_complete;
     s.ground_fraction = if s.points > 0 {
         s.ground_points as f64 / s.points as f64
     } else {
@@ -314,7 +336,7 @@ pub fn run(
     let path = out.join(name);
     groundwork_io::write_atomic(&path, serde_json::to_string_pretty(&s)?.as_bytes())?;
     println!(
-        "label ({}, shard {}): {} scans labelled, {} already complete, {} failed; {} points, {:.1} % ground; {:.1} s, {:.2} scans/s; summary {}",
+        "label ({}, shard {}): {} scans labelled, {} already complete, {} failed; {} points in the complete scans, {:.1} % ground; {:.1} s, {:.2} scans/s; summary {}",
         s.method,
         s.shard,
         s.labelled,

@@ -61,6 +61,32 @@ struct Common {
     topic: Option<String>,
 }
 
+/// The sensor and configuration alone, for commands that take one scan or scans one at a
+/// time (no history, no poses, no recordings).
+#[derive(clap::Args, Debug)]
+struct SensorArgs {
+    /// Sensor preset (`groundwork sensors` lists them). Default: hdl64e.
+    #[arg(long)]
+    sensor: Option<String>,
+    /// Configuration file (TOML) laid over the sensor preset: every field it gives
+    /// replaces the preset's.
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+impl From<SensorArgs> for Common {
+    fn from(s: SensorArgs) -> Self {
+        Self {
+            sensor: s.sensor,
+            config: s.config,
+            frames: None,
+            poses: None,
+            calib: None,
+            topic: None,
+        }
+    }
+}
+
 #[derive(clap::Args, Debug, Clone)]
 struct ServiceArgs {
     /// Service configuration (TOML). Default: the built-in config/service.toml.
@@ -73,7 +99,8 @@ struct ServiceArgs {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Run producer, segmenter and consumer as three processes on the bundled scans.
+    /// Run producer, segmenter, detector and consumer as four processes (three with
+    /// --no-detector) on the bundled scans or --data.
     /// Stops cleanly on Ctrl-C, or after --count scans.
     Pipeline {
         #[command(flatten)]
@@ -119,6 +146,11 @@ enum Command {
         /// Fault testing: every N-th scan is malformed (NaN, empty, bad schema, bad count).
         #[arg(long)]
         malformed_every: Option<u64>,
+        /// After --count scans, stay this many seconds (`inf`: until stopped) so that
+        /// subscribers can still read the last ones (a leaving publisher takes its queued
+        /// scans with it).
+        #[arg(long, default_value_t = 0.0)]
+        linger: f64,
         /// PointCloud2 topic of a recording (default: its first point cloud topic).
         #[arg(long)]
         topic: Option<String>,
@@ -248,7 +280,7 @@ enum Command {
     /// sensor.
     Render {
         #[command(flatten)]
-        common: Common,
+        sensor: SensorArgs,
         /// The scan.
         scan: PathBuf,
         /// Its .prob file (default: segment it with --method).
@@ -313,11 +345,10 @@ enum Command {
     /// (`--shard i/n`), with a summary JSON.
     Label {
         #[command(flatten)]
-        common: Common,
-        /// Method: pseudolabeler or ransac (per-scan methods; gmm keeps history and is
-        /// labelled with segment).
-        #[arg(long, value_enum, default_value_t = MethodArg::Pseudolabeler)]
-        method: MethodArg,
+        sensor: SensorArgs,
+        /// Per-scan method (the GMM keeps a history over scans in order: use `segment`).
+        #[arg(long, value_enum, default_value_t = label::LabelMethod::Pseudolabeler)]
+        method: label::LabelMethod,
         /// Output folder (created if missing).
         #[arg(long)]
         out: PathBuf,
@@ -390,7 +421,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             topic: common.topic.clone(),
         }),
         Command::Render {
-            common,
+            sensor,
             scan,
             mask,
             method,
@@ -404,7 +435,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             out,
         } => {
             render::run(&render::RenderJob {
-                config: &load_methods(&common, None)?,
+                config: &load_methods(&sensor.into(), None)?,
                 scan: &scan,
                 mask: mask.as_deref(),
                 method,
@@ -419,14 +450,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Label {
-            common,
+            sensor,
             method,
             out,
             shard,
             overwrite,
             inputs,
         } => label::run(
-            &load_methods(&common, None)?,
+            &load_methods(&sensor.into(), None)?,
             method,
             &out,
             shard.unwrap_or_default(),
@@ -477,10 +508,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
             rate,
             synthetic,
             malformed_every,
+            linger,
             topic,
             data,
         } => {
             let cfg = load_service(&service)?;
+            anyhow::ensure!(
+                linger >= 0.0,
+                "--linger {linger}: must be ≥ 0 seconds or inf"
+            );
+            let linger = Duration::try_from_secs_f64(linger).unwrap_or(Duration::MAX);
             let source = match synthetic {
                 Some(n) => producer::Source::Synthetic(n),
                 None => {
@@ -494,6 +531,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     count,
                     rate_hz: rate,
                     malformed_every,
+                    linger,
                 },
             )?;
             // Report, count, go on, and say so at the end.
@@ -572,7 +610,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let cfg = load_service(&service)?;
             let secs =
                 |s: f64| Duration::try_from_secs_f64(s).context("seconds must be finite and >= 0");
-            consumer::run(
+            let report = consumer::run(
                 &cfg,
                 &consumer::ConsumerOptions {
                     count,
@@ -585,7 +623,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     warmup,
                 },
             )?;
-            Ok(ExitCode::SUCCESS)
+            // Asked to write and could not: the run did not do what it was asked.
+            Ok(if report.write_failures > 0 {
+                ExitCode::from(1)
+            } else {
+                ExitCode::SUCCESS
+            })
         }
     }
 }
@@ -767,7 +810,12 @@ fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result
     }
     let mut prod = stage("producer");
     if let Some(n) = count {
-        prod.arg("--count").arg(n.to_string());
+        // The producer stays until the pipeline stops: the consumer reads the last scans
+        // (and counts them) after the producer has published them all.
+        prod.arg("--count")
+            .arg(n.to_string())
+            .arg("--linger")
+            .arg("inf");
     }
     if let Some(r) = rate {
         prod.arg("--rate").arg(r.to_string());
@@ -798,9 +846,14 @@ fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result
     for s in &outcome.stages {
         match &s.failure {
             Some(f) => error!(stage = s.name, restarts = s.restarts, "failed: {f}"),
-            None => {
-                info!(stage = s.name, status = ?s.status, restarts = s.restarts, "stage stopped")
-            }
+            None => info!(
+                stage = s.name,
+                restarts = s.restarts,
+                "stage stopped: {}",
+                s.status
+                    .as_ref()
+                    .map_or("status unknown".into(), launcher::describe)
+            ),
         }
     }
     Ok(if outcome.success() {
@@ -880,13 +933,25 @@ fn create_output(
 
 fn progress(len: usize, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(len as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} scans, {per_sec}, eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
+    pb.set_style(progress_style(
+        "{msg} [{bar:30}] {pos}/{len} scans, {rate}, eta {eta}",
+    ));
     pb.set_message(what.to_string());
     pb
+}
+
+/// A progress bar style whose `{rate}` is scans per second to one decimal (indicatif's
+/// `{per_sec}` prints four).
+fn progress_style(template: &str) -> ProgressStyle {
+    ProgressStyle::with_template(template)
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .with_key(
+            "rate",
+            |s: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = write!(w, "{:.1} scans/s", s.per_sec());
+            },
+        )
+        .progress_chars("=> ")
 }
 
 /// The header a scan read from a file would carry in the service: its input is its

@@ -46,14 +46,17 @@ pub struct RenderJob<'a> {
     pub out: &'a Path,
 }
 
-/// The label file SemanticKITTI keeps beside a scan: `<seq>/velodyne/x.bin` →
-/// `<seq>/labels/x.label`.
-fn sibling_labels(scan: &Path) -> Option<PathBuf> {
-    let seq = scan.parent()?.parent()?;
-    let l = seq
-        .join("labels")
-        .join(format!("{}.label", scan_stem(scan)));
-    l.is_file().then_some(l)
+/// Where a scan's label file may be: SemanticKITTI's `<seq>/velodyne/x.bin` →
+/// `<seq>/labels/x.label`, or a `labels/` folder beside the scan (a plain folder of scans).
+fn label_candidates(scan: &Path) -> Vec<PathBuf> {
+    let name = format!("{}.label", scan_stem(scan));
+    let dir = scan.parent().unwrap_or(Path::new("."));
+    let mut c = Vec::new();
+    if let Some(seq) = dir.parent() {
+        c.push(seq.join("labels").join(&name));
+    }
+    c.push(dir.join("labels").join(&name));
+    c
 }
 
 pub fn run(job: &RenderJob<'_>) -> Result<()> {
@@ -110,14 +113,17 @@ pub fn run(job: &RenderJob<'_>) -> Result<()> {
         .xyz;
     let truth: Vec<Option<bool>>;
     let colouring = if job.compare {
+        let tried = label_candidates(job.scan);
         let path = job
             .labels
             .map(Path::to_path_buf)
-            .or_else(|| sibling_labels(job.scan))
+            .or_else(|| tried.iter().find(|l| l.is_file()).cloned())
             .ok_or_else(|| {
+                let tried: Vec<String> = tried.iter().map(|p| p.display().to_string()).collect();
                 anyhow!(
-                    "{}: --compare needs labels (--labels F, or a labels/ folder beside velodyne/)",
-                    job.scan.display()
+                    "{}: --compare needs its label file: none at {} (give --labels F)",
+                    job.scan.display(),
+                    tried.join(" or ")
                 )
             })?;
         let map = LabelMap::semantickitti();

@@ -646,6 +646,30 @@ fn label_resumes_after_a_kill_with_identical_results() {
             );
         }
     }
+    // The summary describes the dataset, whichever run labelled which scan; a rerun over
+    // complete output changes nothing in it but the run's own counts.
+    let whole = summary(&clean.join("label-summary.json"));
+    for key in ["complete", "points", "ground_points", "ground_fraction"] {
+        assert_eq!(s[key], whole[key], "{key}: {s}");
+    }
+    let o = bin()
+        .args(["label", "--out"])
+        .arg(&out)
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    let again = summary(&out.join("label-summary.json"));
+    assert_eq!(
+        (
+            again["labelled"].as_u64(),
+            again["points_labelled_now"].as_u64()
+        ),
+        (Some(0), Some(0))
+    );
+    for key in ["complete", "points", "ground_points", "ground_fraction"] {
+        assert_eq!(again[key], whole[key], "{key}: {again}");
+    }
 }
 
 /// `eval --method a,b,c` scores every method on the same scans, side by side.
@@ -668,7 +692,7 @@ fn eval_scores_several_methods_side_by_side() {
     let table = String::from_utf8_lossy(&o.stdout);
     let rows: Vec<&str> = table.lines().collect();
     assert!(
-        rows[0].contains("Terraseg") && rows[0].contains("3 labeled"),
+        rows[0].contains("protocol terraseg") && rows[0].contains("3 labeled"),
         "{table}"
     );
     assert!(
@@ -775,7 +799,11 @@ fn render_draws_a_png_of_the_scan_and_refuses_compare_without_labels() {
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--compare needs labels"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--compare needs its label file") && err.contains("labels/"),
+        "{err}"
+    );
     // The files `detect` writes draw as they are.
     let det = tmp.path().join("det");
     let o = bin()

@@ -13,6 +13,15 @@ pub enum Protocol {
     Terraseg,
 }
 
+impl std::fmt::Display for Protocol {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Gmm => "gmm",
+            Self::Terraseg => "terraseg",
+        })
+    }
+}
+
 impl Protocol {
     /// `Some(true)` for ground, `Some(false)` for non-ground, `None` for ignored.
     pub fn truth(self, class: LabelClass) -> Option<bool> {

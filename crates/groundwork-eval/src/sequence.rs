@@ -360,7 +360,7 @@ pub fn side_by_side(reports: &[EvalReport]) -> String {
     if let Some(r) = reports.first() {
         let _ = writeln!(
             s,
-            "protocol {:?}, {} scans ({} labeled), pooled over labeled scans",
+            "protocol {}, {} scans ({} labeled), pooled over labeled scans",
             r.protocol,
             r.scans.len(),
             r.labeled_scans
@@ -417,7 +417,7 @@ impl EvalReport {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "method {}, protocol {:?}, {} history frame(s), {} scans ({} labeled)",
+            "method {}, protocol {}, {} history frame(s), {} scans ({} labeled)",
             self.method,
             self.protocol,
             self.history_frames,

@@ -318,13 +318,20 @@ pub fn read(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
                     ),
                 ));
             }
-            if compressed > body_len - 8 || uncompressed > compressed.saturating_mul(MAX_LZF_RATIO)
-            {
+            if compressed > body_len - 8 {
                 return Err(FormatError::malformed(
                     path,
                     format!(
                         "binary_compressed body claims {compressed} compressed bytes, the file holds {} (truncated, or a lying header)",
                         body_len - 8
+                    ),
+                ));
+            }
+            if uncompressed > compressed.saturating_mul(MAX_LZF_RATIO) {
+                return Err(FormatError::malformed(
+                    path,
+                    format!(
+                        "binary_compressed body claims {compressed} compressed bytes unpack to {uncompressed}, more than LZF's {MAX_LZF_RATIO}:1 can (a lying header)"
                     ),
                 ));
             }

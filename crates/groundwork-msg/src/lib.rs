@@ -15,7 +15,7 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Bumped on every incompatible change of a header or payload layout.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 /// One LiDAR return, 16 bytes, the KITTI `.bin` layout.
 #[repr(C)]
@@ -180,6 +180,10 @@ pub struct MaskHeader {
     pub out_of_bounds_points: u32,
     /// Identifies the segmenter run (changes when a segmenter restarts).
     pub segmenter_epoch: u64,
+    /// Masks this segmenter run published before this one (0, 1, 2, …): a gap is a mask
+    /// lost on the way, while a gap in `scan_sequence` may be a scan the segmenter never
+    /// received.
+    pub mask_sequence: u64,
 }
 
 impl Default for MaskHeader {
@@ -199,6 +203,7 @@ impl Default for MaskHeader {
             query_us: 0,
             out_of_bounds_points: 0,
             segmenter_epoch: 0,
+            mask_sequence: 0,
         }
     }
 }
@@ -345,6 +350,8 @@ mod tests {
         // 4 + 4 + 8 × 4 + 32 + 4 + 4 + 128
         assert_eq!(std::mem::size_of::<ScanHeader>(), 208);
         assert_eq!(ScanHeader::default().schema_version, SCHEMA_VERSION);
+        // 4 + 4 + 8 × 4 + 32 + 4 × 6 + 8 × 2
+        assert_eq!(std::mem::size_of::<MaskHeader>(), 112);
         assert_eq!(std::mem::size_of::<ProposalRecord>(), 56);
         assert_eq!(
             std::mem::size_of::<ProposalsHeader>(),

@@ -105,14 +105,23 @@ fn contiguous<'py>(v: &Bound<'py, PyAny>, dtype: &str) -> PyResult<Bound<'py, Py
 }
 
 /// Points as float32, C-contiguous, (N, 3) or (N, 4): the caller's array itself when it
-/// already is one.
+/// already is one. Columns after the fourth (a nuScenes ring index, a time offset) are
+/// ignored, as the CLI ignores them in files.
 fn points_array<'py>(points: &Bound<'py, PyAny>) -> PyResult<PyReadonlyArray2<'py, f32>> {
-    let arr = contiguous(points, "float32")?;
+    let mut arr = contiguous(points, "float32")?;
     let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
-    if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
+    if shape.len() != 2 || shape[1] < 3 {
         return Err(value_error(format!(
-            "points must be an (N, 3) or (N, 4) array (x, y, z[, intensity]), got shape {shape:?}"
+            "points must be an (N, 3) or (N, 4+) array (x, y, z[, intensity, ...]), got shape {shape:?}"
         )));
+    }
+    if shape[1] > 4 {
+        let py = points.py();
+        let builtins = py.import("builtins")?;
+        let all = builtins.getattr("slice")?.call1((py.None(),))?;
+        let first4 = builtins.getattr("slice")?.call1((4,))?;
+        let view = arr.get_item((all, first4))?;
+        arr = contiguous(&view, "float32")?;
     }
     arr.extract()
 }
@@ -157,6 +166,33 @@ impl<'a> Points<'a> {
         }
     }
 
+    fn get(self, i: usize) -> Point {
+        match self {
+            Self::Xyz(p) => Point::new(p[i][0], p[i][1], p[i][2]),
+            Self::Xyzi(p) => Point {
+                x: p[i][0],
+                y: p[i][1],
+                z: p[i][2],
+                intensity: p[i][3],
+            },
+        }
+    }
+
+    /// The rows whose x, y and z are finite, when some are not: rows with NaN or inf are
+    /// "no return" placeholders (as in an organized PCD or PointCloud2), left out of the
+    /// fit and given probability 0 in place, as the CLI does. None: every row is finite.
+    fn finite_rows(self) -> Option<Vec<u32>> {
+        let finite = |i: usize| {
+            let p = self.get(i);
+            p.x.is_finite() && p.y.is_finite() && p.z.is_finite()
+        };
+        let n = self.len();
+        if (0..n).all(finite) {
+            return None;
+        }
+        Some((0..n).filter(|&i| finite(i)).map(|i| i as u32).collect())
+    }
+
     /// As the library's point records (a copy: the offline methods take `Point`s).
     fn to_vec(self) -> Vec<Point> {
         let point = |x, y, z, intensity| Point { x, y, z, intensity };
@@ -197,6 +233,8 @@ struct PySegmenter {
     inner: Box<Segmenter>,
     sensor: String,
     last: Option<FrameReport>,
+    /// Placeholder rows (NaN or inf coordinates) given probability 0 so far.
+    placeholders: u64,
 }
 
 #[pymethods]
@@ -214,10 +252,13 @@ impl PySegmenter {
             inner: Box::new(Segmenter::new(cfg.segmenter).map_err(value_error)?),
             sensor: sensor.unwrap_or(groundwork_io::DEFAULT_SENSOR).to_string(),
             last: None,
+            placeholders: 0,
         })
     }
 
-    /// Ground probability per point, in input order.
+    /// Ground probability per point, in input order. Rows with a NaN or infinite
+    /// coordinate are "no return" placeholders: probability 0, in place (counted in
+    /// `counters["placeholders"]`).
     #[pyo3(signature = (points, pose=None))]
     fn segment<'py>(
         &mut self,
@@ -230,12 +271,31 @@ impl PySegmenter {
         let pts = Points::of(&arr)?;
         let mut out = vec![0.0f32; pts.len()];
         let seg = &mut self.inner;
-        let report = py
-            .detach(|| match pts {
+        let report = match pts.finite_rows() {
+            None => py.detach(|| match pts {
                 Points::Xyz(p) => seg.segment(p, pose.as_ref(), &mut out),
                 Points::Xyzi(p) => seg.segment(p, pose.as_ref(), &mut out),
-            })
-            .map_err(segment_error)?;
+            }),
+            Some(rows) if rows.is_empty() => {
+                return Err(value_error(format!(
+                    "none of its {} points has finite coordinates",
+                    pts.len()
+                )));
+            }
+            Some(rows) => {
+                let kept: Vec<Point> = rows.iter().map(|&i| pts.get(i as usize)).collect();
+                let mut probs = vec![0.0f32; kept.len()];
+                let r = py.detach(|| seg.segment(&kept, pose.as_ref(), &mut probs));
+                if r.is_ok() {
+                    for (&i, &p) in rows.iter().zip(&probs) {
+                        out[i as usize] = p;
+                    }
+                    self.placeholders += (pts.len() - rows.len()) as u64;
+                }
+                r
+            }
+        }
+        .map_err(segment_error)?;
         self.last = Some(report);
         Ok(out.into_pyarray(py))
     }
@@ -302,6 +362,7 @@ impl PySegmenter {
             ("resets_requested", c.resets_requested),
             ("out_of_bounds_points", c.out_of_bounds_points),
             ("non_finite_outputs", c.non_finite_outputs),
+            ("placeholders", self.placeholders),
         ]
         .into_py_dict(py)
     }
@@ -363,10 +424,26 @@ fn run_method<'py>(
     points: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyArray1<f32>>> {
     let arr = points_array(points)?;
-    let pts = Points::of(&arr)?.to_vec();
-    let mut out = vec![0.0f32; pts.len()];
-    py.detach(|| method.segment_scan(&pts, None, &mut out))
+    let all = Points::of(&arr)?;
+    // Placeholder rows (NaN, inf): probability 0 in place, as in `Segmenter.segment`.
+    let rows = all.finite_rows();
+    let pts: Vec<Point> = match &rows {
+        None => all.to_vec(),
+        Some(rows) => rows.iter().map(|&i| all.get(i as usize)).collect(),
+    };
+    let mut probs = vec![0.0f32; pts.len()];
+    py.detach(|| method.segment_scan(&pts, None, &mut probs))
         .map_err(segment_error)?;
+    let out = match rows {
+        None => probs,
+        Some(rows) => {
+            let mut out = vec![0.0f32; all.len()];
+            for (&i, &p) in rows.iter().zip(&probs) {
+                out[i as usize] = p;
+            }
+            out
+        }
+    };
     Ok(out.into_pyarray(py))
 }
 

@@ -204,29 +204,50 @@ def test_a_thread_pool_gives_the_serial_results() -> None:
 def test_bad_points_are_value_errors_naming_the_problem() -> None:
     seg = groundwork.Segmenter()
     good = kitti(SCANS[0])
-    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\)"):
+    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\+\)"):
         seg.segment(np.zeros((10, 2), np.float32))
-    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\)"):
+    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\+\)"):
         seg.segment(np.zeros(12, np.float32))
     with pytest.raises(ValueError):
         seg.segment(np.array([["a", "b", "c"]]))
-    bad = good.copy()
-    bad[7, 2] = np.nan
-    with pytest.raises(ValueError, match="point 7"):
-        seg.segment(bad)
-    bad[7, 2] = np.inf
-    with pytest.raises(ValueError, match="point 7"):
-        seg.segment(bad)
     with pytest.raises(ValueError, match="4 × 4"):
         seg.segment(good, np.eye(3))
     tilted = np.eye(4)
     tilted[0, 0] = 2.0
     with pytest.raises(ValueError, match="rotation"):
         seg.segment(good, tilted)
-    # Scans the library rejected (the two non-finite ones; shapes and poses are refused
-    # before) are counted, and the segmenter goes on working.
-    assert seg.counters["rejected"] == 2 and seg.counters["scans"] == 0
+    # Nothing was segmented or rejected: shapes and poses are refused before.
+    assert seg.counters["rejected"] == 0 and seg.counters["scans"] == 0
     assert np.array_equal(bits(seg.segment(good)), bits(groundwork.Segmenter().segment(good)))
+
+
+def test_placeholders_and_extra_columns_are_read_as_the_cli_reads_them() -> None:
+    good = kitti(SCANS[0])
+    alone = groundwork.Segmenter().segment(np.delete(good, [7, 9], axis=0))
+    # NaN or inf rows are "no return" placeholders: probability 0 in place, the rest as
+    # if they were not there (an organized PCD through the CLI gets the same).
+    bad = good.copy()
+    bad[7, 2] = np.nan
+    bad[9, 0] = np.inf
+    seg = groundwork.Segmenter()
+    p = seg.segment(bad)
+    assert p.shape == (len(good),) and p[7] == 0.0 and p[9] == 0.0
+    assert np.array_equal(bits(np.delete(p, [7, 9])), bits(alone))
+    assert seg.counters["placeholders"] == 2 and seg.counters["rejected"] == 0
+    # Columns after intensity (nuScenes' ring index) are ignored, as in a .pcd.bin.
+    five = np.hstack([good, np.arange(len(good), dtype=np.float32)[:, None]])
+    assert np.array_equal(
+        bits(groundwork.Segmenter().segment(five)), bits(groundwork.Segmenter().segment(good))
+    )
+    # The offline methods alike.
+    r = groundwork.ransac(bad)
+    assert r[7] == 0.0 and r[9] == 0.0
+    with pytest.raises(ValueError, match="none of its 5 points"):
+        groundwork.Segmenter().segment(np.full((5, 3), np.nan, np.float32))
+
+
+def test_bad_arguments_elsewhere_are_value_errors() -> None:
+    good = kitti(SCANS[0])
     # An empty scan is no error.
     assert groundwork.Segmenter().segment(np.zeros((0, 3), np.float32)).shape == (0,)
     with pytest.raises(ValueError, match="probabilities"):

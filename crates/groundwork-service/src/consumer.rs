@@ -100,8 +100,9 @@ pub struct ConsumerReport {
     pub scan_fate: ScanFate,
     /// Scans lost before this consumer read them (sequence gaps) = `scan_fate.dropped`.
     pub dropped_scans: u64,
-    /// Masks lost before this consumer read them (gaps in one segmenter run's answers to
-    /// one producer run).
+    /// Masks lost before this consumer read them: gaps in one segmenter run's mask
+    /// sequence. (Scans the segmenter itself never received have no mask to lose: they are
+    /// `scan_fate.unanswered`, and the segmenter's own `dropped`.)
     pub dropped_masks: u64,
     /// Masks whose scan this consumer never saw (dropped, or outside the pairing window).
     pub unmatched_masks: u64,
@@ -115,7 +116,10 @@ pub struct ConsumerReport {
     pub latency_us: Vec<Percentiles>,
     /// Pooled live accuracy over labeled scans.
     pub accuracy: Option<Metrics>,
-    /// Output files that could not be written.
+    /// Scans written to the output (`--out`).
+    pub writes: u64,
+    /// Scans that could not be written to the output (a full disk, a scan no longer
+    /// held), and a recording that could not be closed: any makes the consumer exit 1.
     pub write_failures: u64,
     /// Wall time from first to last mask, s.
     pub seconds: f64,
@@ -142,7 +146,11 @@ pub struct ConsumerStage {
     /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
     pending: BTreeMap<(u64, u64), u64>,
     last_scan: Option<(u64, u64)>,
-    last_mask: Option<(u64, u64, u64)>,
+    /// (segmenter epoch, mask sequence) of the last mask.
+    last_mask: Option<(u64, u64)>,
+    /// Wall-clock ns since which this consumer's subscriber exists: a producer run that
+    /// began later published every one of its scans to it, from sequence 0.
+    listening_since: u64,
     segmenter_epochs: HashSet<u64>,
     detector_epochs: HashSet<u64>,
     labels: HashMap<u64, Option<Vec<LabelClass>>>,
@@ -160,8 +168,16 @@ impl ConsumerStage {
             labels_dir: labels,
             out,
             warmup,
+            listening_since: u64::MAX,
             ..Default::default()
         }
+    }
+
+    /// Tells the stage when its subscriber started listening (wall-clock ns, as producer
+    /// epochs are): scans of a later producer run lost before the first one read count as
+    /// dropped too. (Unset: a run's scans count from the first one read.)
+    pub fn listening_since(&mut self, wall_ns: u64) {
+        self.listening_since = wall_ns;
     }
 
     /// A scan was read (its points are copied only when writing a recording).
@@ -171,10 +187,14 @@ impl ConsumerStage {
         }
         let r = &mut self.report;
         r.scans += 1;
-        if let Some((e, s)) = self.last_scan
-            && e == h.producer_epoch
-        {
-            r.scan_fate.dropped += sequence_gap(s, h.sequence);
+        match self.last_scan {
+            Some((e, s)) if e == h.producer_epoch => {
+                r.scan_fate.dropped += sequence_gap(s, h.sequence);
+            }
+            // The first scan read of a run that started while we listened: the scans
+            // before it (sequence 0 on) were published to us and lost in our queue.
+            _ if h.producer_epoch >= self.listening_since => r.scan_fate.dropped += h.sequence,
+            _ => {}
         }
         self.last_scan = Some((h.producer_epoch, h.sequence));
         let key = (h.producer_epoch, h.sequence);
@@ -192,13 +212,12 @@ impl ConsumerStage {
     pub fn on_mask(&mut self, h: &MaskHeader, probs: &[f32], received_ns: u64) {
         let r = &mut self.report;
         r.masks += 1;
-        let key = (h.segmenter_epoch, h.producer_epoch);
-        if let Some((g, e, s)) = self.last_mask
-            && (g, e) == key
+        if let Some((g, s)) = self.last_mask
+            && g == h.segmenter_epoch
         {
-            r.dropped_masks += sequence_gap(s, h.scan_sequence);
+            r.dropped_masks += sequence_gap(s, h.mask_sequence);
         }
-        self.last_mask = Some((h.segmenter_epoch, h.producer_epoch, h.scan_sequence));
+        self.last_mask = Some((h.segmenter_epoch, h.mask_sequence));
         if self.segmenter_epochs.insert(h.segmenter_epoch) {
             r.segmenter_runs += 1;
         }
@@ -264,9 +283,13 @@ impl ConsumerStage {
                 )),
             },
         };
-        if let Err(e) = written {
-            self.report.write_failures += 1;
-            warn!("{e}");
+        match written {
+            Ok(()) if self.out.is_some() => self.report.writes += 1,
+            Ok(()) => {}
+            Err(e) => {
+                self.report.write_failures += 1;
+                warn!("{e}");
+            }
         }
     }
 
@@ -376,12 +399,18 @@ impl ConsumerStage {
 /// The report as a person reads it.
 pub fn summary(r: &ConsumerReport, stats: &str) -> String {
     let f = r.scan_fate;
+    let reasons: Vec<String> = r.rejected.iter().map(|(k, n)| format!("{k} {n}")).collect();
+    let reasons = if reasons.is_empty() {
+        String::new()
+    } else {
+        format!(": {}", reasons.join(", "))
+    };
     let mut s = format!(
-        "consumer: {} masks ({} segmented, {} rejected {:?}), {} scans; scan fate: {} masked + {} rejected + {} unanswered + {} dropped = {}; dropped masks {}, unmatched masks {}; {} segmenter run(s)\n",
+        "consumer: {} masks ({} segmented, {} rejected{}), {} scans; scan fate: {} masked + {} rejected + {} unanswered + {} dropped = {}; dropped masks {}, unmatched masks {}; {} segmenter run(s)\n",
         r.masks,
         r.segmented,
         r.rejected.values().sum::<u64>(),
-        r.rejected,
+        reasons,
         r.scans,
         f.masked,
         f.rejected,
@@ -392,6 +421,12 @@ pub fn summary(r: &ConsumerReport, stats: &str) -> String {
         r.unmatched_masks,
         r.segmenter_runs
     );
+    if r.writes + r.write_failures > 0 {
+        s.push_str(&format!(
+            "outputs: {} scans written, {} writes failed\n",
+            r.writes, r.write_failures
+        ));
+    }
     let d = r.detections;
     if d.messages > 0 {
         s.push_str(&format!(
@@ -444,6 +479,8 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     info!(prefix = %cfg.prefix, "consumer started");
 
     let mut stage = ConsumerStage::new(opts.labels.clone(), output, opts.warmup);
+    // The subscribers exist from here on.
+    stage.listening_since(groundwork_msg::new_epoch());
     let mut first: Option<Instant> = None;
     let mut last_mask = Instant::now();
     let mut stalled = false;
@@ -543,8 +580,10 @@ mod tests {
         }
     }
 
-    fn mask(seg: u64, epoch: u64, seq: u64, status: MaskStatus) -> MaskHeader {
+    /// The `m`-th mask of segmenter run `seg`, answering scan `seq` of producer run `epoch`.
+    fn mask(seg: u64, m: u64, epoch: u64, seq: u64, status: MaskStatus) -> MaskHeader {
         MaskHeader {
+            mask_sequence: m,
             segmenter_epoch: seg,
             producer_epoch: epoch,
             scan_sequence: seq,
@@ -563,19 +602,19 @@ mod tests {
         }
         // Segmenter A answers 0..=5 (5 rejected), then dies with 6 and 7 in its queue; B
         // answers 8, and a mask for the dropped scan 3 arrives (unmatched).
-        for s in [0, 1, 2, 5] {
+        for (m, s) in [0, 1, 2, 5].into_iter().enumerate() {
             let st = if s == 5 {
                 MaskStatus::EMPTY
             } else {
                 MaskStatus::OK
             };
-            c.on_mask(&mask(100, 1, s, st), &[], 1);
+            c.on_mask(&mask(100, m as u64, 1, s, st), &[], 1);
         }
-        c.on_mask(&mask(100, 1, 3, MaskStatus::OK), &[], 1);
-        c.on_mask(&mask(200, 1, 8, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(100, 4, 1, 3, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(200, 0, 1, 8, MaskStatus::OK), &[], 1);
         // Producer run 2 starts over at sequence 0: not a gap.
         c.on_scan(&scan(2, 0), &[]);
-        c.on_mask(&mask(200, 2, 0, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(200, 1, 2, 0, MaskStatus::OK), &[], 1);
         let r = c.finish(1.0);
         let f = r.scan_fate;
         assert_eq!((f.masked, f.rejected, f.dropped), (5, 1, 2), "{r:?}");
@@ -584,6 +623,38 @@ mod tests {
         assert_eq!(f.total(), 11, "10 + 1 scans published");
         assert_eq!(f.total() - f.dropped, r.scans);
         assert_eq!((r.unmatched_masks, r.segmenter_runs), (1, 2));
+        assert_eq!(r.dropped_masks, 0);
+    }
+
+    #[test]
+    fn masks_lost_are_told_from_scans_the_segmenter_never_got() {
+        let mut c = ConsumerStage::new(None, None, 0);
+        c.listening_since(1_000);
+        // A producer run that began after we listened: its scans 0..3 were lost in our
+        // queue before the first one we read (4); we read 4..10.
+        for s in 4..10 {
+            c.on_scan(&scan(2_000, s), &[]);
+        }
+        // The segmenter got only scans 4, 7 and 9 (it dropped the rest from its own
+        // queue): three masks in a row, none lost, although their scans are not
+        // consecutive. Then mask 3 (for no scan we hold) is lost and mask 4 arrives.
+        for (m, s) in [(0, 4), (1, 7), (2, 9)] {
+            c.on_mask(&mask(7, m, 2_000, s, MaskStatus::OK), &[], 1);
+        }
+        let r = c.report();
+        assert_eq!(r.dropped_masks, 0, "{r:?}");
+        c.on_mask(&mask(7, 4, 2_000, 11, MaskStatus::OK), &[], 1);
+        let r = c.finish(1.0);
+        assert_eq!(r.dropped_masks, 1);
+        let f = r.scan_fate;
+        assert_eq!((f.masked, f.dropped, f.unanswered), (3, 4, 3), "{r:?}");
+        // Everything published up to the last scan read (0..10) is in one bucket.
+        assert_eq!(f.total(), 10);
+        // A run that began before we listened counts from its first scan read.
+        let mut c = ConsumerStage::new(None, None, 0);
+        c.listening_since(5_000);
+        c.on_scan(&scan(2_000, 40), &[]);
+        assert_eq!(c.finish(1.0).scan_fate.total(), 1);
     }
 
     #[test]
@@ -594,8 +665,8 @@ mod tests {
         let mut c = ConsumerStage::new(None, None, 0);
         c.on_scan(&scan(1, u64::MAX), &[]);
         c.on_scan(&scan(1, 0), &[]);
-        c.on_mask(&mask(1, 1, u64::MAX, MaskStatus::OK), &[], 1);
-        c.on_mask(&mask(1, 1, 0, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(1, u64::MAX, 1, u64::MAX, MaskStatus::OK), &[], 1);
+        c.on_mask(&mask(1, 0, 1, 0, MaskStatus::OK), &[], 1);
         let r = c.finish(0.0);
         assert_eq!(
             (r.scan_fate.masked, r.dropped_scans, r.dropped_masks),
@@ -620,7 +691,7 @@ mod tests {
                 .collect::<Vec<_>>()
         };
         let answer = |c: &mut ConsumerStage, s: u64, status: MaskStatus| {
-            let mut m = mask(1, 1, s, status);
+            let mut m = mask(1, s, 1, s, status);
             m.point_count = 3;
             m.sensor_timestamp_ns = 1_000 + s;
             c.on_mask(&m, &[s as f32 / 8.0, 0.5, 1.0], 1);
@@ -671,7 +742,7 @@ mod tests {
         }
         assert_eq!(c.report().scan_fate.unanswered, 50);
         for s in 0..1000u64 {
-            let mut m = mask(1, 1, s, MaskStatus::OK);
+            let mut m = mask(1, s, 1, s, MaskStatus::OK);
             m.point_count = 1;
             m.source_index = s;
             c.on_mask(&m, &[0.5], 1);

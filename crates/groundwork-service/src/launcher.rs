@@ -4,9 +4,10 @@
 //!   even of kill -9 (see [`crate::signals::die_with_launcher`]).
 //! - SIGINT, SIGTERM and SIGHUP stop the pipeline cleanly: every stage gets SIGTERM and a
 //!   grace period, writes its report and removes its shared memory.
-//! - A stage that dies (killed by a signal, or exit code 2 and above) fails the pipeline —
-//!   or, with `max_restarts`, is started again up to that many times (counted and logged),
-//!   since every stage is built to rejoin a running pipeline.
+//! - A stage that ends while the pipeline runs (killed by a signal, any exit code; only
+//!   the finishing stage may end, and only with 0 or 1) fails the pipeline — or, with
+//!   `max_restarts`, is started again up to that many times (counted and logged), since
+//!   every stage is built to rejoin a running pipeline.
 //! - Exit codes of stages: 0 done, 1 done but some input was bad (counted, reported),
 //!   2 and above: error.
 
@@ -63,7 +64,8 @@ fn finished(status: &ExitStatus) -> bool {
     matches!(status.code(), Some(0 | 1))
 }
 
-fn describe(status: &ExitStatus) -> String {
+/// An exit status in words ("exited with code 0", "killed by signal 9").
+pub fn describe(status: &ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;
     match (status.code(), status.signal()) {
         (_, Some(sig)) => format!("killed by signal {sig}"),
@@ -162,17 +164,21 @@ pub fn run(
             let Ok(Some(status)) = s.child.try_wait() else {
                 continue;
             };
-            if finished(&status) {
+            if s.name == finisher && finished(&status) {
                 if status.code() == Some(1) {
                     warn!(stage = s.name, "finished with bad input (see its log)");
                 }
                 s.status = Some(status);
-                if s.name == finisher {
-                    break 'supervise;
-                }
-                continue;
+                break 'supervise;
             }
-            let why = describe(&status);
+            // Any other stage that ends while the pipeline runs leaves it without that
+            // stage, even with exit code 0 (someone sent it SIGTERM): a failure, like a
+            // death.
+            let why = if finished(&status) {
+                format!("{} while the pipeline ran", describe(&status))
+            } else {
+                describe(&status)
+            };
             if s.restarts < max_restarts {
                 s.restarts += 1;
                 warn!(

@@ -5,12 +5,12 @@
 //! pose, stamps, injected faults) with no IPC; [`run`] is the thin iceoryx2 loop around it.
 
 use std::path::PathBuf;
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use groundwork_core::{Point, Pose};
 use groundwork_eval::Sequence;
-use groundwork_io::{ScanIter, ScanSource};
 use groundwork_msg::{SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch};
 use serde::Serialize;
 use tracing::{info, warn};
@@ -71,6 +71,10 @@ pub struct ProducerOptions {
     pub count: Option<u64>,
     /// Overrides `rate_hz` of the configuration.
     pub rate_hz: Option<f64>,
+    /// After `count` scans, stay this long (`Duration::MAX`: until stopped) before
+    /// leaving: iceoryx2 takes a leaving publisher's samples with it, so a subscriber that
+    /// has not read the last scans yet would lose them without a trace.
+    pub linger: Duration,
     /// Every n-th scan is replaced by a malformed one (cycling through the kinds).
     pub malformed_every: Option<u64>,
 }
@@ -101,58 +105,129 @@ pub struct Frame {
     pub log_time_ns: Option<u64>,
 }
 
-/// The frames a producer replays: loaded once (folders, synthetic), or streamed from a
-/// recording, which may be far larger than memory and is reopened at its end.
+/// The frames a producer replays: one generated frame (synthetic), or a folder or
+/// recording streamed from disk in a loop, a few frames ahead: memory stays flat whatever
+/// the size of the source (a KITTI sequence is 9 GB of scans).
 #[derive(Debug)]
 pub enum Frames {
     /// All frames in memory, replayed in a loop.
     Loaded(Vec<Frame>),
-    /// A recording read one message at a time.
+    /// A folder or recording read ahead by a thread of its own.
     Streamed(Box<Stream>),
 }
 
-/// A recording being replayed.
+/// Frames read ahead of the one being published: enough to keep a 10 Hz (or a flat-out)
+/// replay fed while the disk hiccups, little memory (2 MB per KITTI scan).
+pub const READ_AHEAD: usize = 4;
+
+/// What the reading thread hands over.
+#[derive(Debug)]
+enum Ahead {
+    Frame(Frame),
+    /// A scan that could not be read (first pass only: a loop does not count it again).
+    Skipped(String),
+    /// The end of one pass over the source; the next pass follows.
+    EndOfPass,
+}
+
+/// A folder or recording being replayed.
 #[derive(Debug)]
 pub struct Stream {
-    /// The recording.
-    source: ScanSource,
-    /// Point limit.
-    max_points: usize,
-    /// The reader of the current pass.
-    reader: ScanIter,
+    /// Frames from the reading thread (which ends when this is dropped).
+    ahead: Receiver<Ahead>,
     /// The frame being published.
     current: Frame,
     /// The one after it (to know the recorded gap), if the pass has one.
     next: Option<Frame>,
 }
 
-/// Reads the next good frame of a stream, reporting and counting bad ones; None at the end
-/// of the pass.
-fn next_streamed(reader: &mut ScanIter, skipped: &mut Vec<String>) -> Option<Frame> {
-    for item in reader.by_ref() {
-        match item.scan {
-            Ok(scan) => {
-                if scan.skipped() > 0 {
-                    tracing::debug!(
-                        placeholders = scan.skipped(),
-                        "{}: NaN placeholders left out",
-                        item.name
-                    );
+/// Reads the source in a loop into `tx` until the receiver is gone. A pass without a
+/// single readable scan ends the loop (the producer then has nothing to replay).
+fn read_ahead(seq: &Sequence, max_points: usize, tx: &SyncSender<Ahead>) {
+    let mut first_pass = true;
+    loop {
+        let mut any = false;
+        for item in seq.scans(max_points) {
+            let sent = match item.scan {
+                Ok(scan) => {
+                    any = true;
+                    if scan.skipped() > 0 {
+                        tracing::debug!(
+                            placeholders = scan.skipped(),
+                            "{}: NaN placeholders left out",
+                            item.name
+                        );
+                    }
+                    tx.send(Ahead::Frame(Frame {
+                        points: scan.points,
+                        pose: seq.pose(item.index).copied(),
+                        index: item.index as u64,
+                        log_time_ns: item.log_time_ns,
+                    }))
                 }
-                return Some(Frame {
-                    points: scan.points,
-                    pose: None,
-                    index: item.index as u64,
-                    log_time_ns: item.log_time_ns,
-                });
+                Err(e) if first_pass => {
+                    warn!("skipped: {e}");
+                    tx.send(Ahead::Skipped(e.to_string()))
+                }
+                Err(_) => Ok(()),
+            };
+            if sent.is_err() {
+                return;
             }
-            Err(e) => {
-                warn!("skipped: {e}");
-                skipped.push(e.to_string());
+        }
+        if !any || tx.send(Ahead::EndOfPass).is_err() {
+            return;
+        }
+        first_pass = false;
+    }
+}
+
+impl Stream {
+    /// Starts the reading thread over `seq`.
+    fn start(seq: Sequence, max_points: usize, skipped: &mut Vec<String>) -> Option<Self> {
+        let (tx, rx) = sync_channel(READ_AHEAD);
+        std::thread::Builder::new()
+            .name("read-ahead".into())
+            .spawn(move || read_ahead(&seq, max_points, &tx))
+            .ok()?;
+        let mut stream = Self {
+            ahead: rx,
+            current: Frame {
+                points: Vec::new(),
+                pose: None,
+                index: 0,
+                log_time_ns: None,
+            },
+            next: None,
+        };
+        stream.current = stream.pull(skipped)?;
+        stream.next = stream.pull(skipped);
+        Some(stream)
+    }
+
+    /// The next frame of this pass, counting unreadable scans; None at the end of the pass
+    /// (or if the reader has stopped).
+    fn pull(&mut self, skipped: &mut Vec<String>) -> Option<Frame> {
+        loop {
+            match self.ahead.recv().ok()? {
+                Ahead::Frame(f) => return Some(f),
+                Ahead::Skipped(e) => skipped.push(e),
+                Ahead::EndOfPass => return None,
             }
         }
     }
-    None
+
+    /// Moves to the next frame (the first of the next pass after the last).
+    fn advance(&mut self, skipped: &mut Vec<String>) {
+        let upcoming = match self.next.take() {
+            Some(n) => Some(n),
+            None => self.pull(skipped),
+        };
+        if let Some(n) = upcoming {
+            self.current = n;
+        }
+        self.next = self.pull(skipped);
+    }
 }
 
 impl Frames {
@@ -174,63 +249,30 @@ impl Frames {
                 };
                 Ok((Self::Loaded(vec![frame]), skipped))
             }
-            Source::Sequence(dir) => {
-                let seq = Sequence::open(dir, None, None)?;
-                let mut frames = Vec::new();
-                for item in seq.scans(max_points) {
-                    // A bad file is reported and skipped; the replay goes on with the others.
-                    match item.scan {
-                        Ok(scan) => frames.push(Frame {
-                            points: scan.points,
-                            pose: seq.pose(item.index).copied(),
-                            index: item.index as u64,
-                            log_time_ns: None,
-                        }),
-                        Err(e) => {
-                            warn!("skipped: {e}");
-                            skipped.push(e.to_string());
-                        }
-                    }
-                }
-                anyhow::ensure!(
-                    !frames.is_empty(),
-                    "{}: no readable scans ({} skipped)",
-                    dir.display(),
-                    skipped.len()
-                );
-                Ok((Self::Loaded(frames), skipped))
-            }
-            Source::Recording(path, topic) => {
-                let source = ScanSource::Recording {
-                    path: path.clone(),
-                    topic: topic.clone(),
+            Source::Sequence(path) | Source::Recording(path, _) => {
+                let topic = match source {
+                    Source::Recording(_, t) => t.clone(),
+                    _ => None,
                 };
-                let mut reader = source.scans(max_points);
-                let current = next_streamed(&mut reader, &mut skipped).with_context(|| {
+                let seq = Sequence::open(path, None, None)?.with_topic(topic);
+                // A bad file is reported and skipped; the replay goes on with the others.
+                let stream = Stream::start(seq, max_points, &mut skipped).with_context(|| {
                     format!(
                         "{}: no readable scans ({} skipped)",
                         path.display(),
                         skipped.len()
                     )
                 })?;
-                let next = next_streamed(&mut reader, &mut skipped);
-                let stream = Stream {
-                    source,
-                    max_points,
-                    reader,
-                    current,
-                    next,
-                };
                 Ok((Self::Streamed(Box::new(stream)), skipped))
             }
         }
     }
 
-    /// Frames in memory (a streamed recording holds one).
+    /// Frames in memory besides those read ahead ([`READ_AHEAD`] at most).
     pub fn loaded(&self) -> usize {
         match self {
             Self::Loaded(f) => f.len(),
-            Self::Streamed(_) => 1,
+            Self::Streamed(s) => 1 + usize::from(s.next.is_some()),
         }
     }
 }
@@ -301,28 +343,7 @@ impl ProducerStage {
         }
         match &mut self.frames {
             Frames::Loaded(f) => self.last = (self.last + 1) % f.len(),
-            Frames::Streamed(stream) => {
-                let Stream {
-                    source,
-                    max_points,
-                    reader,
-                    current,
-                    next,
-                } = &mut **stream;
-                let skipped = &mut self.report.skipped_files;
-                let upcoming = match next.take() {
-                    Some(n) => Some(n),
-                    None => {
-                        // End of the recording: replay it from the start.
-                        *reader = source.scans(*max_points);
-                        next_streamed(reader, skipped)
-                    }
-                };
-                if let Some(n) = upcoming {
-                    *current = n;
-                }
-                *next = next_streamed(reader, skipped);
-            }
+            Frames::Streamed(stream) => stream.advance(&mut self.report.skipped_files),
         }
     }
 
@@ -463,6 +484,13 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
             break;
         }
     }
+    if opts.count.is_some_and(|c| stage.report().published >= c) && !opts.linger.is_zero() {
+        info!(
+            published = stage.report().published,
+            "all scans out: staying until the subscribers have read them (or stopped)"
+        );
+        signals::sleep(opts.linger);
+    }
     // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
     transport::cleanup_dead(&node);
     let r = stage.report().clone();
@@ -492,7 +520,7 @@ mod tests {
         let (frames, skipped) =
             Frames::load(&Source::Recording(recording(), None), 10_000).unwrap();
         assert!(skipped.is_empty());
-        assert_eq!(frames.loaded(), 1);
+        assert_eq!(frames.loaded(), 2, "the frame published and the next");
         let mut stage = ProducerStage::new(frames, skipped, None);
         let mut order = Vec::new();
         for k in 0..7 {
@@ -512,6 +540,42 @@ mod tests {
         let out = stage.process(3);
         let p = stage.point(&out, 0);
         assert!(p.x.is_finite());
+    }
+
+    /// A folder streams too: frames in order, looped, poses kept, a bad file counted once
+    /// however often the loop passes it, never more than a few frames in memory.
+    #[test]
+    fn a_folder_is_streamed_in_a_loop_a_few_frames_ahead() {
+        let dir = tempfile::tempdir().unwrap();
+        for k in 0..20 {
+            let pts = vec![Point::new(k as f32 + 3.0, 0.0, -1.7); 10];
+            groundwork_io::write_kitti_bin(&dir.path().join(format!("{k:06}.bin")), &pts).unwrap();
+        }
+        std::fs::write(dir.path().join("000007.bin"), [0u8; 5]).unwrap();
+        let (frames, skipped) =
+            Frames::load(&Source::Sequence(dir.path().to_path_buf()), 100).unwrap();
+        let mut stage = ProducerStage::new(frames, skipped, None);
+        let mut order = Vec::new();
+        for k in 0..45 {
+            let out = stage.process(k);
+            order.push(out.header.source_index);
+            assert_eq!(stage.point(&out, 0).x, out.header.source_index as f32 + 3.0);
+            assert!(stage.frames().loaded() <= 2);
+        }
+        let pass: Vec<u64> = (0..20).filter(|&k| k != 7).collect();
+        let expected: Vec<u64> = pass
+            .iter()
+            .chain(&pass)
+            .chain(&pass)
+            .copied()
+            .take(45)
+            .collect();
+        assert_eq!(order, expected);
+        assert_eq!(
+            stage.report().skipped_files.len(),
+            1,
+            "counted on the first pass only"
+        );
     }
 
     #[test]

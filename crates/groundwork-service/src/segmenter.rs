@@ -189,6 +189,8 @@ impl SegmenterStage {
             source_index: h.source_index,
             stamps: h.stamps,
             segmenter_epoch: self.epoch,
+            // One mask per scan received, rejected or not.
+            mask_sequence: r.received - 1,
             ..MaskHeader::default()
         };
         header.stamps.segmenter_received_ns = received_ns;

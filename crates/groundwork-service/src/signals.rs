@@ -51,12 +51,15 @@ pub fn stop_requested() -> bool {
 /// Sleeps for `d` unless a stop is requested (checked at least every 50 ms); a signal that
 /// interrupts the sleep (SIGCONT) does not shorten it. Returns whether to go on.
 pub fn sleep(d: Duration) -> bool {
-    let end = std::time::Instant::now() + d;
+    // Duration::MAX: until a stop is requested.
+    let end = std::time::Instant::now().checked_add(d);
     loop {
         if stop_requested() {
             return false;
         }
-        let left = end.saturating_duration_since(std::time::Instant::now());
+        let left = end.map_or(Duration::MAX, |e| {
+            e.saturating_duration_since(std::time::Instant::now())
+        });
         if left.is_zero() {
             return true;
         }

@@ -1,7 +1,6 @@
 //! An RGB picture and the few things drawn on it.
 
 use crate::RenderError;
-use crate::font::glyph;
 
 /// An 8-bit RGB picture, rows top to bottom.
 #[derive(Debug, Clone, PartialEq)]
@@ -58,14 +57,20 @@ impl Image {
         }
     }
 
-    /// Text in the 3 × 5 font, `scale` pixels per font pixel, top left at (c, r).
-    pub(crate) fn text(&mut self, s: &str, c: i64, r: i64, scale: i64, colour: [u8; 3]) {
-        for (k, ch) in s.chars().enumerate() {
-            let Some(rows) = glyph(ch) else { continue };
-            let x0 = c + k as i64 * 4 * scale;
+    /// Text in an 8 × 8 font, `scale` pixels per font pixel, top left at (c, r); returns
+    /// the width drawn, pixels.
+    pub(crate) fn text(&mut self, s: &str, c: i64, r: i64, scale: i64, colour: [u8; 3]) -> i64 {
+        let mut k = 0;
+        for ch in s.chars() {
+            let Some(&rows) = font8x8::legacy::BASIC_LEGACY.get(ch as usize) else {
+                continue;
+            };
+            let x0 = c + k * 8 * scale;
+            k += 1;
             for (dy, bits) in rows.iter().enumerate() {
-                for dx in 0..3 {
-                    if bits & (0b100 >> dx) != 0 {
+                // Bit 0 is the leftmost column.
+                for dx in 0..8 {
+                    if bits & (1 << dx) != 0 {
                         for sy in 0..scale {
                             for sx in 0..scale {
                                 self.put(x0 + dx * scale + sx, r + dy as i64 * scale + sy, colour);
@@ -73,6 +78,16 @@ impl Image {
                         }
                     }
                 }
+            }
+        }
+        k * 8 * scale
+    }
+
+    /// A filled rectangle, top left (c, r), clipped to the picture.
+    pub(crate) fn fill(&mut self, c: i64, r: i64, w: i64, h: i64, colour: [u8; 3]) {
+        for y in r..r + h {
+            for x in c..c + w {
+                self.put(x, y, colour);
             }
         }
     }

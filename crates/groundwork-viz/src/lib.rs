@@ -3,11 +3,11 @@
 //! [`render`] draws, in the ground-aligned frame seen from above (x forward = up, y left =
 //! left): every point coloured by what it is — ground by height or by probability,
 //! non-ground grey, or, against labels, true/false positives and negatives in four colours
-//! (the GMM paper's Figure 2) — then the proposals as oriented boxes with their ids, a
+//! (the GMM paper's Figure 2) — then the proposals as oriented boxes with their ids (boxes
+//! flagged as walls or too large faint, under the others), a legend of the colours, a
 //! metric scale bar and the sensor. [`Image::to_png`] encodes the picture. Pure: no files.
 
 mod draw;
-mod font;
 
 use groundwork_detect::Proposal;
 
@@ -38,7 +38,10 @@ pub const NON_GROUND: [u8; 3] = [150, 150, 150];
 const IGNORED: [u8; 3] = [70, 70, 70];
 const BACKGROUND: [u8; 3] = [12, 12, 16];
 const BOX: [u8; 3] = [255, 255, 255];
-const FLAGGED_BOX: [u8; 3] = [140, 110, 40];
+/// Boxes flagged as walls or too large for an object: faint, so they do not hide the scene.
+const FLAGGED_BOX: [u8; 3] = [70, 60, 35];
+const LEGEND_BACK: [u8; 3] = [0, 0, 0];
+const TEXT: [u8; 3] = [230, 230, 230];
 const SENSOR: [u8; 3] = [255, 60, 200];
 
 /// The window drawn: a square of ±`range` metres around the sensor at `resolution` metres
@@ -103,6 +106,16 @@ pub struct Scene<'a> {
     pub proposals: &'a [Proposal],
 }
 
+/// Ground by height: blue low → yellow high.
+const HEIGHT: [[u8; 3]; 4] = [
+    [40, 60, 200],
+    [30, 170, 190],
+    [120, 210, 80],
+    [250, 220, 60],
+];
+/// Ground by probability: amber at the threshold → green at 1.
+const PROBABILITY: [[u8; 3]; 2] = [[230, 150, 40], [60, 210, 90]];
+
 fn lerp(a: [u8; 3], b: [u8; 3], t: f32) -> [u8; 3] {
     let t = t.clamp(0.0, 1.0);
     std::array::from_fn(|k| (f32::from(a[k]) + (f32::from(b[k]) - f32::from(a[k])) * t) as u8)
@@ -163,13 +176,6 @@ pub fn render(
             .collect();
         (quantile(z.clone(), 0.02), quantile(z, 0.98))
     };
-    const HEIGHT: [[u8; 3]; 4] = [
-        [40, 60, 200],
-        [30, 170, 190],
-        [120, 210, 80],
-        [250, 220, 60],
-    ];
-    const PROBABILITY: [[u8; 3]; 2] = [[230, 150, 40], [60, 210, 90]];
     let colour = |i: usize| -> [u8; 3] {
         let g = is_ground(i);
         match colouring {
@@ -204,7 +210,10 @@ pub fn render(
         let (c, r) = to_px(x, y);
         img.put(c as i64, r as i64, colour(i));
     }
-    for p in scene.proposals {
+    // Flagged boxes first, faint: the object-like ones are drawn over them.
+    let mut boxes: Vec<&Proposal> = scene.proposals.iter().collect();
+    boxes.sort_by_key(|p| p.flags.is_object_like());
+    for p in boxes {
         let (s, c) = p.yaw.sin_cos();
         let (hl, hw) = (p.length / 2.0, p.width / 2.0);
         let corner =
@@ -225,7 +234,7 @@ pub fn render(
         }
         if p.flags.is_object_like() {
             let (cx, cy) = to_px(p.center[0], p.center[1]);
-            img.text(&p.id.to_string(), cx as i64 + 4, cy as i64 - 4, 1, BOX);
+            img.text(&p.id.to_string(), cx as i64 + 4, cy as i64 - 8, 2, BOX);
         }
     }
     // The sensor: a triangle pointing forward (up).
@@ -248,8 +257,89 @@ pub fn render(
     }
     img.line((x0, y0 - 6.0), (x0, y0 + 8.0), BOX);
     img.line((x0 + len, y0 - 6.0), (x0 + len, y0 + 8.0), BOX);
-    img.text(&format!("{metres} m"), x0 as i64, y0 as i64 - 20, 2, BOX);
+    img.text(&format!("{metres} m"), x0 as i64, y0 as i64 - 22, 2, BOX);
+    let flagged = scene.proposals.iter().any(|p| !p.flags.is_object_like());
+    legend(
+        &mut img,
+        colouring,
+        (lo, hi, thr),
+        !scene.proposals.is_empty(),
+        flagged,
+    );
     Ok(img)
+}
+
+/// The legend, top left: what each colour means (and the numbers a ramp spans).
+fn legend(
+    img: &mut Image,
+    colouring: Colouring<'_>,
+    (lo, hi, thr): (f32, f32, f32),
+    boxes: bool,
+    flagged: bool,
+) {
+    enum Entry {
+        Swatch([u8; 3], String),
+        Ramp(&'static [[u8; 3]], String),
+    }
+    const HEIGHT_RAMP: [[u8; 3]; 4] = HEIGHT;
+    let mut entries = match colouring {
+        Colouring::Errors(_) => vec![
+            Entry::Swatch(TRUE_GROUND, "ground, called ground".into()),
+            Entry::Swatch(FALSE_GROUND, "non-ground called ground".into()),
+            Entry::Swatch(MISSED_GROUND, "ground missed".into()),
+            Entry::Swatch(NON_GROUND, "non-ground".into()),
+            Entry::Swatch(IGNORED, "ignored (unlabeled)".into()),
+        ],
+        Colouring::Height => vec![
+            Entry::Ramp(&HEIGHT_RAMP, format!("ground height {lo:.2} to {hi:.2} m")),
+            Entry::Swatch(NON_GROUND, "non-ground".into()),
+        ],
+        Colouring::Probability => vec![
+            Entry::Ramp(&PROBABILITY, format!("ground probability {thr:.2} to 1")),
+            Entry::Swatch(NON_GROUND, "non-ground".into()),
+        ],
+    };
+    if boxes {
+        entries.push(Entry::Swatch(BOX, "proposal (id)".into()));
+    }
+    if flagged {
+        entries.push(Entry::Swatch(FLAGGED_BOX, "wall or too large".into()));
+    }
+    // Scale 2 on pictures of 600 pixels and more, 1 below.
+    let s = if img.width() >= 600 { 2 } else { 1 };
+    let (line, pad, swatch) = (12 * s, 6 * s, 24 * s);
+    let longest = entries
+        .iter()
+        .map(|e| match e {
+            Entry::Swatch(_, t) | Entry::Ramp(_, t) => t.len() as i64,
+        })
+        .max()
+        .unwrap_or(0);
+    let width = pad * 3 + swatch + longest * 8 * s;
+    img.fill(
+        0,
+        0,
+        width,
+        pad * 2 + line * entries.len() as i64,
+        LEGEND_BACK,
+    );
+    for (k, e) in entries.iter().enumerate() {
+        let y = pad + line * k as i64;
+        let text = match e {
+            Entry::Swatch(c, t) => {
+                img.fill(pad, y + s, swatch, 8 * s, *c);
+                t
+            }
+            Entry::Ramp(stops, t) => {
+                for dx in 0..swatch {
+                    let c = ramp(stops, dx as f32 / (swatch - 1) as f32);
+                    img.fill(pad + dx, y + s, 1, 8 * s, c);
+                }
+                t
+            }
+        };
+        img.text(text, pad * 2 + swatch, y + s, s, TEXT);
+    }
 }
 
 #[cfg(test)]
@@ -299,6 +389,42 @@ mod tests {
         assert_eq!(img.get(260, 300), FALSE_GROUND);
         let png = img.to_png().unwrap();
         assert_eq!(&png[1..4], b"PNG");
+    }
+
+    #[test]
+    fn the_legend_names_every_colour_drawn() {
+        let (pts, probs) = scene_points();
+        let scene = Scene {
+            points: &pts,
+            probabilities: &probs,
+            threshold: 0.5,
+            proposals: &[],
+        };
+        let view = View {
+            range: 20.0,
+            resolution: 0.1,
+        };
+        let truth: Vec<Option<bool>> = probs.iter().map(|&p| Some(p >= 0.5)).collect();
+        let img = render(&scene, Colouring::Errors(&truth), view).unwrap();
+        // One swatch per line, top left (400 pixels: font scale 1, lines of 12 pixels).
+        let swatch = |k: u32| img.get(10, 6 + 12 * k + 4);
+        assert_eq!(
+            [swatch(0), swatch(1), swatch(2), swatch(3), swatch(4)],
+            [
+                TRUE_GROUND,
+                FALSE_GROUND,
+                MISSED_GROUND,
+                NON_GROUND,
+                IGNORED
+            ]
+        );
+        // Text beside each: light pixels right of the swatch.
+        let lit = (36..120).any(|c| (7..15).any(|r| img.get(c, r) == TEXT));
+        assert!(lit);
+        // Height: a ramp from blue to yellow.
+        let img = render(&scene, Colouring::Height, view).unwrap();
+        assert_eq!(img.get(6, 10), HEIGHT[0]);
+        assert_eq!(img.get(29, 10), HEIGHT[3]);
     }
 
     #[test]
