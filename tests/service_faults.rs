@@ -490,6 +490,13 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
         stdout.contains("detector: ") && stdout.contains("\ndetect "),
         "{stdout}"
     );
+    // The consumer counted every proposal the detector published (its last ones come
+    // after the last mask).
+    let published = logged(&stderr, "detector stopped", "proposals");
+    assert!(
+        stdout.contains(&format!(" proposals messages, {published} proposals")),
+        "detector published {published}: {stdout}"
+    );
     // Outputs written by the consumer, one value per point.
     let prob = groundwork_io::read_prob(&tmp.path().join("000000.prob")).unwrap();
     assert_eq!(prob.len(), 124_668);

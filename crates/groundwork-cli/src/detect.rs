@@ -106,7 +106,7 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
     }
     pb.finish_and_clear();
     info!(
-        method = ?job.method,
+        method = job.method.name(),
         scans,
         failed,
         proposals,

@@ -209,7 +209,7 @@ pub fn run(
         .collect();
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     info!(
-        method = ?method,
+        method = %format!("{method:?}").to_lowercase(),
         shard = %shard,
         scans = mine.len(),
         of = all.len(),

@@ -17,6 +17,17 @@ pub enum MethodArg {
     Ransac,
 }
 
+impl MethodArg {
+    /// The name on the command line (`gmm`, `pseudolabeler`, `ransac`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Gmm => "gmm",
+            Self::Pseudolabeler => "pseudolabeler",
+            Self::Ransac => "ransac",
+        }
+    }
+}
+
 /// The method, configured: the sensor section (mount, ego radius, maximum points) serves
 /// all three.
 pub fn build(method: MethodArg, cfg: &MethodsConfig) -> Result<Box<dyn GroundMethod>> {

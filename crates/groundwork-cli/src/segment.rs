@@ -294,7 +294,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         }
     }
     info!(
-        method = ?method,
+        method = method.name(),
         scans,
         failed,
         sequence_resets = tallies.iter().map(|t| t.sequence_resets).sum::<u64>(),

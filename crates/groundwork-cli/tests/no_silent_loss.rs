@@ -383,3 +383,104 @@ fn poses_without_a_calibration_are_the_lidars_own_and_said_so() {
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(stderr(&o).contains("without poses"), "{}", stderr(&o));
 }
+
+#[test]
+fn nonsense_numbers_are_refused_by_name_before_anything_runs() {
+    let tmp = tempfile::tempdir().unwrap();
+    // A rate that would overflow the clock, and one that is not a number.
+    for rate in ["1e-19", "nan", "inf"] {
+        let o = run(
+            bin().args([
+                "producer",
+                "--prefix",
+                "gwtest-rate",
+                "--count",
+                "1",
+                "--rate",
+                rate,
+            ]),
+            Duration::from_secs(30),
+        );
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{rate}: {err}");
+        assert!(
+            err.contains("--rate") && err.contains("scans per second"),
+            "{rate}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+        // Said once, not as a log line and again as the error.
+        assert_eq!(err.matches("--rate").count(), 1, "{err}");
+    }
+    let service = tmp.path().join("service.toml");
+    fs::write(&service, "rate_hz = 1e-300\n").unwrap();
+    let o = run(
+        bin()
+            .args(["pipeline", "--count", "1", "--service"])
+            .arg(&service),
+        Duration::from_secs(30),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("service.toml") && err.contains("rate_hz"),
+        "{err}"
+    );
+    // A segmenter value in degrees, through a config file.
+    let cfg = tmp.path().join("tilted.toml");
+    fs::write(&cfg, "[sensor]\nmount = { height = 2.2, pitch = -6 }\n").unwrap();
+    let o = run(
+        bin()
+            .args(["segment", "--out"])
+            .arg(tmp.path().join("out"))
+            .arg("--config")
+            .arg(&cfg)
+            .arg(data().join("velodyne/000000.bin")),
+        Duration::from_secs(30),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("tilted.toml")
+            && err.contains("sensor.mount.pitch")
+            && err.contains("radians"),
+        "{err}"
+    );
+}
+
+#[test]
+fn errors_are_said_once_in_words() {
+    let tmp = tempfile::tempdir().unwrap();
+    let o = run(
+        bin()
+            .args(["segment", "--config"])
+            .arg(tmp.path().join("missing.toml"))
+            .arg("--out")
+            .arg(tmp.path().join("out"))
+            .arg(data().join("velodyne/000000.bin")),
+        Duration::from_secs(30),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert_eq!(err.matches("No such file").count(), 1, "{err}");
+    assert_eq!(
+        err.lines().filter(|l| l.contains("missing.toml")).count(),
+        1,
+        "{err}"
+    );
+    // An --out that is a file is named for what it is.
+    let file = tmp.path().join("taken");
+    fs::write(&file, "x").unwrap();
+    let o = run(
+        bin()
+            .args(["segment", "--out"])
+            .arg(&file)
+            .arg(data().join("velodyne/000000.bin")),
+        Duration::from_secs(30),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("is not a folder") && !err.contains("os error"),
+        "{err}"
+    );
+}

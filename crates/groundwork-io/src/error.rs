@@ -6,12 +6,15 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum FormatError {
     /// The operating system refused (missing file, permissions, disk full, …).
-    #[error("{}: {source}", path.display())]
+    ///
+    /// The message carries the OS error; it is not also the error's `source`, or a report
+    /// of the chain (anyhow's `{:#}`) would print it twice.
+    #[error("{}: {cause}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The file's size does not fit its format: truncated or not that format.
     #[error("{}: {size} bytes is not a whole number of {record}-byte records (truncated, or not this format)", path.display())]
@@ -120,7 +123,7 @@ impl FormatError {
     pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
         Self::Io {
             path: path.to_path_buf(),
-            source,
+            cause: source,
         }
     }
 

@@ -32,6 +32,14 @@ impl OutputTarget {
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
         check_not_an_input(path, inputs)?;
+        if !recording && path.exists() && !path.is_dir() {
+            return Err(FormatError::Collision {
+                path: path.to_path_buf(),
+                message:
+                    "exists and is not a folder: --out takes a folder, or a path ending in .mcap"
+                        .into(),
+            });
+        }
         let dir = if recording {
             path.parent().filter(|d| !d.as_os_str().is_empty())
         } else {

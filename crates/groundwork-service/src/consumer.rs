@@ -546,8 +546,21 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     while let Some(scan) = scan_sub.receive().context("receive scan")? {
         stage.on_scan(scan.user_header(), scan.payload());
     }
-    while let Some(p) = proposals_sub.receive().context("receive proposals")? {
-        stage.on_proposals(p.user_header());
+    // The detector answers a mask after we have read it: with a detector running, its last
+    // proposals get a moment (until 200 ms pass without one, 1 s at most), so that the
+    // report counts what it published.
+    let (since, mut last) = (Instant::now(), Instant::now());
+    while stage.report().detections.messages > 0
+        && since.elapsed() < Duration::from_secs(1)
+        && last.elapsed() < Duration::from_millis(200)
+    {
+        while let Some(p) = proposals_sub.receive().context("receive proposals")? {
+            stage.on_proposals(p.user_header());
+            last = Instant::now();
+        }
+        if !signals::sleep(Duration::from_millis(10)) {
+            break;
+        }
     }
     let table = stage.stats().table();
     let report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));

@@ -32,7 +32,34 @@ pub type EventListener = Listener<ipc::Service>;
 /// directory, and a clean start logs no "No config file was loaded" warning.
 pub fn ipc_config() -> &'static iceoryx2::config::Config {
     static CONFIG: std::sync::OnceLock<iceoryx2::config::Config> = std::sync::OnceLock::new();
-    CONFIG.get_or_init(iceoryx2::config::Config::default)
+    CONFIG.get_or_init(|| {
+        let config = iceoryx2::config::Config::default();
+        install_as_global(&config);
+        config
+    })
+}
+
+/// iceoryx2 falls back to its *global* configuration on paths that take no configuration
+/// (cleaning up a dead node whose details are gone), and the first use looks for files and
+/// warns "No config file was loaded". Installing ours as the global one first (it can only
+/// be set from a file: a private one, removed at once) keeps every path on the same values
+/// and the log quiet. Failing that, iceoryx2 looks up its files as it would anyway.
+fn install_as_global(config: &iceoryx2::config::Config) {
+    let path = std::env::temp_dir().join(format!(
+        "groundwork-iceoryx2-{}-{}.toml",
+        std::process::id(),
+        groundwork_msg::new_epoch()
+    ));
+    let Ok(text) = toml::to_string(config) else {
+        return;
+    };
+    if std::fs::write(&path, text).is_err() {
+        return;
+    }
+    if let Ok(file) = iceoryx2::prelude::FilePath::new(path.as_os_str().as_encoded_bytes()) {
+        let _ = iceoryx2::config::Config::setup_global_config_from_file(&file);
+    }
+    let _ = std::fs::remove_file(&path);
 }
 
 /// The iceoryx2 node name of a pipeline's stage: `<prefix>/<stage>`, so that a node
