@@ -1,6 +1,6 @@
 //! The offline methods per scan on KITTI frames 0–2: the PseudoLabeler (fit on fresh
 //! 4096-point mini-batches, then labels and pillars) and RANSAC, each with all threads.
-//! Throughput with several scans at once is `groundwork label`'s summary (README).
+//! Throughput with several scans at once is `groundwork label`'s summary (docs/offline-labels.md).
 //!
 //! `cargo bench -p groundwork-benches --bench pseudolabel`
 

@@ -4,7 +4,7 @@
 //!
 //! Generator and segmenter are deterministic, so each figure is a measurement (seed 1,
 //! frames 0–3 unless said otherwise); thresholds sit 1.5 IoU points below it. The figures
-//! are in the README's "Your sensor" table.
+//! are in docs/synthetic.md.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 

@@ -1,6 +1,6 @@
 //! One segment's Gaussian mixture, fitted with EM (paper §III-B).
 //!
-//! Choices where the paper is silent (see also README "Choices"):
+//! Choices where the paper is silent (see also docs/algorithm.md):
 //! - EM stops after `max_iterations` or as soon as the mean log-likelihood per point
 //!   improves by less than `tolerance`; that per-segment test lets easy segments stop
 //!   after two or three iterations while hard ones get up to the cap.

@@ -5,7 +5,7 @@
 //! ~90 candidate headings against every point, which alone would eat the time budget of a
 //! scan with 50 000 clustered points), and on a car seen from a corner the hull's long edges
 //! are its sides, so the headings agree. Seen from one side only, both methods see a line:
-//! the box is then as wide as the visible points (see the README's error table).
+//! the box is then as wide as the visible points (see docs/detector.md).
 
 /// A box in the ground plane.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

@@ -189,7 +189,7 @@ pub fn outputs_complete(dir: &Path, stem: &str) -> bool {
     }
 }
 
-/// The frame and units `.proposals.json` states (and the README repeats).
+/// The frame and units `.proposals.json` states (and docs/formats.md repeats).
 pub const PROPOSALS_FRAME: &str = "ground-aligned sensor frame: x forward, y left, z up, origin on the ground below the sensor (the sensor preset's mount); metres, radians";
 
 /// `<stem>.proposals.json`.
