@@ -40,9 +40,9 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
     let mut detector = Detector::new(job.config.detector.clone(), &job.config.segmenter)?;
     let max = job.config.segmenter.sensor.max_points;
     let (sequences, mut failed) =
-        crate::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref());
+        crate::common::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref());
     if !matches!(
-        crate::create_output(job.out, job.inputs, &sequences)?,
+        crate::common::create_output(job.out, job.inputs, &sequences)?,
         OutputTarget::Files(_)
     ) {
         anyhow::bail!(
@@ -51,7 +51,7 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
         );
     }
     let known: Option<usize> = sequences.iter().map(Sequence::len_hint).sum();
-    let pb = crate::progress(known.unwrap_or(0), "detect");
+    let pb = crate::common::progress(known.unwrap_or(0), "detect");
     let (mut scans, mut proposals) = (0usize, 0usize);
     let (mut seg_ms, mut det_ms) = (Vec::new(), Vec::new());
     let mut score: Option<ObjectScore> = None;
@@ -125,5 +125,17 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
         ExitCode::from(1)
     } else {
         ExitCode::SUCCESS
+    })
+}
+/// `groundwork detect`.
+pub fn command(a: crate::args::DetectArgs) -> Result<ExitCode> {
+    run(&DetectJob {
+        config: &crate::common::load_methods(&a.common, None)?,
+        method: a.method,
+        out: &a.out,
+        inputs: &a.inputs,
+        poses: a.common.poses.as_deref(),
+        calib: a.common.calib.as_deref(),
+        topic: a.common.topic.clone(),
     })
 }

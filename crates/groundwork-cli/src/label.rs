@@ -217,7 +217,7 @@ pub fn run(
         "labelling"
     );
     let pb = ProgressBar::new(mine.len() as u64);
-    pb.set_style(crate::progress_style(
+    pb.set_style(crate::common::progress_style(
         "label [{bar:30}] {pos}/{len} scans, {rate}, elapsed {elapsed}, eta {eta}",
     ));
     let max = cfg.segmenter.sensor.max_points;
@@ -353,6 +353,18 @@ pub fn run(
     } else {
         ExitCode::from(1)
     })
+}
+
+/// `groundwork label`.
+pub fn command(a: crate::args::LabelArgs) -> Result<ExitCode> {
+    run(
+        &crate::common::load_methods(&a.sensor.into(), None)?,
+        a.method,
+        &a.out,
+        a.shard.unwrap_or_default(),
+        a.overwrite,
+        &a.inputs,
+    )
 }
 
 #[cfg(test)]

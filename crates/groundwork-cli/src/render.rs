@@ -156,3 +156,23 @@ pub fn run(job: &RenderJob<'_>) -> Result<()> {
     );
     Ok(())
 }
+/// `groundwork render`.
+pub fn command(a: crate::args::RenderArgs) -> Result<std::process::ExitCode> {
+    run(&RenderJob {
+        config: &crate::common::load_methods(&a.sensor.into(), None)?,
+        scan: &a.scan,
+        mask: a.mask.as_deref(),
+        method: a.method,
+        proposals: a.proposals.as_deref(),
+        detect: a.detect,
+        compare: a.compare,
+        labels: a.labels.as_deref(),
+        colour: a.colour,
+        view: groundwork_viz::View {
+            range: a.range,
+            resolution: a.resolution,
+        },
+        out: &a.out,
+    })?;
+    Ok(std::process::ExitCode::SUCCESS)
+}

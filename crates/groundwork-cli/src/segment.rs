@@ -24,8 +24,9 @@ use groundwork_service::segmenter::{SegmenterOptions, SegmenterStage};
 use indicatif::ProgressBar;
 use tracing::{error, info, warn};
 
+use crate::args::Common;
+use crate::common::{load_methods, offline_header, open_inputs, progress};
 use crate::methods::{self, MethodArg};
-use crate::{Common, load_methods, offline_header, open_inputs, progress};
 
 /// One scan to segment: which input it belongs to, its place among all scans, its pose.
 struct Job {
@@ -196,7 +197,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         common.calib.as_deref(),
         common.topic.as_deref(),
     );
-    let mut output = crate::create_output(out, inputs, &sequences)?;
+    let mut output = crate::common::create_output(out, inputs, &sequences)?;
     let (mut engines, threshold) = match method {
         MethodArg::Gmm => {
             if cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
@@ -311,4 +312,8 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
     } else {
         ExitCode::SUCCESS
     })
+}
+/// `groundwork segment`.
+pub fn command(a: crate::args::SegmentArgs) -> Result<ExitCode> {
+    run(&a.common, a.method, &a.out, &a.inputs)
 }

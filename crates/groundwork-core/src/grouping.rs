@@ -11,7 +11,7 @@
 
 use crate::config::BeyondRangePolicy;
 use crate::model::SegmentedPoints;
-use crate::query::{BEYOND, NEAR};
+use crate::zones::{BEYOND, NEAR};
 
 /// A scan's points in the ground-aligned frame, in input order (structure of arrays: the
 /// transform writes whole vectors of each coordinate).

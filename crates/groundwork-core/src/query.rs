@@ -39,10 +39,7 @@ use crate::grouping::QueryGroups;
 use crate::model::{FrameModel, SegmentedPoints};
 use crate::zones::LaneBinner;
 
-/// Packed bin of a point in its own scan (as [`LaneBinner::bin_block`] gives it): segment
-/// index, `BEYOND` flag, or `NEAR`.
-pub(crate) const NEAR: u32 = u32::MAX;
-pub(crate) const BEYOND: u32 = 1 << 31;
+use crate::zones::{BEYOND, NEAR};
 
 // Log-densities are in bits (log2) throughout: weights are then 2^d, without a
 // multiplication by log2(e) in every exponential.

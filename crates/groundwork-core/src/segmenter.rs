@@ -15,8 +15,9 @@ use crate::height_filter::HeightFilter;
 use crate::history::History;
 use crate::model::{FrameModel, SegmentedPoints, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite, mount_transform};
-use crate::query::{NEAR, OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
+use crate::query::{OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
 use crate::simd::LANES;
+use crate::zones::NEAR;
 use crate::zones::{LaneBinner, ZoneModel};
 
 /// Rows of [R | t] applied to a block of points (structure of arrays), in f64. Written as

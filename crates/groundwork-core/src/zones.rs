@@ -134,6 +134,13 @@ impl ZoneModel {
     }
 }
 
+/// Packed bin of a point (as [`LaneBinner::bin_block`] gives it): its segment index, with
+/// `BEYOND` set for a point past the outer edge (queried against the outermost ring), or
+/// `NEAR` for one inside the inner edge or the ego radius (probability 0).
+pub(crate) const NEAR: u32 = u32::MAX;
+/// See [`NEAR`].
+pub(crate) const BEYOND: u32 = 1 << 31;
+
 /// The zone model as SIMD constants: bins a vector of points at a time.
 #[derive(Debug, Clone)]
 pub(crate) struct LaneBinner {

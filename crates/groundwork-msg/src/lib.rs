@@ -212,7 +212,7 @@ impl Default for MaskHeader {
 /// their points' ids published as 0). A street scan holds 100–200.
 pub const MAX_PROPOSALS: usize = 512;
 
-/// One object proposal (see `groundwork_detect::Proposal`): ground-aligned sensor frame,
+/// One object proposal (the detector crate's `Proposal`, flattened): ground-aligned sensor frame,
 /// metres, radians.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
@@ -221,7 +221,7 @@ pub struct ProposalRecord {
     pub id: u32,
     /// Points in the cluster.
     pub points: u32,
-    /// `groundwork_detect::ProposalFlags` bits (0: object-like).
+    /// The detector's `ProposalFlags` bits (0: object-like).
     pub flags: u32,
     /// Local ground height below the box centre.
     pub ground_z: f32,
@@ -239,24 +239,6 @@ pub struct ProposalRecord {
     pub bottom: f32,
     /// Highest point above the local ground.
     pub height: f32,
-}
-
-impl From<&groundwork_detect::Proposal> for ProposalRecord {
-    fn from(p: &groundwork_detect::Proposal) -> Self {
-        Self {
-            id: p.id,
-            points: p.points,
-            flags: p.flags.0,
-            ground_z: p.ground_z,
-            centroid: p.centroid,
-            center: p.center,
-            yaw: p.yaw,
-            length: p.length,
-            width: p.width,
-            bottom: p.bottom,
-            height: p.height,
-        }
-    }
 }
 
 /// Header of a proposals message.

@@ -43,7 +43,7 @@ impl Workspace {
 
 /// C (m × n, row-major) = A · B + beta · C, with arbitrary strides for A and B.
 ///
-/// The one `unsafe` of the workspace: `matrixmultiply` takes raw pointers and strides.
+/// `unsafe` because `matrixmultiply` takes raw pointers and strides.
 /// The bounds are checked here, always, so no caller can make it read or write outside
 /// the slices.
 #[allow(clippy::too_many_arguments, unsafe_code)]

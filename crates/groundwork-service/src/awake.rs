@@ -78,15 +78,27 @@ impl ArrivalClock {
 #[derive(Debug)]
 pub struct Spinner {
     stop: Arc<AtomicBool>,
+    /// Workers spinning for this spinner now.
+    running: Arc<std::sync::atomic::AtomicUsize>,
 }
 
 impl Spinner {
     /// Starts one spinner per worker of the global pool.
     pub fn start() -> Self {
         let stop = Arc::new(AtomicBool::new(false));
-        let flag = stop.clone();
-        rayon::spawn_broadcast(move |_| spin_until(&flag, Duration::MAX));
-        Self { stop }
+        let running = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let (flag, count) = (stop.clone(), running.clone());
+        rayon::spawn_broadcast(move |_| {
+            count.fetch_add(1, Ordering::AcqRel);
+            spin_until(&flag, Duration::MAX);
+            count.fetch_sub(1, Ordering::AcqRel);
+        });
+        Self { stop, running }
+    }
+
+    /// Workers spinning for it now (none once it is dropped and they have noticed).
+    pub fn running(&self) -> usize {
+        self.running.load(Ordering::Acquire)
     }
 }
 
@@ -285,6 +297,19 @@ mod tests {
     #[test]
     fn the_spinners_run_parallel_work_and_stop_when_dropped() {
         let s = Spinner::start();
+        let running = s.running.clone();
+        let until = |want: &dyn Fn(usize) -> bool| {
+            let t = Instant::now();
+            while !want(running.load(Ordering::Acquire)) {
+                assert!(
+                    t.elapsed() < Duration::from_secs(5),
+                    "{} spinning",
+                    running.load(Ordering::Acquire)
+                );
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        };
+        until(&|n| n > 0);
         // Parallel work still completes while the workers spin (they run it).
         let sum: u64 = {
             use rayon::prelude::*;
@@ -292,6 +317,9 @@ mod tests {
         };
         assert_eq!(sum, 100_000 * 99_999 / 2);
         drop(s);
+        // Every spinner returns (a broadcast alone would not tell: spinners run broadcast
+        // jobs too).
+        until(&|n| n == 0);
         // The workers are free again: a broadcast reaches every one of them.
         let seen = rayon::broadcast(|c| c.index());
         assert_eq!(seen.len(), rayon::current_num_threads());

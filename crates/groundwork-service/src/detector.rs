@@ -143,7 +143,7 @@ impl DetectorStage {
         };
         let kept = self.out.proposals.len().min(MAX_PROPOSALS);
         for (slot, p) in h.records.iter_mut().zip(&self.out.proposals) {
-            *slot = ProposalRecord::from(p);
+            *slot = record(p);
         }
         h.proposal_count = kept as u32;
         h.dropped_proposals = (self.out.proposals.len() - kept) as u32;
@@ -276,6 +276,23 @@ pub fn run(cfg: &ServiceConfig, opts: &DetectorOptions) -> anyhow::Result<Detect
         "detector stopped"
     );
     Ok(r)
+}
+
+/// A proposal as the proposals message carries it (the message crate knows no detector).
+fn record(p: &groundwork_detect::Proposal) -> ProposalRecord {
+    ProposalRecord {
+        id: p.id,
+        points: p.points,
+        flags: p.flags.0,
+        ground_z: p.ground_z,
+        centroid: p.centroid,
+        center: p.center,
+        yaw: p.yaw,
+        length: p.length,
+        width: p.width,
+        bottom: p.bottom,
+        height: p.height,
+    }
 }
 
 #[cfg(test)]

@@ -1,7 +1,7 @@
-//! groundwork-service: the zero-copy shared-memory service. Three stages — producer,
-//! segmenter, consumer — each its own process, exchanging scans and masks over iceoryx2
-//! publish-subscribe topics (see `groundwork-msg`), woken by iceoryx2 events; the detector
-//! stage ([`detector`]) turns scans and masks into object proposals.
+//! groundwork-service: the zero-copy shared-memory service. Four stages — producer,
+//! segmenter, detector, consumer — each its own process, exchanging scans, masks and
+//! proposals over iceoryx2 publish-subscribe topics (see `groundwork-msg`), woken by
+//! iceoryx2 events.
 
 pub mod awake;
 pub mod config;

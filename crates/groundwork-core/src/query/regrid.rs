@@ -18,10 +18,11 @@
 
 use rayon::prelude::*;
 
-use super::{EMPTY, LANES, Move, NEAR, QComp, QueryFrame, QueryTable, Vf, answering_segment};
+use super::{EMPTY, LANES, Move, QComp, QueryFrame, QueryTable, Vf, answering_segment};
 use crate::config::BeyondRangePolicy;
 use crate::simd::Vi;
 use crate::zones::LaneBinner;
+use crate::zones::NEAR;
 use wide::bytemuck::cast;
 use wide::f64x4 as F64x4;
 

@@ -1,0 +1,399 @@
+//! The command line: every command's arguments (clap).
+
+use std::path::PathBuf;
+
+use clap::{Parser, Subcommand, ValueEnum};
+
+use crate::methods::MethodArg;
+
+#[derive(Parser, Debug)]
+#[command(name = "groundwork", version, about = "GMM LiDAR ground segmentation")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Common {
+    /// Sensor preset (`groundwork sensors` lists them). Default: the service
+    /// configuration's `sensor`, else hdl64e.
+    #[arg(long)]
+    pub sensor: Option<String>,
+    /// Configuration file (TOML) laid over the sensor preset: every field it gives
+    /// replaces the preset's.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Multi-frame history length N_f (1 = single frame); overrides the config.
+    #[arg(long)]
+    pub frames: Option<u32>,
+    /// KITTI poses.txt (default: <sequence>/poses.txt if present).
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// KITTI calib.txt with Tr (default: <sequence>/calib.txt if present).
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// PointCloud2 topic of MCAP recordings (default: the first point cloud topic).
+    #[arg(long)]
+    pub topic: Option<String>,
+}
+
+/// The sensor and configuration alone, for commands that take one scan or scans one at a
+/// time (no history, no poses, no recordings).
+#[derive(clap::Args, Debug)]
+pub struct SensorArgs {
+    /// Sensor preset (`groundwork sensors` lists them). Default: hdl64e.
+    #[arg(long)]
+    pub sensor: Option<String>,
+    /// Configuration file (TOML) laid over the sensor preset: every field it gives
+    /// replaces the preset's.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+impl From<SensorArgs> for Common {
+    fn from(s: SensorArgs) -> Self {
+        Self {
+            sensor: s.sensor,
+            config: s.config,
+            frames: None,
+            poses: None,
+            calib: None,
+            topic: None,
+        }
+    }
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct ServiceArgs {
+    /// Service configuration (TOML). Default: the built-in config/service.toml.
+    #[arg(long)]
+    pub service: Option<PathBuf>,
+    /// Service name prefix; overrides the configuration (run pipelines side by side).
+    #[arg(long)]
+    pub prefix: Option<String>,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run producer, segmenter, detector and consumer as four processes (three with
+    /// --no-detector) on the bundled scans or --data.
+    /// Stops cleanly on Ctrl-C, or after --count scans.
+    Pipeline(PipelineArgs),
+    /// Stage: publish scans from a folder (looping) or synthetic scans.
+    Producer(ProducerArgs),
+    /// Stage: segment scans into masks, keeping the multi-frame history.
+    Segmenter(SegmenterArgs),
+    /// Stage: turn scans and masks into object proposals on <prefix>/proposals.
+    Detector(DetectorArgs),
+    /// Stage: read scans and masks, report latency, accuracy and counters.
+    Consumer(ConsumerArgs),
+    /// List the sensor presets (`--sensor NAME`): mount, ranges, limits.
+    Sensors,
+    /// Generate a labeled synthetic sequence in the KITTI layout (velodyne/*.bin,
+    /// labels/*.label with class and instance ids, poses.txt, calib.txt), which segment
+    /// and eval read like the bundled one.
+    Synth(SynthArgs),
+    /// Print the shared memory (MiB) one pipeline with this service configuration may need
+    /// at worst: the `/dev/shm` size a container must get (`docker run --shm-size`).
+    ShmSize(ShmSizeArgs),
+    /// Segment scans: writes <out>/<scan>.prob (f32 per point) and <out>/<scan>.ground (u8),
+    /// or, for --out X.mcap, one recording with a ground_probability field.
+    Segment(SegmentArgs),
+    /// Object proposals (the fallback detector): segments each scan, removes the ground,
+    /// clusters the rest. Writes <out>/<scan>.proposals.json and <out>/<scan>.clusters (u32
+    /// proposal id per point, 0 = none); with instance labels beside the scans, reports the
+    /// labeled objects found.
+    Detect(DetectArgs),
+    /// A bird's-eye PNG of one scan: ground by height or probability (or errors against
+    /// labels with --compare), non-ground grey, proposals as boxes with ids, scale bar,
+    /// sensor.
+    Render(RenderArgs),
+    /// Evaluate against SemanticKITTI labels: per scan and pooled metrics, plus speed.
+    Eval(EvalArgs),
+    /// Label a whole dataset offline (PseudoLabeler by default): <out>/<scan>.prob and
+    /// .ground per scan, in parallel across scans, resumable, shardable across machines
+    /// (`--shard i/n`), with a summary JSON.
+    Label(LabelArgs),
+}
+
+/// Arguments of `groundwork pipeline`.
+#[derive(clap::Args, Debug)]
+pub struct PipelineArgs {
+    #[command(flatten)]
+    pub common: Common,
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    /// Scans to replay (looping): a folder of scans or an MCAP recording; default: the
+    /// bundled KITTI sequence.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Stop after this many scans (default: run until Ctrl-C).
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Producer rate, scans per second (0 = as fast as possible).
+    #[arg(long)]
+    pub rate: Option<f64>,
+    /// Consumer writes .prob/.ground files into this folder, or one recording
+    /// (PointCloud2 with ground_probability) to a path ending in .mcap.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Start a stage that dies (killed, crashed) again, up to this many times per
+    /// stage; each restart is logged and counted. Default 0: a dead stage stops the
+    /// pipeline, which then exits non-zero.
+    #[arg(long, default_value_t = 0)]
+    pub restart: u32,
+    /// Leave out the detector stage (object proposals on <prefix>/proposals).
+    #[arg(long)]
+    pub no_detector: bool,
+}
+
+/// Arguments of `groundwork producer`.
+#[derive(clap::Args, Debug)]
+pub struct ProducerArgs {
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    /// Stop after this many scans.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Scans per second (0 = as fast as possible); overrides the configuration.
+    #[arg(long)]
+    pub rate: Option<f64>,
+    /// Publish generated scans of this many points instead of files.
+    #[arg(long, conflicts_with = "data")]
+    pub synthetic: Option<usize>,
+    /// Fault testing: every N-th scan is malformed (NaN, empty, bad schema, bad count).
+    #[arg(long)]
+    pub malformed_every: Option<u64>,
+    /// After --count scans, stay this many seconds (`inf`: until stopped) so that
+    /// subscribers can still read the last ones (a leaving publisher takes its queued
+    /// scans with it).
+    #[arg(long, default_value_t = 0.0)]
+    pub linger: f64,
+    /// PointCloud2 topic of a recording (default: its first point cloud topic).
+    #[arg(long)]
+    pub topic: Option<String>,
+    /// Folder of scans or MCAP recording to replay (a recording at its recorded rate
+    /// unless --rate is given); default: the bundled KITTI sequence.
+    pub data: Option<PathBuf>,
+}
+
+/// Arguments of `groundwork segmenter`.
+#[derive(clap::Args, Debug)]
+pub struct SegmenterArgs {
+    #[command(flatten)]
+    pub common: Common,
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    /// Stop after this many scans.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Transport benchmark: answer with masks of the right size without segmenting.
+    #[arg(long)]
+    pub echo: bool,
+}
+
+/// Arguments of `groundwork detector`.
+#[derive(clap::Args, Debug)]
+pub struct DetectorArgs {
+    #[command(flatten)]
+    pub common: Common,
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    /// Stop after this many masks.
+    #[arg(long)]
+    pub count: Option<u64>,
+}
+
+/// Arguments of `groundwork consumer`.
+#[derive(clap::Args, Debug)]
+pub struct ConsumerArgs {
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    /// Stop after this many masks.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Stop when no mask arrived for this many seconds (after the first).
+    #[arg(long)]
+    pub idle_timeout: Option<f64>,
+    /// Sequence folder with labels/ for live accuracy.
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Write .prob/.ground files into this folder, or one recording (PointCloud2 with
+    /// ground_probability, topic /points) to a path ending in .mcap.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Write the final report as JSON here.
+    #[arg(long)]
+    pub report_json: Option<PathBuf>,
+    /// Fault testing: after this many masks stop reading for --stall-secs.
+    #[arg(long)]
+    pub stall_after: Option<u64>,
+    /// Seconds to stall.
+    #[arg(long, default_value_t = 0.0)]
+    pub stall_secs: f64,
+    /// Leave the first N segmented masks out of the latency figures (first touches of
+    /// shared memory, cold caches).
+    #[arg(long, default_value_t = 0)]
+    pub warmup: u64,
+}
+
+/// Arguments of `groundwork synth`.
+#[derive(clap::Args, Debug)]
+pub struct SynthArgs {
+    /// Sensor preset whose beam pattern and mount the scans are taken with.
+    #[arg(long, default_value = "hdl64e")]
+    pub sensor: String,
+    /// Configuration laid over the preset: its sensor.mount is the mount the scans are
+    /// taken with (a tilted or low sensor).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Scene: urban, offroad or parking.
+    #[arg(long, default_value = "urban")]
+    pub scene: String,
+    /// Frames to generate.
+    #[arg(long, default_value_t = 10)]
+    pub frames: usize,
+    /// Seed of the layout and the sensor noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Arguments of `groundwork shm-size`.
+#[derive(clap::Args, Debug)]
+pub struct ShmSizeArgs {
+    #[command(flatten)]
+    pub service: ServiceArgs,
+}
+
+/// Arguments of `groundwork segment`.
+#[derive(clap::Args, Debug)]
+pub struct SegmentArgs {
+    #[command(flatten)]
+    pub common: Common,
+    /// Method: gmm (online, history), pseudolabeler (offline, slow, accurate) or ransac.
+    #[arg(long, value_enum, default_value_t = MethodArg::Gmm)]
+    pub method: MethodArg,
+    /// Output folder of .prob/.ground files (created if missing), or a path ending in
+    /// .mcap: one recording with a ground_probability field per point.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Scan files, folders of scans (a sequence folder with velodyne/ works too), or
+    /// MCAP recordings.
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+}
+
+/// Arguments of `groundwork detect`.
+#[derive(clap::Args, Debug)]
+pub struct DetectArgs {
+    #[command(flatten)]
+    pub common: Common,
+    /// Ground segmentation method.
+    #[arg(long, value_enum, default_value_t = MethodArg::Gmm)]
+    pub method: MethodArg,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Scan files, or folders of scans (a sequence folder with velodyne/ works too).
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+}
+
+/// Arguments of `groundwork render`.
+#[derive(clap::Args, Debug)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub sensor: SensorArgs,
+    /// The scan.
+    pub scan: PathBuf,
+    /// Its .prob file (default: segment it with --method).
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    /// Method when no mask is given.
+    #[arg(long, value_enum, default_value_t = MethodArg::Gmm)]
+    pub method: MethodArg,
+    /// Its .proposals.json, drawn as boxes.
+    #[arg(long, conflicts_with = "detect")]
+    pub proposals: Option<PathBuf>,
+    /// Run the detector and draw its proposals.
+    #[arg(long)]
+    pub detect: bool,
+    /// Colour true/false ground and missed ground against labels (gmm protocol).
+    #[arg(long)]
+    pub compare: bool,
+    /// Label file for --compare (default: labels/<stem>.label beside velodyne/).
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Ground colouring.
+    #[arg(long, value_enum, default_value_t = crate::render::ColourArg::Height)]
+    pub colour: crate::render::ColourArg,
+    /// Half the picture's side, metres.
+    #[arg(long, default_value_t = 40.0)]
+    pub range: f32,
+    /// Metres per pixel.
+    #[arg(long, default_value_t = 0.08)]
+    pub resolution: f32,
+    /// The PNG to write.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Arguments of `groundwork eval`.
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    #[command(flatten)]
+    pub common: Common,
+    /// Methods to score on the same scans (comma-separated or repeated): gmm,
+    /// pseudolabeler, ransac; several are printed side by side.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "gmm")]
+    pub method: Vec<MethodArg>,
+    /// Sequence folder with velodyne/ and labels/ (poses.txt, calib.txt optional), a
+    /// folder of scans, or an MCAP recording.
+    pub sequence: PathBuf,
+    /// Folder of .label files (default: <sequence>/labels). For a recording, the
+    /// index-th message's labels are <index:06>.label.
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Label layout and ground classes: semantickitti, nuscenes, rellis (built-in maps,
+    /// config/labels/) or the path of a map file for another dataset.
+    #[arg(long, default_value = "semantickitti")]
+    pub labels_format: String,
+    /// Label protocol: gmm (vegetation ignored) or terraseg (vegetation is non-ground).
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Gmm)]
+    pub protocol: ProtocolArg,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `groundwork label`.
+#[derive(clap::Args, Debug)]
+pub struct LabelArgs {
+    #[command(flatten)]
+    pub sensor: SensorArgs,
+    /// Per-scan method (the GMM keeps a history over scans in order: use `segment`).
+    #[arg(long, value_enum, default_value_t = crate::label::LabelMethod::Pseudolabeler)]
+    pub method: crate::label::LabelMethod,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Label only shard i of n (0-based): scans whose place in the sorted list is i
+    /// modulo n. Every scan is in exactly one shard.
+    #[arg(long, value_parser = crate::label::parse_shard)]
+    pub shard: Option<crate::label::Shard>,
+    /// Label again even scans whose outputs are complete.
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Scan files or folders of scans (a sequence folder with velodyne/ works too).
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+}
+
+#[derive(Copy, Clone, Debug, ValueEnum)]
+pub enum ProtocolArg {
+    Gmm,
+    Terraseg,
+}

@@ -1,0 +1,146 @@
+//! What the commands share: configuration loading, inputs and outputs of offline runs,
+//! progress bars.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use groundwork_core::SegmenterConfig;
+use groundwork_eval::Sequence;
+use groundwork_service::ServiceConfig;
+use indicatif::{ProgressBar, ProgressStyle};
+use tracing::error;
+
+use crate::args::{Common, ServiceArgs};
+
+/// The built-in service configuration (`config/service.toml`).
+pub const DEFAULT_SERVICE: &str = include_str!("../../../config/service.toml");
+/// The bundled sample scans (this checkout's copy).
+pub const BUNDLED_DATA: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../tests/data/semantickitti-00"
+);
+
+pub fn load_service(args: &ServiceArgs) -> Result<ServiceConfig> {
+    let mut cfg = match &args.service {
+        Some(p) => ServiceConfig::load(p)?,
+        None => toml::from_str(DEFAULT_SERVICE).context("built-in config/service.toml")?,
+    };
+    if let Some(p) = &args.prefix {
+        cfg.prefix = p.clone();
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+/// The segmenter configuration: the named preset (`--sensor`, else the service's, else
+/// hdl64e), the `--config` file over it, then `--frames`.
+pub fn load(common: &Common, service_sensor: Option<&str>) -> Result<SegmenterConfig> {
+    Ok(load_methods(common, service_sensor)?.segmenter)
+}
+
+/// The whole configuration (segmenter and method sections) the common options describe.
+pub fn load_methods(
+    common: &Common,
+    service_sensor: Option<&str>,
+) -> Result<groundwork_io::MethodsConfig> {
+    let sensor = common.sensor.as_deref().or(service_sensor);
+    let mut cfg = groundwork_io::load_methods_config_over(sensor, common.config.as_deref())?;
+    if let Some(n) = common.frames {
+        cfg.segmenter.history.frames = n;
+        cfg.segmenter.validate().context("--frames")?;
+    }
+    Ok(cfg)
+}
+
+/// Opens each input (a scan file, a folder or a recording; a folder may carry poses for
+/// history) as a sequence. An input that cannot be used is reported and counted, and the
+/// others still run: the sequences, and how many inputs were skipped.
+pub fn open_inputs(
+    inputs: &[PathBuf],
+    poses: Option<&Path>,
+    calib: Option<&Path>,
+    topic: Option<&str>,
+) -> (Vec<Sequence>, usize) {
+    let mut skipped = 0;
+    let mut sequences = Vec::new();
+    for path in inputs {
+        match Sequence::open(path, poses, calib) {
+            Ok(seq) => sequences.push(seq.with_topic(topic.map(str::to_owned))),
+            Err(e) => {
+                skipped += 1;
+                error!("skipped: {e}");
+            }
+        }
+    }
+    (sequences, skipped)
+}
+
+/// The output of an offline run, refused before anything is written where it would destroy
+/// an input (`--out rec.mcap rec.mcap`) or where two inputs' scans would write the same
+/// files of a folder (`000000.bin` in two folders): outputs are never overwritten in
+/// silence.
+pub fn create_output(
+    out: &Path,
+    inputs: &[PathBuf],
+    sequences: &[Sequence],
+) -> Result<groundwork_io::OutputTarget> {
+    let is_recording = out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+    if !is_recording {
+        let sources: Vec<_> = sequences.iter().map(|s| &s.source).collect();
+        groundwork_io::check_output_names(&sources)?;
+    }
+    let mut files: Vec<PathBuf> = inputs.to_vec();
+    for s in sequences {
+        if let groundwork_io::ScanSource::Files(f) = &s.source {
+            files.extend(f.iter().cloned());
+        }
+    }
+    Ok(groundwork_io::OutputTarget::create(out, &files)?)
+}
+
+pub fn progress(len: usize, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len as u64);
+    pb.set_style(progress_style(
+        "{msg} [{bar:30}] {pos}/{len} scans, {rate}, eta {eta}",
+    ));
+    pb.set_message(what.to_string());
+    pb
+}
+
+/// A progress bar style whose `{rate}` is scans per second to one decimal (indicatif's
+/// `{per_sec}` prints four).
+pub fn progress_style(template: &str) -> ProgressStyle {
+    ProgressStyle::with_template(template)
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .with_key(
+            "rate",
+            |s: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = write!(w, "{:.1} scans/s", s.per_sec());
+            },
+        )
+        .progress_chars("=> ")
+}
+
+/// The header a scan read from a file would carry in the service: its input is its
+/// producer run, its place among all scans its sequence number.
+pub fn offline_header(
+    pose: Option<&groundwork_core::Pose>,
+    input: usize,
+    k: usize,
+    points: usize,
+) -> groundwork_msg::ScanHeader {
+    let mut h = groundwork_msg::ScanHeader {
+        point_count: u32::try_from(points).unwrap_or(u32::MAX),
+        sequence: k as u64,
+        producer_epoch: input as u64 + 1,
+        source_index: k as u64,
+        ..Default::default()
+    };
+    if let Some(p) = pose {
+        h.has_pose = 1;
+        h.pose = groundwork_service::producer::pose_matrix(p);
+    }
+    h
+}

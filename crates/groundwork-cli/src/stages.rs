@@ -1,0 +1,262 @@
+//! The service commands: `pipeline` (all stages, supervised), the four stages one by one,
+//! and `shm-size`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use groundwork_service::{check_shared_memory, consumer, launcher, producer, segmenter};
+use tracing::{error, info};
+
+use crate::args::{
+    Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, SegmenterArgs, ServiceArgs,
+    ShmSizeArgs,
+};
+use crate::common::{BUNDLED_DATA, load, load_methods, load_service};
+
+/// `groundwork pipeline`.
+pub fn pipeline_command(a: PipelineArgs) -> Result<ExitCode> {
+    pipeline(
+        &a.common,
+        &a.service,
+        &PipelineRun {
+            data: a.data,
+            count: a.count,
+            rate: a.rate,
+            out: a.out,
+            restart: a.restart,
+            detector: !a.no_detector,
+        },
+    )
+}
+
+/// `groundwork producer`.
+pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    anyhow::ensure!(
+        a.linger >= 0.0,
+        "--linger {}: must be ≥ 0 seconds or inf",
+        a.linger
+    );
+    let linger = Duration::try_from_secs_f64(a.linger).unwrap_or(Duration::MAX);
+    let source = match a.synthetic {
+        Some(n) => producer::Source::Synthetic(n),
+        None => producer::Source::from_path(a.data.unwrap_or_else(|| BUNDLED_DATA.into()), a.topic),
+    };
+    let r = producer::run(
+        &cfg,
+        &producer::ProducerOptions {
+            source,
+            count: a.count,
+            rate_hz: a.rate,
+            malformed_every: a.malformed_every,
+            linger,
+        },
+    )?;
+    // Report, count, go on, and say so at the end.
+    Ok(if r.skipped_files.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// `groundwork segmenter`.
+pub fn segmenter(a: SegmenterArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    segmenter::run(
+        &cfg,
+        &segmenter::SegmenterOptions {
+            segmenter: load(&a.common, cfg.sensor.as_deref())?,
+            count: a.count,
+            echo: a.echo,
+        },
+    )?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `groundwork detector`.
+pub fn detector(a: DetectorArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    let methods = load_methods(&a.common, cfg.sensor.as_deref())?;
+    groundwork_service::detector::run(
+        &cfg,
+        &groundwork_service::detector::DetectorOptions {
+            segmenter: methods.segmenter,
+            detector: methods.detector,
+            count: a.count,
+        },
+    )?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `groundwork consumer`.
+pub fn consumer(a: ConsumerArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    let secs = |s: f64| Duration::try_from_secs_f64(s).context("seconds must be finite and >= 0");
+    let report = consumer::run(
+        &cfg,
+        &consumer::ConsumerOptions {
+            count: a.count,
+            idle_timeout: a.idle_timeout.map(secs).transpose()?,
+            labels: a.labels,
+            out: a.out,
+            report_json: a.report_json,
+            stall_after: a.stall_after,
+            stall: secs(a.stall_secs)?,
+            warmup: a.warmup,
+        },
+    )?;
+    // Asked to write and could not: the run did not do what it was asked.
+    Ok(if report.write_failures > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// `groundwork shm-size`.
+pub fn shm_size(a: ShmSizeArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    // Round up, and leave room for iceoryx2's management segments.
+    println!("{}m", (cfg.shared_memory_estimate() >> 20) + 1 + 16);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// What `pipeline` runs, beyond the common and service options.
+#[derive(Debug)]
+pub struct PipelineRun {
+    data: Option<PathBuf>,
+    count: Option<u64>,
+    rate: Option<f64>,
+    out: Option<PathBuf>,
+    restart: u32,
+    /// Start the detector stage too.
+    detector: bool,
+}
+
+pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result<ExitCode> {
+    let PipelineRun {
+        data,
+        count,
+        rate,
+        out,
+        restart,
+        detector,
+    } = run;
+    let (count, rate, restart) = (*count, *rate, *restart);
+    // Validate everything here, before any process starts.
+    let cfg = load_service(service)?;
+    let seg_cfg = load(common, cfg.sensor.as_deref())?;
+    anyhow::ensure!(
+        seg_cfg.sensor.max_points <= cfg.max_points,
+        "sensor {} takes scans of up to {} points, but the service's shared memory is sized for {} (raise max_points in the service configuration)",
+        seg_cfg.sensor.name,
+        seg_cfg.sensor.max_points,
+        cfg.max_points
+    );
+    check_shared_memory(&cfg)?;
+    if let Some(r) = rate {
+        groundwork_service::config::check_rate("--rate", r)?;
+    }
+    let data = data.clone().unwrap_or_else(|| BUNDLED_DATA.into());
+    anyhow::ensure!(
+        data.exists(),
+        "{}: no such folder or recording",
+        data.display()
+    );
+    if let Some(o) = &out {
+        groundwork_io::check_not_an_input(o, std::slice::from_ref(&data))?;
+    }
+    let exe = std::env::current_exe().context("cannot find this executable")?;
+    let stage = |name: &'static str| {
+        let mut c = std::process::Command::new(&exe);
+        c.arg(name).arg("--prefix").arg(&cfg.prefix);
+        if let Some(s) = &service.service {
+            c.arg("--service").arg(s);
+        }
+        c
+    };
+    // The segmenter and the detector read the same sensor and configuration.
+    let configured = |name: &'static str| {
+        let mut c = stage(name);
+        if let Some(s) = &common.sensor {
+            c.arg("--sensor").arg(s);
+        }
+        if let Some(f) = &common.config {
+            c.arg("--config").arg(f);
+        }
+        c
+    };
+    let mut seg = configured("segmenter");
+    if let Some(f) = common.frames {
+        seg.arg("--frames").arg(f.to_string());
+    }
+    let mut con = stage("consumer");
+    if data.is_dir() {
+        con.arg("--labels").arg(&data);
+    }
+    if let Some(n) = count {
+        con.arg("--count")
+            .arg(n.to_string())
+            .arg("--idle-timeout")
+            .arg("5");
+    }
+    if let Some(o) = &out {
+        con.arg("--out").arg(o);
+    }
+    let mut prod = stage("producer");
+    if let Some(n) = count {
+        // The producer stays until the pipeline stops: the consumer reads the last scans
+        // (and counts them) after the producer has published them all.
+        prod.arg("--count")
+            .arg(n.to_string())
+            .arg("--linger")
+            .arg("inf");
+    }
+    if let Some(r) = rate {
+        prod.arg("--rate").arg(r.to_string());
+    }
+    if let Some(t) = &common.topic {
+        prod.arg("--topic").arg(t);
+    }
+    prod.arg(&data);
+    let mut stages = vec![launcher::Stage {
+        name: "segmenter",
+        command: seg,
+    }];
+    if *detector {
+        stages.push(launcher::Stage {
+            name: "detector",
+            command: configured("detector"),
+        });
+    }
+    stages.push(launcher::Stage {
+        name: "consumer",
+        command: con,
+    });
+    stages.push(launcher::Stage {
+        name: "producer",
+        command: prod,
+    });
+    let outcome = launcher::run(&cfg, stages, "consumer", restart)?;
+    for s in &outcome.stages {
+        match &s.failure {
+            Some(f) => error!(stage = s.name, restarts = s.restarts, "failed: {f}"),
+            None => info!(
+                stage = s.name,
+                restarts = s.restarts,
+                "stage stopped: {}",
+                s.status
+                    .as_ref()
+                    .map_or("status unknown".into(), launcher::describe)
+            ),
+        }
+    }
+    Ok(if outcome.success() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
