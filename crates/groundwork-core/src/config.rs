@@ -7,10 +7,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigError;
 
-/// Complete configuration of one segmenter instance.
 /// Upper bound on the zone model's segment count.
 pub const MAX_SEGMENTS: u64 = 1 << 20;
 
+/// Complete configuration of one segmenter instance.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields, default)]
 pub struct SegmenterConfig {

@@ -9,6 +9,33 @@
 //!    ([`likelihood`], [`height_filter`]);
 //! 5. query: a ground probability per input point, in input order, optionally over the
 //!    last N_f fitted frames ([`query`], [`Segmenter`]).
+//!
+//! ```
+//! use groundwork_core::{Point, Segmenter, SegmenterConfig};
+//!
+//! // A flat road 1.73 m below the sensor (the KITTI mount) and a wall 10 m ahead.
+//! let mut cfg = SegmenterConfig::default();
+//! cfg.sensor.mount.height = 1.73;
+//! let mut points = Vec::new();
+//! for i in 0..200 {
+//!     for j in 0..60 {
+//!         points.push(Point::new(3.0 + i as f32 * 0.2, -6.0 + j as f32 * 0.2, -1.73));
+//!     }
+//! }
+//! for k in 0..400 {
+//!     points.push(Point::new(10.0, -2.0 + (k % 20) as f32 * 0.2, -1.5 + (k / 20) as f32 * 0.1));
+//! }
+//! let mut segmenter = Segmenter::new(cfg)?;
+//! let mut probabilities = vec![0.0f32; points.len()];
+//! segmenter.segment(&points, None, &mut probabilities)?;
+//! let threshold = segmenter.config().ground.ground_threshold;
+//! // The road is ground, the wall's upper part is not.
+//! assert!(probabilities[..12_000].iter().filter(|&&p| p >= threshold).count() > 11_000);
+//! assert!(probabilities[12_000 + 200..].iter().all(|&p| p < threshold));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+#![warn(missing_docs)]
 
 pub mod config;
 pub mod cpu;

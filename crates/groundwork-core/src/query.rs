@@ -10,7 +10,7 @@
 //! anchor's frame, and skips the components a bound shows negligible for a whole vector.
 //!
 //! Implementation: the points are grouped by their segment in the query scan (with the
-//! fit's groups, see [`crate::grouping`]). Each run is evaluated 16 points per SIMD
+//! fit's groups, see the `grouping` module). Each run is evaluated 16 points per SIMD
 //! vector, and each vector against every frame while it stays in registers: against its
 //! own segment's components for the query scan's model; for a past frame the vector is
 //! moved into that frame, binned there and evaluated against each distinct segment it

@@ -1,3 +1,5 @@
+//! The one error type of the formats: every message names the file and the problem.
+
 use std::path::{Path, PathBuf};
 
 use thiserror::Error;

@@ -2,6 +2,26 @@
 //! PLY), ROS 2 recordings (MCAP PointCloud2), SemanticKITTI labels, KITTI poses and
 //! calibration, `.prob`/`.ground` outputs, TOML configuration. Every error names the file
 //! and the problem.
+//!
+//! ```
+//! use std::path::Path;
+//!
+//! // Any scan file: the reader is chosen from the file (here a KITTI .bin).
+//! let bin = Path::new("../../tests/data/semantickitti-00/velodyne/000000.bin");
+//! let scan = groundwork_io::read_scan(bin, 200_000)?;
+//! assert_eq!(scan.points.len(), 124_668);
+//! // One probability per point out, in input order.
+//! let dir = tempfile::tempdir()?;
+//! let probabilities = vec![0.75f32; scan.points.len()];
+//! groundwork_io::write_outputs(dir.path(), "000000", &probabilities, 0.5)?;
+//! assert_eq!(groundwork_io::read_prob(&dir.path().join("000000.prob"))?, probabilities);
+//! // A file that is not what it claims is an error naming it.
+//! let e = groundwork_io::read_scan(Path::new("Cargo.toml"), 10).unwrap_err();
+//! assert!(e.to_string().contains("Cargo.toml"));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+#![warn(missing_docs)]
 
 pub mod config;
 pub mod error;

@@ -11,6 +11,25 @@
 //! - `proposals`: payload `[u32]` (the detector's proposal id per point, scan order, 0 for
 //!   none), header [`ProposalsHeader`] with up to [`MAX_PROPOSALS`] fixed-size
 //!   [`ProposalRecord`]s.
+//!
+//! A message is a `#[repr(C)]` header and a slice, written in place into iceoryx2's shared
+//! memory. Every header starts with [`SCHEMA_VERSION`]: a reader refuses (and counts) a
+//! message of another layout, and any change of a layout bumps it.
+//!
+//! ```
+//! use groundwork_msg::{MaskHeader, MaskStatus, SCHEMA_VERSION, ScanHeader, ScanPoint};
+//!
+//! let scan = ScanHeader { sequence: 7, point_count: 2, ..ScanHeader::default() };
+//! assert_eq!(scan.schema_version, SCHEMA_VERSION);
+//! assert_eq!(scan.has_pose, 0, "no pose unless one is set");
+//! let points = [ScanPoint { x: 5.0, y: 0.0, z: -1.7, intensity: 0.3 }; 2];
+//! let mask = MaskHeader { scan_sequence: scan.sequence, point_count: points.len() as u32, ..MaskHeader::default() };
+//! assert_eq!(mask.status, MaskStatus::OK);
+//! // 16 bytes per point: the KITTI .bin layout, copied into shared memory as it is.
+//! assert_eq!(std::mem::size_of_val(&points), 32);
+//! ```
+
+#![warn(missing_docs)]
 
 use iceoryx2::prelude::ZeroCopySend;
 
