@@ -490,6 +490,21 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
         stdout.contains("detector: ") && stdout.contains("\ndetect "),
         "{stdout}"
     );
+    // Each stage's CPU time per scan, beside the latency it buys.
+    let cpu = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("CPU per scan, ms: "))
+        .unwrap_or_else(|| panic!("no CPU line: {stdout}"));
+    let ms = |stage: &str| -> f64 {
+        cpu.split(", ")
+            .find_map(|e| e.strip_prefix(&format!("{stage} ")))
+            .unwrap_or_else(|| panic!("no {stage} in {cpu}"))
+            .parse()
+            .unwrap()
+    };
+    // Segmenting 124k points takes milliseconds of CPU; publishing them far less.
+    assert!(ms("segmenter") > 1.0 && ms("detector") > 0.5, "{cpu}");
+    assert!(ms("producer") < ms("segmenter"), "{cpu}");
     // The consumer counted every proposal the detector published (its last ones come
     // after the last mask).
     let published = logged(&stderr, "detector stopped", "proposals");

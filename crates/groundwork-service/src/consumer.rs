@@ -123,6 +123,9 @@ pub struct ConsumerReport {
     pub write_failures: u64,
     /// Wall time from first to last mask, s.
     pub seconds: f64,
+    /// CPU time (user + system) per segmented scan of each stage's process, ms, from the
+    /// first mask to the end (a restarted stage is left out).
+    pub cpu_ms_per_scan: BTreeMap<String, f64>,
 }
 
 /// Scans remembered for pairing; older ones count as unanswered.
@@ -435,6 +438,14 @@ pub fn summary(r: &ConsumerReport, stats: &str) -> String {
         ));
     }
     s.push_str(stats);
+    if !r.cpu_ms_per_scan.is_empty() {
+        let per: Vec<String> = r
+            .cpu_ms_per_scan
+            .iter()
+            .map(|(stage, ms)| format!("{stage} {ms:.2}"))
+            .collect();
+        s.push_str(&format!("CPU per scan, ms: {}\n", per.join(", ")));
+    }
     if let Some(m) = r.accuracy {
         s.push_str(&format!(
             "live accuracy (gmm protocol, labeled scans): precision {:.2} recall {:.2} F1 {:.2} ground IoU {:.2}\n",
@@ -482,6 +493,8 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
     // The subscribers exist from here on.
     stage.listening_since(groundwork_msg::new_epoch());
     let mut first: Option<Instant> = None;
+    // Each stage's CPU time at the first mask, and the scans segmented by then.
+    let mut cpu_start: Option<(crate::cpu::CpuSnapshot, u64)> = None;
     let mut last_mask = Instant::now();
     let mut stalled = false;
 
@@ -533,6 +546,9 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
         if stage.report().masks > before {
             last_mask = Instant::now();
             first.get_or_insert_with(Instant::now);
+            if cpu_start.is_none() {
+                cpu_start = Some((crate::cpu::CpuSnapshot::take(cfg), stage.report().segmented));
+            }
         }
         if last_report.elapsed() >= interval {
             last_report = Instant::now();
@@ -563,7 +579,12 @@ pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Consum
         }
     }
     let table = stage.stats().table();
-    let report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));
+    let cpu_end = crate::cpu::CpuSnapshot::take(cfg);
+    let segmented = stage.report().segmented;
+    let mut report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));
+    if let Some((start, at)) = cpu_start {
+        report.cpu_ms_per_scan = start.per_scan(&cpu_end, segmented.saturating_sub(at));
+    }
     // The machine-readable report first: stdout may be a terminal that is gone (SIGHUP).
     if let Some(p) = &opts.report_json {
         write_report(p, &report)?;

@@ -6,6 +6,7 @@
 pub mod awake;
 pub mod config;
 pub mod consumer;
+pub mod cpu;
 pub mod detector;
 pub mod launcher;
 pub mod producer;
