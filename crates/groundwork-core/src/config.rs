@@ -517,6 +517,15 @@ impl SegmenterConfig {
     }
 }
 
+/// A number as a person writes it: 1e30, not thirty-one digits.
+fn shown(v: f64) -> String {
+    if v != 0.0 && !(1e-3..1e6).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 /// A value in [lo, hi]; NaN and infinities are outside every range.
 fn within(field: &str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), ConfigError> {
     if v.is_finite() && (lo..=hi).contains(&v) {
@@ -524,7 +533,12 @@ fn within(field: &str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), Confi
     }
     Err(ConfigError::invalid(
         field,
-        &format!("{v} is outside its range [{lo}, {hi}]{unit}"),
+        &format!(
+            "{} is outside its range [{}, {}]{unit}",
+            shown(v),
+            shown(lo),
+            shown(hi)
+        ),
     ))
 }
 
@@ -535,7 +549,7 @@ fn positive(field: &str, v: f64, hi: f64, unit: &str) -> Result<(), ConfigError>
     }
     Err(ConfigError::invalid(
         field,
-        &format!("{v} is outside its range (0, {hi}]{unit}"),
+        &format!("{} is outside its range (0, {}]{unit}", shown(v), shown(hi)),
     ))
 }
 

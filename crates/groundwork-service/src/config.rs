@@ -42,9 +42,9 @@ pub struct ServiceConfig {
     pub report_interval_s: f64,
     /// Milliseconds before a periodic scan is due that the segmenter and detector stages
     /// wake their worker threads and keep them spinning until the scan is processed (0:
-    /// never). Cores that idled through a period come back slowly on virtual machines and
-    /// hosts with deep idle states; this costs at most twice this time per period and core
-    /// (see `awake`).
+    /// never, the default). Cores that idled through a period come back slowly on virtual
+    /// machines and hosts with deep idle states: spinning buys latency with CPU, shown per
+    /// scan in the consumer's report (docs/service.md, "Keeping cores awake").
     pub prewarm_ms: f64,
     /// Sensor preset the segmenter stage uses (`groundwork sensors` lists them; absent:
     /// hdl64e). `--sensor` and `--config` of the stage override it.
@@ -63,7 +63,7 @@ impl Default for ServiceConfig {
             max_subscribers: 4,
             rate_hz: 10.0,
             report_interval_s: 2.0,
-            prewarm_ms: 10.0,
+            prewarm_ms: 0.0,
             sensor: None,
         }
     }
