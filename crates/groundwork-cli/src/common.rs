@@ -42,9 +42,9 @@ pub fn load(common: &Common, service_sensor: Option<&str>) -> Result<SegmenterCo
 pub fn load_methods(
     common: &Common,
     service_sensor: Option<&str>,
-) -> Result<groundwork_io::MethodsConfig> {
+) -> Result<groundwork_eval::MethodsConfig> {
     let sensor = common.sensor.as_deref().or(service_sensor);
-    let mut cfg = groundwork_io::load_methods_config_over(sensor, common.config.as_deref())?;
+    let mut cfg = groundwork_eval::load_methods_config_over(sensor, common.config.as_deref())?;
     if let Some(n) = common.frames {
         cfg.segmenter.history.frames = n;
         cfg.segmenter.validate().context("--frames")?;

@@ -7,9 +7,11 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Result, anyhow};
+use groundwork_detect::Proposal;
 use groundwork_detect::{Detections, Detector};
+use groundwork_eval::MethodsConfig;
 use groundwork_eval::{ObjectScore, Sequence, median, score_objects};
-use groundwork_io::{MethodsConfig, OutputTarget, write_detections};
+use groundwork_io::{OutputTarget, write_atomic};
 use tracing::{error, info};
 
 use crate::methods::{self, MethodArg};
@@ -127,6 +129,40 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
         ExitCode::SUCCESS
     })
 }
+/// The frame and units `.proposals.json` states (and docs/detector.md repeats).
+pub const PROPOSALS_FRAME: &str = "ground-aligned sensor frame: x forward, y left, z up, origin on the ground below the sensor (the sensor preset's mount); metres, radians";
+
+/// `<stem>.proposals.json`.
+#[derive(Debug, serde::Serialize)]
+struct ProposalsFile<'a> {
+    scan: &'a str,
+    frame: &'static str,
+    points: usize,
+    proposals: &'a [Proposal],
+}
+
+/// Writes `<dir>/<stem>.proposals.json` (the proposals, their frame and units) and
+/// `<dir>/<stem>.clusters` (one little-endian u32 per point: the proposal id, 0 for ground
+/// and unclustered points), each through a temporary name; `.clusters` is renamed last.
+pub fn write_detections(
+    dir: &Path,
+    stem: &str,
+    proposals: &[Proposal],
+    clusters: &[u32],
+) -> Result<()> {
+    let file = ProposalsFile {
+        scan: stem,
+        frame: PROPOSALS_FRAME,
+        points: clusters.len(),
+        proposals,
+    };
+    let path = dir.join(format!("{stem}.proposals.json"));
+    let json = serde_json::to_vec_pretty(&file)?;
+    write_atomic(&path, &json)?;
+    let ids: Vec<u8> = clusters.iter().flat_map(|c| c.to_le_bytes()).collect();
+    Ok(write_atomic(&dir.join(format!("{stem}.clusters")), &ids)?)
+}
+
 /// `groundwork detect`.
 pub fn command(a: crate::args::DetectArgs) -> Result<ExitCode> {
     run(&DetectJob {

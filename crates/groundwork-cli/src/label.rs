@@ -11,7 +11,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use groundwork_core::{Point, SegmentError};
-use groundwork_io::{InputKind, MethodsConfig, outputs_complete, read_scan, scan_stem};
+use groundwork_eval::MethodsConfig;
+use groundwork_io::{InputKind, outputs_complete, read_scan, scan_stem};
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
 use indicatif::ProgressBar;
 use rayon::prelude::*;

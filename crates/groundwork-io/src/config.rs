@@ -4,8 +4,6 @@
 use std::path::{Path, PathBuf};
 
 use groundwork_core::SegmenterConfig;
-use groundwork_detect::DetectorConfig;
-use groundwork_pseudolabel::{PseudoLabelerConfig, RansacConfig};
 
 use crate::error::FormatError;
 
@@ -78,21 +76,6 @@ pub fn sensor_preset(name: &str) -> Result<SegmenterConfig, FormatError> {
     parse_config(Path::new(&format!("config/sensors/{name}.toml")), text)
 }
 
-/// Everything a configuration file sets: the sensor and the GMM segmenter (top-level
-/// sections), the offline methods' own sections `[pseudolabeler]` and `[ransac]`, and the
-/// fallback detector's `[detector]` (sensor presets tune it to their beam spacing).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct MethodsConfig {
-    /// Sensor, zones, GMM, ground, height filter, history.
-    pub segmenter: SegmenterConfig,
-    /// `[pseudolabeler]`.
-    pub pseudolabeler: PseudoLabelerConfig,
-    /// `[ransac]`.
-    pub ransac: RansacConfig,
-    /// `[detector]`.
-    pub detector: DetectorConfig,
-}
-
 /// A preset (`DEFAULT_SENSOR` if None) with a config file laid over it: every field the
 /// file gives replaces the preset's, tables merge key by key (a `mount` with `matrix`
 /// replaces the whole mount). Unknown keys in the file are errors naming it.
@@ -100,95 +83,66 @@ pub fn load_config_over(
     preset: Option<&str>,
     path: Option<&Path>,
 ) -> Result<SegmenterConfig, FormatError> {
-    Ok(load_methods_config_over(preset, path)?.segmenter)
+    let (named, table) = load_layers(preset, path, None)?;
+    segmenter_config(&named, table)
 }
 
-/// [`load_config_over`] with the `[pseudolabeler]` and `[ransac]` sections too.
-pub fn load_methods_config_over(
-    preset: Option<&str>,
-    path: Option<&Path>,
-) -> Result<MethodsConfig, FormatError> {
-    load_methods_config_layers(preset, path, None)
-}
-
-/// [`load_methods_config_over`] with one more layer over the file: a table built in code
-/// (the Python API's keyword arguments), named `source` in errors.
-pub fn load_methods_config_layers(
+/// The layers of a configuration merged into one table: the preset (`DEFAULT_SENSOR` if
+/// None), the file at `path` over it, and a table built in code over both (the Python API's
+/// keyword arguments, named `source` in errors). Returns the table and the name errors about
+/// it should carry: the last layer given (only its keys can be wrong: the presets are
+/// tested). Every file's syntax is checked here; the sections' keys by whoever reads them.
+pub fn load_layers(
     preset: Option<&str>,
     path: Option<&Path>,
     overlay: Option<(&str, toml::Table)>,
-) -> Result<MethodsConfig, FormatError> {
+) -> Result<(PathBuf, toml::Table), FormatError> {
     let name = preset.unwrap_or(DEFAULT_SENSOR);
     let base = sensor_preset_text(name)?;
     let preset_path = PathBuf::from(format!("config/sensors/{name}.toml"));
-    if path.is_none() && overlay.is_none() {
-        return parse_methods_config(&preset_path, base);
-    }
-    let config_error = |path: &Path, e: &dyn std::fmt::Display| FormatError::Config {
-        path: path.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
-    };
-    let mut merged: toml::Table =
-        toml::from_str(base).map_err(|e| config_error(&preset_path, &e))?;
-    // Errors name the last layer given (only its keys can be unknown: the presets are
-    // tested).
+    let mut merged = parse_table(&preset_path, base)?;
     let mut named = preset_path;
     if let Some(path) = path {
         let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
-        let overlay: toml::Table = toml::from_str(&text).map_err(|e| config_error(path, &e))?;
-        merge(&mut merged, overlay);
+        merge(&mut merged, parse_table(path, &text)?);
         named = path.to_path_buf();
     }
     if let Some((source, table)) = overlay {
         merge(&mut merged, table);
         named = PathBuf::from(source);
     }
-    split_methods(&named, merged)
+    Ok((named, merged))
 }
 
-/// Deserialises a whole configuration table: the method and detector sections apart, the rest as
-/// the segmenter's (every part rejects unknown keys).
-fn split_methods(path: &Path, mut table: toml::Table) -> Result<MethodsConfig, FormatError> {
-    let config_error = |e: &dyn std::fmt::Display| FormatError::Config {
+/// TOML text as a table; `path` names it in errors.
+pub fn parse_table(path: &Path, text: &str) -> Result<toml::Table, FormatError> {
+    toml::from_str(text).map_err(|e: toml::de::Error| config_error(path, &e))
+}
+
+/// A configuration error naming the file (or layer) it is about.
+pub fn config_error(path: &Path, e: &dyn std::fmt::Display) -> FormatError {
+    FormatError::Config {
         path: path.to_path_buf(),
         message: e.to_string().trim_end().to_string(),
-    };
-    fn section<T: serde::de::DeserializeOwned + Default>(
-        table: &mut toml::Table,
-        name: &str,
-    ) -> Result<T, String> {
-        match table.remove(name) {
-            None => Ok(T::default()),
-            Some(v) => v
-                .try_into()
-                .map_err(|e: toml::de::Error| format!("[{name}]: {}", e.to_string().trim_end())),
-        }
     }
-    let pseudolabeler: PseudoLabelerConfig =
-        section(&mut table, "pseudolabeler").map_err(|e| config_error(&e))?;
-    pseudolabeler.validate().map_err(|e| config_error(&e))?;
-    let ransac: RansacConfig = section(&mut table, "ransac").map_err(|e| config_error(&e))?;
-    ransac.validate().map_err(|e| config_error(&e))?;
-    let detector: DetectorConfig = section(&mut table, "detector").map_err(|e| config_error(&e))?;
-    detector.validate().map_err(|e| config_error(&e))?;
-    let segmenter: SegmenterConfig = table.try_into().map_err(|e| config_error(&e))?;
-    segmenter.validate().map_err(|e| config_error(&e))?;
-    Ok(MethodsConfig {
-        segmenter,
-        pseudolabeler,
-        ransac,
-        detector,
-    })
 }
 
-/// Parses a whole configuration text (sensor, segmenter and method sections); `path` is
-/// only used in error messages.
-pub fn parse_methods_config(path: &Path, text: &str) -> Result<MethodsConfig, FormatError> {
-    let table: toml::Table = toml::from_str(text).map_err(|e| FormatError::Config {
-        path: path.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
-    })?;
-    split_methods(path, table)
+/// The sections of a configuration file that are not the segmenter's: each method reads
+/// and checks its own (`groundwork_eval::MethodsConfig` reads them all).
+pub const METHOD_SECTIONS: [&str; 3] = ["pseudolabeler", "ransac", "detector"];
+
+/// The segmenter's configuration from a whole table: the method sections set aside, the rest
+/// checked (unknown keys, types, ranges); `path` names it in errors.
+pub fn segmenter_config(
+    path: &Path,
+    mut table: toml::Table,
+) -> Result<SegmenterConfig, FormatError> {
+    for section in METHOD_SECTIONS {
+        table.remove(section);
+    }
+    let segmenter: SegmenterConfig = table.try_into().map_err(|e| config_error(path, &e))?;
+    segmenter.validate().map_err(|e| config_error(path, &e))?;
+    Ok(segmenter)
 }
 
 fn merge(base: &mut toml::Table, overlay: toml::Table) {
@@ -211,10 +165,10 @@ pub fn load_config(path: &Path) -> Result<SegmenterConfig, FormatError> {
     parse_config(path, &text)
 }
 
-/// Parses configuration text (method sections are checked, then set aside); `path` is only
-/// used in error messages.
+/// Parses configuration text (method sections set aside); `path` is only used in error
+/// messages.
 pub fn parse_config(path: &Path, text: &str) -> Result<SegmenterConfig, FormatError> {
-    Ok(parse_methods_config(path, text)?.segmenter)
+    segmenter_config(path, parse_table(path, text)?)
 }
 
 #[cfg(test)]
@@ -249,49 +203,6 @@ mod tests {
         let c = parse_config(p, "[gmm]\nk_max = 4\n").unwrap();
         assert_eq!(c.gmm.k_max, 4);
         assert_eq!(c.gmm.n_min, 20, "unspecified fields keep their defaults");
-    }
-
-    #[test]
-    fn method_sections_are_read_and_checked_apart_from_the_segmenter() {
-        let p = Path::new("mine.toml");
-        let c = parse_methods_config(
-            p,
-            "[gmm]\nk_max = 4\n[pseudolabeler]\nseed = 7\nhidden = [16, 16]\n[ransac]\niterations = 50\n",
-        )
-        .unwrap();
-        assert_eq!(c.segmenter.gmm.k_max, 4);
-        assert_eq!(c.pseudolabeler.seed, 7);
-        assert_eq!(c.pseudolabeler.hidden, [16, 16]);
-        assert_eq!(
-            c.pseudolabeler.ground_distance, 0.40,
-            "paper's default kept"
-        );
-        assert_eq!(c.ransac.iterations, 50);
-        let e = parse_methods_config(p, "[pseudolabeler]\nhuber = 0.1\n")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("mine.toml") && e.contains("huber"), "{e}");
-        let e = parse_methods_config(p, "[ransac]\nmax_tilt_deg = 120.0\n")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("ransac.max_tilt_deg"), "{e}");
-        let e = parse_methods_config(p, "[pseudolabeler]\nprefilter_quantile = 0.5e2\n")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("pseudolabeler.prefilter_quantile"), "{e}");
-        let c = parse_methods_config(p, "[detector]\ncluster_distance = 0.4\n").unwrap();
-        assert_eq!(c.detector.cluster_distance, 0.4);
-        let e = parse_methods_config(p, "[detector]\nmin_points = 0\n")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("detector.min_points"), "{e}");
-        let e = parse_methods_config(p, "[detector]\nradius = 1\n")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("radius"), "{e}");
-        // The presets tune the detector to their beam spacing.
-        let vlp16 = load_methods_config_over(Some("vlp16"), None).unwrap();
-        assert_eq!(vlp16.detector.vertical_distance_per_metre, 0.05);
     }
 
     #[test]
@@ -336,25 +247,5 @@ mod tests {
         fs::write(&p, "[sensor]\nheight = 0.6\n").unwrap();
         let e = load_config_over(None, Some(&p)).unwrap_err().to_string();
         assert!(e.contains("mine.toml") && e.contains("height"), "{e}");
-    }
-
-    #[test]
-    fn a_table_in_code_is_laid_over_the_file_and_names_itself_in_errors() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("mine.toml");
-        fs::write(&p, "[gmm]\nk_max = 4\n[ground]\nground_threshold = 0.7\n").unwrap();
-        let overlay: toml::Table = toml::from_str("[ground]\nground_threshold = 0.6\n").unwrap();
-        let c = load_methods_config_layers(Some("vlp16"), Some(&p), Some(("kwargs", overlay)))
-            .unwrap()
-            .segmenter;
-        // The last layer wins; the file's other keys and the preset's stay.
-        assert_eq!(c.ground.ground_threshold, 0.6);
-        assert_eq!(c.gmm.k_max, 4);
-        assert_eq!(c.zones, sensor_preset("vlp16").unwrap().zones);
-        let bad: toml::Table = toml::from_str("[gmm]\nk_maxx = 3\n").unwrap();
-        let e = load_methods_config_layers(None, Some(&p), Some(("kwargs", bad)))
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("kwargs") && e.contains("k_maxx"), "{e}");
     }
 }

@@ -37,9 +37,8 @@ pub mod recording;
 pub mod scan;
 
 pub use config::{
-    DEFAULT_SENSOR, MethodsConfig, SENSOR_PRESETS, load_config, load_config_over,
-    load_methods_config_layers, load_methods_config_over, parse_config, parse_methods_config,
-    sensor_preset,
+    DEFAULT_SENSOR, METHOD_SECTIONS, SENSOR_PRESETS, config_error, load_config, load_config_over,
+    load_layers, parse_config, parse_table, segmenter_config, sensor_preset,
 };
 pub use error::FormatError;
 pub use input::{ScanItem, ScanIter, ScanSource};
@@ -48,8 +47,8 @@ pub use kitti::{
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{
-    OutputTarget, PROPOSALS_FRAME, check_not_an_input, check_output_names, outputs_complete,
-    read_clusters, read_prob, write_atomic, write_detections, write_outputs,
+    OutputTarget, check_not_an_input, check_output_names, outputs_complete, read_clusters,
+    read_prob, write_atomic, write_outputs,
 };
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::{InputKind, Scan, ScanFormat, list_scans, read_scan, scan_stem, write_kitti_bin};

@@ -1,11 +1,10 @@
 //! Per-scan outputs: `.prob` (little-endian f32 ground probability per point) and
 //! `.ground` (u8 per point, 1 = ground), both in input point order; the detector's
-//! `.proposals.json` and `.clusters` (little-endian u32 proposal id per point, 0 = none).
+//! `.clusters` (little-endian u32 proposal id per point, 0 = none) are read here (the CLI
+//! writes them beside its `.proposals.json`).
 
 use std::fs;
 use std::path::{Path, PathBuf};
-
-use groundwork_detect::Proposal;
 
 use crate::error::FormatError;
 use crate::input::ScanSource;
@@ -187,43 +186,6 @@ pub fn outputs_complete(dir: &Path, stem: &str) -> bool {
         (Ok(p), Ok(g)) => g > 0 && p == 4 * g,
         _ => false,
     }
-}
-
-/// The frame and units `.proposals.json` states (and docs/formats.md repeats).
-pub const PROPOSALS_FRAME: &str = "ground-aligned sensor frame: x forward, y left, z up, origin on the ground below the sensor (the sensor preset's mount); metres, radians";
-
-/// `<stem>.proposals.json`.
-#[derive(Debug, serde::Serialize)]
-struct ProposalsFile<'a> {
-    scan: &'a str,
-    frame: &'static str,
-    points: usize,
-    proposals: &'a [Proposal],
-}
-
-/// Writes `<dir>/<stem>.proposals.json` (the proposals, their frame and units) and
-/// `<dir>/<stem>.clusters` (one little-endian u32 per point: the proposal id, 0 for ground
-/// and unclustered points), each through a temporary name; `.clusters` is renamed last.
-pub fn write_detections(
-    dir: &Path,
-    stem: &str,
-    proposals: &[Proposal],
-    clusters: &[u32],
-) -> Result<(), FormatError> {
-    let file = ProposalsFile {
-        scan: stem,
-        frame: PROPOSALS_FRAME,
-        points: clusters.len(),
-        proposals,
-    };
-    let path = dir.join(format!("{stem}.proposals.json"));
-    let json = serde_json::to_vec_pretty(&file).map_err(|e| FormatError::Config {
-        path: path.clone(),
-        message: e.to_string(),
-    })?;
-    write_atomic(&path, &json)?;
-    let ids: Vec<u8> = clusters.iter().flat_map(|c| c.to_le_bytes()).collect();
-    write_atomic(&dir.join(format!("{stem}.clusters")), &ids)
 }
 
 /// Reads a `.clusters` file.

@@ -15,8 +15,9 @@ use groundwork_core::{
     FrameReport, GroundMethod, Point, Pose, SegmentError, Segmenter, pose_from_matrix,
 };
 use groundwork_detect::{Detections, Detector};
+use groundwork_eval::MethodsConfig;
 use groundwork_eval::{Confusion, Protocol};
-use groundwork_io::{FormatError, LabelMap, MethodsConfig, SENSOR_PRESETS};
+use groundwork_io::{FormatError, LabelMap, SENSOR_PRESETS};
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2,
@@ -84,7 +85,7 @@ fn load_config(
         Some(d) if !d.is_empty() => Some(("keyword arguments", to_table(d)?)),
         _ => None,
     };
-    let mut cfg = groundwork_io::load_methods_config_layers(sensor, config.as_deref(), overlay)
+    let mut cfg = groundwork_eval::load_methods_config_layers(sensor, config.as_deref(), overlay)
         .map_err(format_error)?;
     if let Some(n) = frames {
         cfg.segmenter.history.frames = n;
