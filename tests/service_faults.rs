@@ -9,6 +9,9 @@ use std::process::{Child, Command};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+#[path = "../crates/groundwork-cli/tests/support/mod.rs"]
+mod support;
+
 static SERIAL: Mutex<()> = Mutex::new(());
 
 fn data() -> PathBuf {
@@ -1075,28 +1078,10 @@ fn a_stage_that_exits_while_the_pipeline_runs_is_restarted_or_fails_it() {
 fn a_pipeline_that_cannot_write_its_outputs_fails() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let disk = tmp.path().join("disk");
-    std::fs::create_dir_all(&disk).unwrap();
-    let mounted = Command::new("mount")
-        .args(["-t", "tmpfs", "-o", "size=64k", "none"])
-        .arg(&disk)
-        .status()
-        .is_ok_and(|s| s.success());
-    if !mounted {
-        assert!(
-            !rustix::process::geteuid().is_root(),
-            "root could not mount a tmpfs"
-        );
-        eprintln!("not root: the full-disk test needs a tmpfs mount, skipped");
+    let Some(tmpfs) = support::Tmpfs::mount(&tmp.path().join("disk"), 64) else {
         return;
-    }
-    struct Unmount<'a>(&'a Path);
-    impl Drop for Unmount<'_> {
-        fn drop(&mut self) {
-            let _ = Command::new("umount").arg(self.0).status();
-        }
-    }
-    let _unmount = Unmount(&disk);
+    };
+    let disk = &tmpfs.0;
     let p = prefix("fulldisk");
     let rec = disk.join("rec.mcap");
     let (st, out, err) = pipeline_run(

@@ -157,16 +157,8 @@ pub fn collect_scans(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
     }
     files.sort();
     files.dedup();
-    let mut stems: Vec<(String, &PathBuf)> = files.iter().map(|f| (scan_stem(f), f)).collect();
-    stems.sort();
-    if let Some(w) = stems.windows(2).find(|w| w[0].0 == w[1].0) {
-        bail!(
-            "{} and {} would both write {}.prob: label one sequence per --out folder",
-            w[0].1.display(),
-            w[1].1.display(),
-            w[0].0
-        );
-    }
+    // Outputs are named after the scans: two scans of one name would overwrite each other.
+    groundwork_io::check_output_names(&[&groundwork_io::ScanSource::Files(files.clone())])?;
     Ok(files)
 }
 

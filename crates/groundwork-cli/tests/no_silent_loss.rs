@@ -57,6 +57,9 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
+mod support;
+use support::Tmpfs;
+
 fn files_in(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = fs::read_dir(dir)
         .map(|r| {
@@ -220,46 +223,6 @@ fn a_headerless_file_of_another_layout_is_flagged() {
     );
     assert!(o.status.success());
     assert!(!stderr(&o).contains("another layout"), "{}", stderr(&o));
-}
-
-/// A small tmpfs, unmounted when dropped: a full disk and a read-only folder as a user
-/// meets them (root bypasses permission bits, not a read-only mount).
-struct Tmpfs(PathBuf);
-
-impl Tmpfs {
-    fn mount(dir: &Path, kib: u32) -> Option<Self> {
-        fs::create_dir_all(dir).unwrap();
-        let ok = Command::new("mount")
-            .args(["-t", "tmpfs", "-o", &format!("size={kib}k"), "none"])
-            .arg(dir)
-            .status()
-            .is_ok_and(|s| s.success());
-        if !ok {
-            // Only root can mount; CI runs as root, so there this test always runs.
-            assert!(
-                !rustix::process::geteuid().is_root(),
-                "root could not mount a tmpfs"
-            );
-            eprintln!("not root: the full-disk test needs a tmpfs mount, skipped");
-            return None;
-        }
-        Some(Self(dir.to_path_buf()))
-    }
-
-    fn read_only(&self) {
-        let ok = Command::new("mount")
-            .args(["-o", "remount,ro"])
-            .arg(&self.0)
-            .status()
-            .unwrap();
-        assert!(ok.success());
-    }
-}
-
-impl Drop for Tmpfs {
-    fn drop(&mut self) {
-        let _ = Command::new("umount").arg(&self.0).status();
-    }
 }
 
 #[test]

@@ -313,44 +313,41 @@ fn score_one(
     item: &ScanItem,
     probs: &mut Vec<f32>,
 ) -> Result<ScanResult, SequenceError> {
-    {
-        let scan = item
-            .scan
-            .as_ref()
-            .map_err(|e| SequenceError::Scan(e.to_string()))?;
-        let points = &scan.points;
-        let pose = seq.pose(item.index);
-        probs.resize(points.len(), 0.0);
-        let t = Instant::now();
-        let report: FrameReport =
-            segmenter
-                .segment_scan(points, pose, probs)
-                .map_err(|source| SequenceError::Segment {
-                    path: PathBuf::from(&item.name),
-                    source,
-                })?;
-        let total = t.elapsed();
-        let confusion = match seq.label_path(item) {
-            Some(l) => {
-                // Labels are per record of the input: placeholders the reader left out are
-                // scored as the non-ground they were given (probability 0).
-                let labels = seq.label_map.read(&l, scan.records)?;
-                let all = scan.expand(probs, 0.0);
-                Some(Confusion::from_predictions(&all, &labels, protocol, thr))
-            }
-            None => None,
-        };
-        Ok(ScanResult {
-            name: item.name.clone(),
-            points: points.len(),
-            metrics: confusion.as_ref().map(Confusion::metrics),
-            confusion,
-            frames_queried: report.frames_queried,
-            fit_ms: ms(report.fit_time),
-            query_ms: ms(report.query_time),
-            total_ms: ms(total),
-        })
-    }
+    let scan = item
+        .scan
+        .as_ref()
+        .map_err(|e| SequenceError::Scan(e.to_string()))?;
+    let points = &scan.points;
+    let pose = seq.pose(item.index);
+    probs.resize(points.len(), 0.0);
+    let t = Instant::now();
+    let report: FrameReport = segmenter
+        .segment_scan(points, pose, probs)
+        .map_err(|source| SequenceError::Segment {
+            path: PathBuf::from(&item.name),
+            source,
+        })?;
+    let total = t.elapsed();
+    let confusion = match seq.label_path(item) {
+        Some(l) => {
+            // Labels are per record of the input: placeholders the reader left out are
+            // scored as the non-ground they were given (probability 0).
+            let labels = seq.label_map.read(&l, scan.records)?;
+            let all = scan.expand(probs, 0.0);
+            Some(Confusion::from_predictions(&all, &labels, protocol, thr))
+        }
+        None => None,
+    };
+    Ok(ScanResult {
+        name: item.name.clone(),
+        points: points.len(),
+        metrics: confusion.as_ref().map(Confusion::metrics),
+        confusion,
+        frames_queried: report.frames_queried,
+        fit_ms: ms(report.fit_time),
+        query_ms: ms(report.query_time),
+        total_ms: ms(total),
+    })
 }
 
 /// Several methods' pooled figures on the same scans, one row each.

@@ -17,7 +17,7 @@ use groundwork_core::{
 use groundwork_detect::{Detections, Detector};
 use groundwork_eval::MethodsConfig;
 use groundwork_eval::{Confusion, Protocol};
-use groundwork_io::{FormatError, LabelMap, SENSOR_PRESETS};
+use groundwork_io::{FormatError, LabelMap, SENSOR_PRESETS, Scan};
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2,
@@ -179,10 +179,11 @@ impl<'a> Points<'a> {
         }
     }
 
-    /// The rows whose x, y and z are finite, when some are not: rows with NaN or inf are
-    /// "no return" placeholders (as in an organized PCD or PointCloud2), left out of the
-    /// fit and given probability 0 in place, as the CLI does. None: every row is finite.
-    fn finite_rows(self) -> Option<Vec<u32>> {
+    /// The rows whose x, y and z are finite, as the readers leave out "no return"
+    /// placeholders (an organized PCD or PointCloud2): a [`Scan`] whose `expand` puts one
+    /// value per kept row back in place, 0 for the placeholders, as the CLI does. None:
+    /// every row is finite.
+    fn without_placeholders(self) -> Option<Scan> {
         let finite = |i: usize| {
             let p = self.get(i);
             p.x.is_finite() && p.y.is_finite() && p.z.is_finite()
@@ -191,7 +192,13 @@ impl<'a> Points<'a> {
         if (0..n).all(finite) {
             return None;
         }
-        Some((0..n).filter(|&i| finite(i)).map(|i| i as u32).collect())
+        let rows: Vec<u32> = (0..n).filter(|&i| finite(i)).map(|i| i as u32).collect();
+        Some(Scan {
+            points: rows.iter().map(|&i| self.get(i as usize)).collect(),
+            source_index: Some(rows),
+            records: n,
+            ..Scan::default()
+        })
     }
 
     /// As the library's point records (a copy: the offline methods take `Point`s).
@@ -272,26 +279,23 @@ impl PySegmenter {
         let pts = Points::of(&arr)?;
         let mut out = vec![0.0f32; pts.len()];
         let seg = &mut self.inner;
-        let report = match pts.finite_rows() {
+        let report = match pts.without_placeholders() {
             None => py.detach(|| match pts {
                 Points::Xyz(p) => seg.segment(p, pose.as_ref(), &mut out),
                 Points::Xyzi(p) => seg.segment(p, pose.as_ref(), &mut out),
             }),
-            Some(rows) if rows.is_empty() => {
+            Some(scan) if scan.points.is_empty() => {
                 return Err(value_error(format!(
                     "none of its {} points has finite coordinates",
                     pts.len()
                 )));
             }
-            Some(rows) => {
-                let kept: Vec<Point> = rows.iter().map(|&i| pts.get(i as usize)).collect();
-                let mut probs = vec![0.0f32; kept.len()];
-                let r = py.detach(|| seg.segment(&kept, pose.as_ref(), &mut probs));
+            Some(scan) => {
+                let mut probs = vec![0.0f32; scan.points.len()];
+                let r = py.detach(|| seg.segment(&scan.points, pose.as_ref(), &mut probs));
                 if r.is_ok() {
-                    for (&i, &p) in rows.iter().zip(&probs) {
-                        out[i as usize] = p;
-                    }
-                    self.placeholders += (pts.len() - rows.len()) as u64;
+                    out = scan.expand(&probs, 0.0);
+                    self.placeholders += scan.skipped() as u64;
                 }
                 r
             }
@@ -427,25 +431,13 @@ fn run_method<'py>(
     let arr = points_array(points)?;
     let all = Points::of(&arr)?;
     // Placeholder rows (NaN, inf): probability 0 in place, as in `Segmenter.segment`.
-    let rows = all.finite_rows();
-    let pts: Vec<Point> = match &rows {
-        None => all.to_vec(),
-        Some(rows) => rows.iter().map(|&i| all.get(i as usize)).collect(),
-    };
-    let mut probs = vec![0.0f32; pts.len()];
-    py.detach(|| method.segment_scan(&pts, None, &mut probs))
+    let scan = all
+        .without_placeholders()
+        .unwrap_or_else(|| Scan::dense(all.to_vec()));
+    let mut probs = vec![0.0f32; scan.points.len()];
+    py.detach(|| method.segment_scan(&scan.points, None, &mut probs))
         .map_err(segment_error)?;
-    let out = match rows {
-        None => probs,
-        Some(rows) => {
-            let mut out = vec![0.0f32; all.len()];
-            for (&i, &p) in rows.iter().zip(&probs) {
-                out[i as usize] = p;
-            }
-            out
-        }
-    };
-    Ok(out.into_pyarray(py))
+    Ok(scan.expand(&probs, 0.0).into_pyarray(py))
 }
 
 /// TerraSeg's PseudoLabeler on one scan: ground probability per point.
