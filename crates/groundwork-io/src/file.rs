@@ -1,4 +1,4 @@
-//! Opening input files. Only regular files are read: a device (`/dev/zero`), a FIFO or a
+//! Opening input files, and the temporary name outputs are written under. Only regular files are read: a device (`/dev/zero`), a FIFO or a
 //! socket named as a scan would fill memory or block forever, so it is refused by its kind
 //! before it is opened, and no read goes past the size measured at open time.
 
@@ -42,6 +42,13 @@ pub fn read_regular(path: &Path, limit: u64) -> Result<Vec<u8>, FormatError> {
 pub fn read_text(path: &Path, limit: u64) -> Result<String, FormatError> {
     String::from_utf8(read_regular(path, limit)?)
         .map_err(|_| FormatError::malformed(path, "not UTF-8 text"))
+}
+
+/// `<path>.partial`: where an output is written before it is renamed to `path`.
+pub(crate) fn partial_name(path: &Path) -> std::path::PathBuf {
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".partial");
+    std::path::PathBuf::from(tmp)
 }
 
 /// The largest text file read (a pose file of a million frames is about 100 MB).

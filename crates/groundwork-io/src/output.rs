@@ -76,7 +76,7 @@ pub fn write_outputs(
 /// Writes `path` through `<path>.partial` and a rename: a reader never sees it half-written,
 /// and a write that fails (a full disk) leaves neither name behind.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
-    let tmp = partial_name(path);
+    let tmp = crate::file::partial_name(path);
     let result = fs::write(&tmp, bytes)
         .map_err(|e| FormatError::io(&tmp, e))
         .and_then(|()| fs::rename(&tmp, path).map_err(|e| FormatError::io(path, e)));
@@ -84,13 +84,6 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
         let _ = fs::remove_file(&tmp);
     }
     result
-}
-
-/// `<path>.partial`: where an output is written before it is renamed to `path`.
-pub(crate) fn partial_name(path: &Path) -> PathBuf {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".partial");
-    PathBuf::from(tmp)
 }
 
 /// Refuses an output path that names the same file as an input (`--out rec.mcap rec.mcap`,

@@ -446,7 +446,7 @@ impl RecordingWriter {
     /// Starts an MCAP file (zstd-compressed chunks) at `<path>.partial`; `path` itself is
     /// replaced only when [`RecordingWriter::finish`] succeeds.
     pub fn create(path: &Path) -> Result<Self, FormatError> {
-        let partial = crate::output::partial_name(path);
+        let partial = crate::file::partial_name(path);
         let file = fs::File::create(&partial).map_err(|e| FormatError::io(&partial, e))?;
         let err = |e: mcap::McapError| mcap_error(path, &e);
         let mut writer = mcap::WriteOptions::new()
