@@ -7,7 +7,7 @@
 # table) and the ratios, and, to show where the stage's time goes beyond the bench's, the same
 # streaming in one process (time-scans --sequence) back to back and paced at the sensor's
 # 10 Hz (--period-ms 100: the cores idle between scans as they do in the service), and the
-# pipeline once more with the stages' pre-warm off (prewarm_ms = 0, see config/service.toml).
+# pipeline once more with the stages' workers kept awake (keep_awake_ms = 10, see config/service.toml).
 #   bash benches/compare_pipeline.sh [--rounds N] [--count N]
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
@@ -29,26 +29,26 @@ scans=("$root"/tests/data/semantickitti-00/velodyne/*.bin)
 # p50 of the consumer's "segment" row, in ms.
 segment_p50() { awk '$1 == "segment" && $2 ~ /^[0-9]+$/ { printf "%.3f\n", $3 / 1000 }' | tail -n 1; }
 median_of() { python3 -c 'import json,sys; print(json.load(sys.stdin)["median_ms"])'; }
-cold_cfg=$(mktemp --suffix=.toml)
-trap 'rm -f "$cold_cfg"' EXIT
-sed 's/^prewarm_ms = .*/prewarm_ms = 0.0/' "$root/config/service.toml" > "$cold_cfg"
-with=(); without=(); pw=(); bench=(); paced=(); cold=()
+awake_cfg=$(mktemp --suffix=.toml)
+trap 'rm -f "$awake_cfg"' EXIT
+sed 's/^keep_awake_ms = .*/keep_awake_ms = 10.0/' "$root/config/service.toml" > "$awake_cfg"
+with=(); without=(); pw=(); bench=(); paced=(); awake=()
 for round in $(seq "$rounds"); do
   with+=("$(RUST_LOG=warn "$gw" pipeline --count "$count" --prefix "gw-bench-$$-a$round" 2>&1 | segment_p50)")
   without+=("$(RUST_LOG=warn "$gw" pipeline --count "$count" --no-detector --prefix "gw-bench-$$-b$round" 2>&1 | segment_p50)")
-  cold+=("$(RUST_LOG=warn "$gw" pipeline --count "$count" --service "$cold_cfg" --prefix "gw-bench-$$-c$round" 2>&1 | segment_p50)")
+  awake+=("$(RUST_LOG=warn "$gw" pipeline --count "$count" --service "$awake_cfg" --prefix "gw-bench-$$-c$round" 2>&1 | segment_p50)")
   pw+=("$("$venv/bin/python" "$here/patchwork_time.py" --repeat 10 "${scans[@]}" | tail -n 1 | median_of)")
   bench+=("$("$ts" --repeat 6 --sequence "$seq_dir" | median_of)")
   paced+=("$("$ts" --repeat 6 --sequence "$seq_dir" --period-ms 100 | median_of)")
 done
-python3 - "$rounds" "$count" "${with[@]}" "${without[@]}" "${pw[@]}" "${bench[@]}" "${paced[@]}" "${cold[@]}" <<'PY'
+python3 - "$rounds" "$count" "${with[@]}" "${without[@]}" "${pw[@]}" "${bench[@]}" "${paced[@]}" "${awake[@]}" <<'PY'
 import statistics, sys
 r, count, v = int(sys.argv[1]), sys.argv[2], [float(x) for x in sys.argv[3:]]
-with_, without, pw, bench, paced, cold = (statistics.median(v[i * r:(i + 1) * r]) for i in range(6))
+with_, without, pw, bench, paced, awake = (statistics.median(v[i * r:(i + 1) * r]) for i in range(6))
 print(f"groundwork pipeline --count {count}: segment stage p50, median of {r} runs (poses, default history)")
 print(f"  with the detector stage beside it   {with_:7.2f} ms   ratio {with_ / pw:.2f}")
 print(f"  --no-detector                       {without:7.2f} ms   ratio {without / pw:.2f}")
-print(f"  with the detector, prewarm_ms = 0   {cold:7.2f} ms   ratio {cold / pw:.2f}")
+print(f"  with the detector, keep_awake_ms = 10 {awake:5.2f} ms   ratio {awake / pw:.2f}")
 print(f"Patchwork++ in-process, same scans    {pw:7.2f} ms/scan (pypatchworkpp 1.4.1)   goal: ratio <= 0.5")
 print("the same streaming in one process (time-scans --sequence):")
 print(f"  back to back (the bench)            {bench:7.2f} ms   ratio {bench / pw:.2f}")

@@ -43,7 +43,7 @@ fn main() -> anyhow::Result<()> {
         ..ServiceConfig::default()
     };
     // The producer's node name: the pipeline refuses a second producer.
-    let node = transport::node(&cfg, "producer")?;
+    let node = transport::unique_node(&cfg, "producer")?;
     signals::install(&node)?;
     let scans = transport::scan_publisher(&transport::scan_service(&node, &cfg)?, &cfg)?;
     let announce = transport::event_notifier(&node, &cfg, "scans")?;

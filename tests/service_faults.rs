@@ -155,8 +155,9 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let p = prefix("kill-seg");
-    // The consumer's periodic sweep for dead processes would race the new segmenter's
-    // sweep at start, which is what this test checks: keep it out of the test's window.
+    // The consumer's and the producer's periodic sweeps for dead processes would race the
+    // new segmenter's sweep at start, which is what this test checks: keep them out of the
+    // test's window.
     let quiet = tmp.path().join("quiet.toml");
     let service = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../config/service.toml");
     let service = std::fs::read_to_string(service).unwrap();
@@ -175,7 +176,12 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
     let mut seg_a = Proc::start(tmp.path(), "segmenter-a", &p, &["--frames", "1"]);
     sleep(0.5);
     let started = Instant::now();
-    let mut producer = Proc::start(tmp.path(), "producer", &p, &["--rate", "20"]);
+    let mut producer = Proc::start(
+        tmp.path(),
+        "producer",
+        &p,
+        &["--rate", "20", "--service", quiet.to_str().unwrap()],
+    );
     sleep(2.0);
     seg_a.kill9();
     sleep(1.0);

@@ -74,7 +74,7 @@ impl Engine {
             Self::Gmm(stage) => {
                 let header = offline_header(job.pose.as_ref(), job.input, job.k, scan.points.len());
                 probs.resize(stage.mask_len(&header, &scan.points), 0.0);
-                let mask = stage.process(&header, &scan.points, 0, probs);
+                let mask = stage.segment(&header, &scan.points, 0, probs);
                 if let Some(reason) = stage.last_rejection() {
                     bail!("{}: {reason}", item.name);
                 }

@@ -53,7 +53,6 @@ pub mod point;
 pub mod query;
 pub mod segmenter;
 mod simd;
-pub mod workers;
 pub mod zones;
 
 pub use config::SegmenterConfig;

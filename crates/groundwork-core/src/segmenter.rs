@@ -230,12 +230,10 @@ impl Segmenter {
     /// history): the first half of [`Segmenter::segment`], exposed for benchmarks and
     /// callers that fit once and query many times.
     pub fn fit<P: PointXyz + Sync>(&mut self, points: &[P]) -> Result<FrameModel, SegmentError> {
-        crate::workers::with_workers_awake(|| {
-            let out = vec![0.0; points.len()];
-            self.check_and_bin(points, None, &out)?;
-            self.group(false);
-            Ok(self.fit_grouped().0)
-        })
+        let out = vec![0.0; points.len()];
+        self.check_and_bin(points, None, &out)?;
+        self.group(false);
+        Ok(self.fit_grouped().0)
     }
 
     /// Ground probabilities of `points` (this scan's own sensor frame) under one fitted
@@ -246,12 +244,10 @@ impl Segmenter {
         points: &[P],
         out: &mut [f32],
     ) -> Result<(), SegmentError> {
-        crate::workers::with_workers_awake(|| {
-            self.check_and_bin(points, None, out)?;
-            self.group(true);
-            self.query_frames(model, None, out);
-            Ok(())
-        })
+        self.check_and_bin(points, None, out)?;
+        self.group(true);
+        self.query_frames(model, None, out);
+        Ok(())
     }
 
     /// Ground probabilities of `points` (this scan's own sensor frame, world pose `pose`)
@@ -265,12 +261,10 @@ impl Segmenter {
         pose: &Pose,
         out: &mut [f32],
     ) -> Result<usize, SegmentError> {
-        crate::workers::with_workers_awake(|| {
-            self.check_and_bin(points, Some(pose), out)?;
-            self.group(true);
-            let pose = (self.pose_jump(pose).is_none()).then_some(pose);
-            Ok(self.query_frames(model, pose, out).0)
-        })
+        self.check_and_bin(points, Some(pose), out)?;
+        self.group(true);
+        let pose = (self.pose_jump(pose).is_none()).then_some(pose);
+        Ok(self.query_frames(model, pose, out).0)
     }
 
     /// Query of the binned and grouped points against `model` and, given the scan's pose,
@@ -352,16 +346,6 @@ impl Segmenter {
     /// sensor): a gap to the previous stamped scan beyond `history.max_time_gap`, or time
     /// running backwards, clears the history before this scan is queried.
     pub fn segment_stamped<P: PointXyz + Sync>(
-        &mut self,
-        points: &[P],
-        pose: Option<&Pose>,
-        sensor_time_ns: Option<u64>,
-        out: &mut [f32],
-    ) -> Result<FrameReport, SegmentError> {
-        crate::workers::with_workers_awake(|| self.segment_awake(points, pose, sensor_time_ns, out))
-    }
-
-    fn segment_awake<P: PointXyz + Sync>(
         &mut self,
         points: &[P],
         pose: Option<&Pose>,

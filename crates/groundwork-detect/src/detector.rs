@@ -257,19 +257,6 @@ impl Detector {
         probabilities: &[f32],
         out: &mut Detections,
     ) -> Result<DetectionReport, DetectError> {
-        // The join and the boxes are parallel and come 2 ms and more into the scan, after
-        // serial steps: the other core is kept awake for them.
-        groundwork_core::workers::with_workers_awake(|| {
-            self.detect_awake(points, probabilities, out)
-        })
-    }
-
-    fn detect_awake<P: PointXyz + Sync>(
-        &mut self,
-        points: &[P],
-        probabilities: &[f32],
-        out: &mut Detections,
-    ) -> Result<DetectionReport, DetectError> {
         let t = Instant::now();
         if probabilities.len() != points.len() {
             return Err(DetectError::ProbabilityCount {
@@ -422,9 +409,7 @@ impl Detector {
             self.footprint[*slot] = [m.xyz[0], m.xyz[1]];
             *slot += 1;
         }
-        // `start[id]` is now the end of id's group (and the start of id + 1's). On both
-        // cores: the other one is awake (`with_workers_awake`), so handing it boxes costs
-        // no wake-up.
+        // `start[id]` is now the end of id's group (and the start of id + 1's).
         let footprint = &self.footprint;
         (0..order.len())
             .into_par_iter()

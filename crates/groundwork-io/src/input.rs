@@ -1,12 +1,177 @@
 //! What a command is pointed at: a scan file, a folder of scans (any mix of formats; a
 //! KITTI sequence folder with `velodyne/`), or an MCAP recording. Each is a sequence of
 //! scans in order, read one at a time.
+//!
+//! The reader is chosen from the file, never from a flag: first by the name's extension,
+//! then (for any other name) by the magic bytes at its start.
+//!
+//! | format | extension | magic |
+//! |---|---|---|
+//! | KITTI velodyne (4 × f32 LE: x, y, z, intensity) | `.bin` | — |
+//! | nuScenes (5 × f32 LE: x, y, z, intensity, ring) | `.pcd.bin` | — |
+//! | PCD ascii / binary / binary_compressed | `.pcd` | `# .PCD`, `VERSION`, `FIELDS` |
+//! | PLY ascii / binary | `.ply` | `ply` |
+//! | MCAP recording of PointCloud2 (many scans) | `.mcap` | `\x89MCAP` |
 
+use std::fs;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::error::FormatError;
 use crate::recording::RecordingReader;
-use crate::scan::{InputKind, Scan, list_scans, read_scan, scan_stem};
+use crate::scan::Scan;
+
+/// A single-scan file format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScanFormat {
+    /// KITTI / SemanticKITTI velodyne `.bin`: x, y, z, intensity as f32.
+    KittiBin,
+    /// nuScenes `.pcd.bin`: x, y, z, intensity, ring index as f32.
+    NuScenesBin,
+    /// Point Cloud Library `.pcd` (ascii, binary or binary_compressed).
+    Pcd,
+    /// Stanford `.ply` vertices (ascii or binary).
+    Ply,
+}
+
+/// What a file holds: one scan, or a recording of many.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputKind {
+    /// One scan in this format.
+    Scan(ScanFormat),
+    /// An MCAP recording (ROS 2 `sensor_msgs/msg/PointCloud2` messages).
+    Recording,
+}
+
+/// The names a reader accepts, for error messages.
+pub const SUPPORTED: &str =
+    "KITTI .bin, nuScenes .pcd.bin, .pcd, .ply or an .mcap recording of PointCloud2";
+
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+
+impl InputKind {
+    /// The kind its name says, if the extension is known.
+    pub fn from_name(path: &Path) -> Option<Self> {
+        // Lossy: a name that is not UTF-8 is still a scan by its extension.
+        let name = path.file_name()?.to_string_lossy().to_ascii_lowercase();
+        let kind = if name.ends_with(".pcd.bin") {
+            Self::Scan(ScanFormat::NuScenesBin)
+        } else if name.ends_with(".bin") {
+            Self::Scan(ScanFormat::KittiBin)
+        } else if name.ends_with(".pcd") {
+            Self::Scan(ScanFormat::Pcd)
+        } else if name.ends_with(".ply") {
+            Self::Scan(ScanFormat::Ply)
+        } else if name.ends_with(".mcap") {
+            Self::Recording
+        } else {
+            return None;
+        };
+        Some(kind)
+    }
+
+    /// The kind the first bytes of a file say, if they carry a known magic.
+    pub fn from_magic(head: &[u8]) -> Option<Self> {
+        let text = |prefix: &[u8]| head.starts_with(prefix);
+        if head.starts_with(MCAP_MAGIC) {
+            Some(Self::Recording)
+        } else if text(b"ply\n") || text(b"ply\r\n") {
+            Some(Self::Scan(ScanFormat::Ply))
+        } else if text(b"# .PCD") || text(b"VERSION") || text(b"FIELDS") {
+            Some(Self::Scan(ScanFormat::Pcd))
+        } else {
+            None
+        }
+    }
+
+    /// Extension first, then magic bytes.
+    pub fn detect(path: &Path) -> Result<Self, FormatError> {
+        if let Some(kind) = Self::from_name(path) {
+            return Ok(kind);
+        }
+        let mut head = [0u8; 16];
+        let (mut file, _) = crate::file::open_regular(path)?;
+        let mut n = 0;
+        while n < head.len() {
+            match file.read(&mut head[n..]) {
+                Ok(0) => break,
+                Ok(k) => n += k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(FormatError::io(path, e)),
+            }
+        }
+        Self::from_magic(&head[..n]).ok_or_else(|| FormatError::Unsupported {
+            path: path.to_path_buf(),
+            expected: SUPPORTED,
+        })
+    }
+}
+
+/// Reads a single-scan file of any supported format (see the module documentation).
+/// Rejects truncated files, lying headers, empty scans, non-finite coordinates (where the
+/// format has no placeholders) and scans of more than `max_points` records, the latter
+/// checked before the points are read.
+pub fn read_scan(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
+    match InputKind::detect(path)? {
+        InputKind::Scan(ScanFormat::KittiBin) => crate::bin::read(path, max_points, 4),
+        InputKind::Scan(ScanFormat::NuScenesBin) => crate::bin::read(path, max_points, 5),
+        InputKind::Scan(ScanFormat::Pcd) => crate::pcd::read(path, max_points),
+        InputKind::Scan(ScanFormat::Ply) => crate::ply::read(path, max_points),
+        InputKind::Recording => Err(FormatError::malformed(
+            path,
+            "an MCAP recording holds many scans: give it as an input of its own (like a folder)",
+        )),
+    }
+}
+
+/// The single-scan files of a folder, any mix of formats, sorted by name. Files without a
+/// known extension are included when their magic bytes say they are scans; recordings are
+/// not scans of a folder (give them as inputs of their own).
+///
+/// An entry named as a scan is listed whatever it is, so that a dangling symlink, a FIFO
+/// or a device named `000042.bin` reaches the reader and is reported and counted as a
+/// scan that could not be read, never skipped in silence; names that are not UTF-8 are
+/// read too (outputs take their lossy name).
+pub fn list_scans(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
+    let mut files = Vec::new();
+    for entry in fs::read_dir(dir).map_err(|e| FormatError::io(dir, e))? {
+        let path = entry.map_err(|e| FormatError::io(dir, e))?.path();
+        if is_scan_file(&path) {
+            files.push(path);
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+fn is_scan_file(path: &Path) -> bool {
+    match InputKind::from_name(path) {
+        Some(kind) => matches!(kind, InputKind::Scan(_)),
+        // Only unnamed regular files are sniffed: a `.label`, `.txt` or `.prob` is never
+        // a scan, and sniffing a FIFO would block.
+        None => {
+            path.extension().is_none()
+                && path.is_file()
+                && matches!(InputKind::detect(path), Ok(InputKind::Scan(_)))
+        }
+    }
+}
+
+/// A scan file's stem without its format suffix (`000042.bin` → `000042`,
+/// `n015-…__LIDAR_TOP__1533.pcd.bin` → `n015-…__LIDAR_TOP__1533`, `cloud.pcd` → `cloud`).
+pub fn scan_stem(path: &Path) -> String {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let lower = name.to_ascii_lowercase();
+    for suffix in [".pcd.bin", ".bin", ".pcd", ".ply", ".mcap"] {
+        if lower.ends_with(suffix) {
+            return name[..name.len() - suffix.len()].to_string();
+        }
+    }
+    name
+}
 
 /// Where the scans of one input come from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -180,10 +345,124 @@ impl Iterator for ScanIter {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bin::write_kitti_bin;
+    use crate::recording::RecordingWriter;
     use groundwork_core::Point;
 
-    use crate::recording::RecordingWriter;
-    use crate::scan::write_kitti_bin;
+    #[test]
+    fn round_trip_and_errors_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("000001.bin");
+        let pts = vec![Point::new(1.0, 2.0, 3.0), Point::new(-1.0, 0.5, -1.7)];
+        write_kitti_bin(&p, &pts).unwrap();
+        assert_eq!(read_scan(&p, 10).unwrap(), Scan::dense(pts));
+
+        // Too many points, checked before reading.
+        let e = read_scan(&p, 1).unwrap_err().to_string();
+        assert!(
+            e.contains("000001.bin") && e.contains("maximum of 1"),
+            "{e}"
+        );
+
+        // Truncated: 2 points and 3 bytes of a third.
+        let mut bytes = fs::read(&p).unwrap();
+        bytes.extend_from_slice(&[0, 0, 128]);
+        fs::write(&p, &bytes).unwrap();
+        let e = read_scan(&p, 10).unwrap_err().to_string();
+        assert!(e.contains("000001.bin") && e.contains("35 bytes"), "{e}");
+
+        // Empty.
+        fs::write(&p, []).unwrap();
+        let e = read_scan(&p, 10).unwrap_err().to_string();
+        assert!(e.contains("empty scan"), "{e}");
+
+        // NaN: KITTI has no placeholders, so it is corruption.
+        write_kitti_bin(&p, &[Point::new(1.0, f32::NAN, 0.0)]).unwrap();
+        let e = read_scan(&p, 10).unwrap_err().to_string();
+        assert!(e.contains("point 0") && e.contains("non-finite"), "{e}");
+
+        // Missing file.
+        let e = read_scan(&dir.path().join("nope.bin"), 10)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("nope.bin"), "{e}");
+
+        // Unknown extension and no magic.
+        fs::write(dir.path().join("a.txt"), "hello").unwrap();
+        let e = read_scan(&dir.path().join("a.txt"), 10)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("a.txt") && e.contains("unsupported"), "{e}");
+    }
+
+    #[test]
+    fn odd_entries_of_a_folder_are_listed_to_be_reported_not_skipped() {
+        use std::os::unix::ffi::OsStrExt;
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        write_kitti_bin(&d.join("000000.bin"), &[Point::new(1.0, 0.0, 0.0)]).unwrap();
+        std::os::unix::fs::symlink(d.join("gone.bin"), d.join("000001.bin")).unwrap();
+        std::os::unix::fs::symlink("/dev/zero", d.join("000002.bin")).unwrap();
+        let odd = d.join(std::ffi::OsStr::from_bytes(b"00000\xff.bin"));
+        write_kitti_bin(&odd, &[Point::new(2.0, 0.0, 0.0)]).unwrap();
+        fs::write(d.join("notes.txt"), "not a scan").unwrap();
+        let files = list_scans(d).unwrap();
+        assert_eq!(files.len(), 4, "{files:?}");
+        let results: Vec<_> = files.iter().map(|f| read_scan(f, 10)).collect();
+        assert!(results[0].is_ok());
+        let dangling = results[1].as_ref().unwrap_err().to_string();
+        assert!(dangling.contains("000001.bin"), "{dangling}");
+        let zero = results[2].as_ref().unwrap_err().to_string();
+        assert!(
+            zero.contains("000002.bin") && zero.contains("device"),
+            "{zero}"
+        );
+        assert_eq!(results[3].as_ref().unwrap().points[0].x, 2.0);
+    }
+
+    #[test]
+    fn nuscenes_records_are_five_floats() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.pcd.bin");
+        let vals: [f32; 10] = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0];
+        let bytes: Vec<u8> = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
+        fs::write(&p, bytes).unwrap();
+        let scan = read_scan(&p, 10).unwrap();
+        assert_eq!(scan.points.len(), 2);
+        assert_eq!(
+            scan.points[1],
+            Point {
+                x: 6.0,
+                y: 7.0,
+                z: 8.0,
+                intensity: 9.0
+            }
+        );
+        assert_eq!(scan_stem(&p), "x");
+    }
+
+    #[test]
+    fn magic_bytes_decide_for_unknown_names() {
+        assert_eq!(
+            InputKind::from_magic(b"ply\nformat ascii 1.0\n"),
+            Some(InputKind::Scan(ScanFormat::Ply))
+        );
+        assert_eq!(
+            InputKind::from_magic(b"# .PCD v0.7 - Point"),
+            Some(InputKind::Scan(ScanFormat::Pcd))
+        );
+        assert_eq!(
+            InputKind::from_magic(b"\x89MCAP0\r\n\x01"),
+            Some(InputKind::Recording)
+        );
+        assert_eq!(InputKind::from_magic(b"\x00\x00\x80?"), None);
+        // The name wins where it is known.
+        assert_eq!(
+            InputKind::from_name(Path::new("a/B.PLY")),
+            Some(InputKind::Scan(ScanFormat::Ply))
+        );
+        assert_eq!(InputKind::from_name(Path::new("scan")), None);
+    }
 
     #[test]
     fn files_and_recordings_read_alike_and_bad_scans_keep_their_place() {

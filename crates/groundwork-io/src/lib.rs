@@ -23,6 +23,7 @@
 
 #![warn(missing_docs)]
 
+pub mod bin;
 pub mod config;
 pub mod error;
 pub mod file;
@@ -36,12 +37,15 @@ pub mod pointcloud2;
 pub mod recording;
 pub mod scan;
 
+pub use bin::write_kitti_bin;
 pub use config::{
     DEFAULT_SENSOR, METHOD_SECTIONS, SENSOR_PRESETS, config_error, load_config, load_config_over,
     load_layers, parse_config, parse_table, segmenter_config, sensor_preset,
 };
 pub use error::FormatError;
-pub use input::{ScanItem, ScanIter, ScanSource};
+pub use input::{
+    InputKind, ScanFormat, ScanItem, ScanIter, ScanSource, list_scans, read_scan, scan_stem,
+};
 pub use kitti::{
     lidar_poses, read_calib_tr, read_labels, read_poses, write_calib_tr, write_labels, write_poses,
 };
@@ -51,4 +55,4 @@ pub use output::{
     read_prob, write_atomic, write_outputs,
 };
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
-pub use scan::{InputKind, Scan, ScanFormat, list_scans, read_scan, scan_stem, write_kitti_bin};
+pub use scan::Scan;

@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 
 use crate::error::FormatError;
 use crate::input::ScanSource;
+use crate::input::scan_stem;
 use crate::recording::RecordingWriter;
-use crate::scan::scan_stem;
 
 /// Where per-scan results go: `.prob`/`.ground` files in a folder, or one MCAP recording
 /// (PointCloud2 with `ground_probability`) for a path ending in `.mcap`.

@@ -1,21 +1,20 @@
-//! Keeping a stage's cores awake for the next scan.
+//! Keeping cores awake: the service's one policy that spends CPU to answer sooner, off
+//! unless `keep_awake_ms` asks for it.
 //!
 //! On a virtual machine (and on a host with deep idle states) a core that idled through the
 //! 90 ms between two scans comes back slowly: its virtual CPU halted and gave the physical
-//! core away, and every parallel region of the next scan waits for it. Measured here, a
-//! replay paced at 10 Hz took about twice as long per scan as the same replay back to back.
-//! A sensor is periodic, so a stage can see the next scan coming: it learns the period from
-//! the arrivals, sleeps until `lead` before the next one is due, then keeps the thread
-//! pool's workers spinning (running any parallel work that appears) until the scan has been
-//! processed. The cost is bounded: `lead` plus the scan's own time per period on each core,
-//! and at most `2·lead` when a scan is late or missing; irregular arrivals turn it off.
+//! core away, and every parallel step of the next scan waits for it. A sensor is periodic,
+//! so a stage can see the next scan coming: it learns the period from the arrivals, sleeps
+//! until `keep_awake` before the next one is due, then keeps the thread pool's workers
+//! spinning ([`AwakeWorkers`]: running any parallel work that appears) until the scan has
+//! been processed. The cost is bounded: `keep_awake` plus the scan's own time per period on
+//! each core, and at most `2·keep_awake` when a scan is late or missing; irregular arrivals
+//! turn it off. The consumer's report shows what it costs, as CPU time per scan.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-
-use groundwork_core::workers::spin_until;
 
 use crate::transport::{EventListener, wait_or_stop};
 
@@ -72,39 +71,50 @@ impl ArrivalClock {
     }
 }
 
-/// The global thread pool's workers spinning until this is dropped: each runs any parallel
-/// work that appears and otherwise yields its core to any thread that has work
-/// ([`spin_until`]), instead of going to sleep.
+/// The global thread pool's workers kept awake until this is dropped: each runs any
+/// parallel work that appears and otherwise yields its core to any thread that has work,
+/// instead of going to sleep.
 #[derive(Debug)]
-pub struct Spinner {
+pub struct AwakeWorkers {
     stop: Arc<AtomicBool>,
-    /// Workers spinning for this spinner now.
+    /// Workers kept awake now.
     running: Arc<std::sync::atomic::AtomicUsize>,
 }
 
-impl Spinner {
-    /// Starts one spinner per worker of the global pool.
+impl AwakeWorkers {
+    /// Keeps every worker of the global pool awake.
     pub fn start() -> Self {
         let stop = Arc::new(AtomicBool::new(false));
         let running = Arc::new(std::sync::atomic::AtomicUsize::new(0));
         let (flag, count) = (stop.clone(), running.clone());
         rayon::spawn_broadcast(move |_| {
             count.fetch_add(1, Ordering::AcqRel);
-            spin_until(&flag, Duration::MAX);
+            spin_until(&flag);
             count.fetch_sub(1, Ordering::AcqRel);
         });
         Self { stop, running }
     }
 
-    /// Workers spinning for it now (none once it is dropped and they have noticed).
+    /// Workers kept awake by it now (none once it is dropped and they have noticed).
     pub fn running(&self) -> usize {
         self.running.load(Ordering::Acquire)
     }
 }
 
-impl Drop for Spinner {
+impl Drop for AwakeWorkers {
     fn drop(&mut self) {
         self.stop.store(true, Ordering::Release);
+    }
+}
+
+/// On a pool worker: runs the pool's pending parallel work as it appears, and gives the
+/// core to any other thread that has work when there is none, until `stop` is set. The
+/// worker stays awake all along.
+fn spin_until(stop: &AtomicBool) {
+    while !stop.load(Ordering::Acquire) {
+        if rayon::yield_now() != Some(rayon::Yield::Executed) {
+            std::thread::yield_now();
+        }
     }
 }
 
@@ -112,7 +122,7 @@ impl Drop for Spinner {
 #[derive(Debug)]
 pub struct ScanWait {
     clock: ArrivalClock,
-    lead: Duration,
+    keep_awake: Duration,
     idle: Duration,
     /// How late the recent timed waits before a due scan returned (newest last).
     late: VecDeque<Duration>,
@@ -126,18 +136,18 @@ const MAX_EARLY: Duration = Duration::from_millis(20);
 pub enum Woken {
     /// A termination signal: stop.
     Stop,
-    /// Look for scans (there may be none: a timeout); hold the spinner, if any, while
-    /// processing them.
-    Look(Option<Spinner>),
+    /// Look for scans (there may be none: a timeout); hold the awake workers, if any,
+    /// while processing them.
+    Look(Option<AwakeWorkers>),
 }
 
 impl ScanWait {
-    /// Waits of at most `idle` when no scan is due; `lead` before a due scan the pool's
-    /// workers start spinning (zero: never).
-    pub fn new(lead: Duration, idle: Duration) -> Self {
+    /// Waits of at most `idle` when no scan is due; `keep_awake` before a due scan the
+    /// pool's workers are kept awake (zero: never).
+    pub fn new(keep_awake: Duration, idle: Duration) -> Self {
         Self {
             clock: ArrivalClock::default(),
-            lead,
+            keep_awake,
             idle,
             late: VecDeque::new(),
         }
@@ -162,13 +172,13 @@ impl ScanWait {
     /// Waits on `listener` for the next scan.
     pub fn wait(&mut self, listener: &EventListener) -> anyhow::Result<Woken> {
         let now = Instant::now();
-        // A scan more than `lead` overdue is late or missing: wait for it asleep.
-        let due =
-            (self.clock.next_due()).filter(|&due| !self.lead.is_zero() && now < due + self.lead);
+        // A scan more than `keep_awake` overdue is late or missing: wait for it asleep.
+        let lead = self.keep_awake;
+        let due = (self.clock.next_due()).filter(|&due| !lead.is_zero() && now < due + lead);
         let Some(due) = due else {
             return Ok(look(wait_or_stop(listener, self.idle)?, None));
         };
-        let start = due.checked_sub(self.lead + self.early()).unwrap_or(now);
+        let start = due.checked_sub(lead + self.early()).unwrap_or(now);
         if start > now {
             // Early scans, and the periodic work, are served without spinning.
             let until = (start - now).min(self.idle);
@@ -187,17 +197,17 @@ impl ScanWait {
             }
             self.late.push_back(woke - start);
         }
-        // Spin from `lead` before the scan is due to `lead` after; a later one is waited for
-        // asleep again.
-        let spinner = Spinner::start();
-        let until = (due + self.lead).saturating_duration_since(Instant::now());
-        Ok(look(wait_or_stop(listener, until)?, Some(spinner)))
+        // Awake from `keep_awake` before the scan is due to `keep_awake` after; a later one
+        // is waited for asleep again.
+        let awake = AwakeWorkers::start();
+        let until = (due + lead).saturating_duration_since(Instant::now());
+        Ok(look(wait_or_stop(listener, until)?, Some(awake)))
     }
 }
 
-fn look(go_on: bool, spinner: Option<Spinner>) -> Woken {
+fn look(go_on: bool, awake: Option<AwakeWorkers>) -> Woken {
     if go_on {
-        Woken::Look(spinner)
+        Woken::Look(awake)
     } else {
         Woken::Stop
     }
@@ -253,7 +263,7 @@ mod tests {
         // Margins wide enough for a loaded CI machine.
         let (lead, idle) = (ms(5), ms(300));
         let mut w = ScanWait::new(lead, idle);
-        // Not periodic yet: a plain idle wait, no spinner.
+        // Not periodic yet: a plain idle wait, no workers kept awake.
         assert!(matches!(w.wait(&listener).unwrap(), Woken::Look(None)));
         // A 200 ms sensor whose next scan is due 150 ms from now.
         let now = Instant::now();
@@ -262,10 +272,10 @@ mod tests {
         }
         let due = now + ms(150);
         match w.wait(&listener).unwrap() {
-            Woken::Look(Some(_spinner)) => {}
+            Woken::Look(Some(_awake)) => {}
             other => panic!("expected to spin for the due scan, got {other:?}"),
         }
-        // No scan came: the spin lasted until `lead` past the due time, not longer than
+        // No scan came: the workers were awake until `lead` past the due time, not longer than
         // that plus a scheduling slice.
         let t = Instant::now();
         assert!(
@@ -273,11 +283,11 @@ mod tests {
             "stopped spinning {:?} early",
             (due + lead) - t
         );
-        // Now overdue: asleep, for the idle timeout, without a spinner.
+        // Now overdue: asleep, for the idle timeout.
         let before = Instant::now();
         assert!(matches!(w.wait(&listener).unwrap(), Woken::Look(None)));
         assert!(before.elapsed() + ms(1) >= idle);
-        // A scan that arrives early wakes the wait at once, without a spinner.
+        // A scan that arrives early wakes the wait at once, workers asleep.
         w.arrived(Instant::now());
         for _ in 0..6 {
             let last = w.clock.last.unwrap();
@@ -295,8 +305,8 @@ mod tests {
     }
 
     #[test]
-    fn the_spinners_run_parallel_work_and_stop_when_dropped() {
-        let s = Spinner::start();
+    fn awake_workers_run_parallel_work_and_sleep_again_when_dropped() {
+        let s = AwakeWorkers::start();
         let running = s.running.clone();
         let until = |want: &dyn Fn(usize) -> bool| {
             let t = Instant::now();
@@ -317,7 +327,7 @@ mod tests {
         };
         assert_eq!(sum, 100_000 * 99_999 / 2);
         drop(s);
-        // Every spinner returns (a broadcast alone would not tell: spinners run broadcast
+        // Every worker returns to sleep (a broadcast alone would not tell: awake workers run broadcast
         // jobs too).
         until(&|n| n == 0);
         // The workers are free again: a broadcast reaches every one of them.

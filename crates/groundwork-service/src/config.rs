@@ -40,12 +40,15 @@ pub struct ServiceConfig {
     pub rate_hz: f64,
     /// Seconds between periodic state logs.
     pub report_interval_s: f64,
-    /// Milliseconds before a periodic scan is due that the segmenter and detector stages
-    /// wake their worker threads and keep them spinning until the scan is processed (0:
-    /// never, the default). Cores that idled through a period come back slowly on virtual
-    /// machines and hosts with deep idle states: spinning buys latency with CPU, shown per
-    /// scan in the consumer's report (docs/service.md, "Keeping cores awake").
-    pub prewarm_ms: f64,
+    /// Keeping cores awake: milliseconds before a periodic scan is due that the segmenter
+    /// and detector stages wake their thread pool's workers and keep them spinning until
+    /// the scan is processed (0: never, the default: workers sleep when idle). Cores that
+    /// idled through a period come back slowly on virtual machines and hosts with deep idle
+    /// states: spinning buys latency with CPU, shown per scan in the consumer's report
+    /// (docs/service.md, "Keeping cores awake"). Range 0..=50. (`prewarm_ms`, its former
+    /// name, is read too.)
+    #[serde(alias = "prewarm_ms")]
+    pub keep_awake_ms: f64,
     /// Sensor preset the segmenter stage uses (`groundwork sensors` lists them; absent:
     /// hdl64e). `--sensor` and `--config` of the stage override it.
     pub sensor: Option<String>,
@@ -63,7 +66,7 @@ impl Default for ServiceConfig {
             max_subscribers: 4,
             rate_hz: 10.0,
             report_interval_s: 2.0,
-            prewarm_ms: 0.0,
+            keep_awake_ms: 0.0,
             sensor: None,
         }
     }
@@ -125,8 +128,8 @@ impl ServiceConfig {
             "report_interval_s must be > 0"
         );
         anyhow::ensure!(
-            self.prewarm_ms.is_finite() && (0.0..=50.0).contains(&self.prewarm_ms),
-            "prewarm_ms must be in 0..=50"
+            self.keep_awake_ms.is_finite() && (0.0..=50.0).contains(&self.keep_awake_ms),
+            "keep_awake_ms must be in 0..=50"
         );
         if let Some(name) = &self.sensor {
             groundwork_io::sensor_preset(name).map_err(|e| anyhow::anyhow!("sensor: {e}"))?;
@@ -134,9 +137,10 @@ impl ServiceConfig {
         Ok(())
     }
 
-    /// How long before a due scan the stages start spinning.
-    pub fn prewarm(&self) -> std::time::Duration {
-        std::time::Duration::from_secs_f64(self.prewarm_ms / 1e3)
+    /// How long before a due scan the parallel stages keep their workers awake (zero:
+    /// never).
+    pub fn keep_awake_lead(&self) -> std::time::Duration {
+        std::time::Duration::from_secs_f64(self.keep_awake_ms / 1e3)
     }
 
     /// Shared memory the publishers may need at worst (bytes): per topic, chunk size ×
@@ -181,6 +185,7 @@ pub fn check_shared_memory(cfg: &ServiceConfig) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::Duration;
 
     #[test]
     fn defaults_validate_and_bad_values_do_not() {
@@ -203,6 +208,22 @@ mod tests {
         let c: ServiceConfig = toml::from_str("sensor = \"hdl99\"").unwrap();
         let e = c.validate().unwrap_err().to_string();
         assert!(e.contains("hdl99") && e.contains("os1-128"), "{e}");
+    }
+
+    #[test]
+    fn keeping_cores_awake_is_off_by_default_and_its_former_name_still_reads() {
+        assert_eq!(ServiceConfig::default().keep_awake_lead(), Duration::ZERO);
+        let c: ServiceConfig = toml::from_str("keep_awake_ms = 10").unwrap();
+        assert_eq!(c.keep_awake_lead(), Duration::from_millis(10));
+        let c: ServiceConfig = toml::from_str("prewarm_ms = 4").unwrap();
+        assert_eq!(c.keep_awake_lead(), Duration::from_millis(4));
+        let c: ServiceConfig = toml::from_str("keep_awake_ms = 80").unwrap();
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("keep_awake_ms")
+        );
     }
 
     #[test]

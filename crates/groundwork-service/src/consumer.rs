@@ -2,8 +2,9 @@
 //! reports latency per stage and end to end, live accuracy when labels are available, and
 //! where every scan it saw ended.
 //!
-//! [`ConsumerStage`] does the pairing, accounting, scoring and output with no IPC; [`run`]
-//! is the thin iceoryx2 loop around it.
+//! [`ConsumerStage`] does the pairing, accounting, scoring and output with no IPC;
+//! [`Consumer`] is the stage the service runs ([`run`]): that, plus when to stop, the CPU
+//! time per scan of every stage, and the report.
 
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::io::Write;
@@ -13,17 +14,17 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use groundwork_eval::{Confusion, Metrics, Protocol};
 use groundwork_io::{LabelClass, LabelMap, OutputTarget, Scan};
-use groundwork_msg::{
-    MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint, monotonic_ns,
-};
+use groundwork_msg::{MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint};
 use serde::Serialize;
 use tracing::{info, warn};
 
-use crate::config::{ServiceConfig, check_shared_memory};
+use crate::config::ServiceConfig;
+use crate::cpu::CpuSnapshot;
 use crate::segmenter::sequence_gap;
+use crate::signals;
+use crate::stage::{Input, Inputs, Outbox, Stage, Topic, Wiring};
 use crate::stats::{LatencyStats, Percentiles};
 use crate::window::ScanWindow;
-use crate::{signals, transport};
 
 /// Consumer options beyond the shared configuration.
 #[derive(Debug, Clone, Default)]
@@ -460,145 +461,180 @@ fn write_report(path: &Path, r: &ConsumerReport) -> anyhow::Result<()> {
         .with_context(|| format!("{}: cannot write report", path.display()))
 }
 
-/// Runs the consumer until `count` masks, the idle timeout, or a termination signal.
-pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
-    signals::die_with_launcher()?;
-    check_shared_memory(cfg)?;
-    let output = opts
-        .out
-        .as_deref()
-        .map(|o| OutputTarget::create(o, &[]))
-        .transpose()?;
-    let node = transport::node(cfg, "consumer")?;
-    signals::install(&node)?;
-    let scans = transport::scan_service(&node, cfg)?;
-    let masks = transport::mask_service(&node, cfg)?;
-    let scan_sub = transport::scan_subscriber(&scans, cfg)?;
-    let mask_sub = transport::mask_subscriber(&masks, cfg)?;
-    // Proposals (if a detector runs) are read whenever masks wake us; their latency comes
-    // from their own stamps, not from when we read them.
-    let proposals = transport::proposals_service(&node, cfg)?;
-    let proposals_sub = transport::proposals_subscriber(&proposals, cfg)?;
+/// The consumer as the service runs it: the stage, when to stop, and what each stage's
+/// process costs.
+#[derive(Debug)]
+pub struct Consumer {
+    stage: ConsumerStage,
+    opts: ConsumerOptions,
+    cfg: ServiceConfig,
+    /// When the first mask came.
+    first: Option<Instant>,
+    /// When the last mask came.
+    last_mask: Instant,
+    /// Each stage's CPU time at the first mask, and the scans segmented by then.
+    cpu_start: Option<(CpuSnapshot, u64)>,
+    stalled: bool,
+}
+
+impl Consumer {
+    /// A consumer of `cfg`'s pipeline; its output (if any) is created here, so that a bad
+    /// `--out` fails before anything runs.
+    pub fn new(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Self> {
+        let output = opts
+            .out
+            .as_deref()
+            .map(|o| OutputTarget::create(o, &[]))
+            .transpose()?;
+        Ok(Self {
+            stage: ConsumerStage::new(opts.labels.clone(), output, opts.warmup),
+            opts: opts.clone(),
+            cfg: cfg.clone(),
+            first: None,
+            last_mask: Instant::now(),
+            cpu_start: None,
+            stalled: false,
+        })
+    }
+}
+
+impl Stage for Consumer {
+    const NAME: &'static str = "consumer";
     // Only masks wake the consumer: it reads the scans it pairs them with from its queue at
     // that moment. Waking on scans as well would put a third process on the CPU exactly
-    // when the segmenter needs it, and cost the pipeline latency. It blocks on the mask
-    // listener itself (in one comparison here a WaitSet with an interval timer made the
-    // mask hop some 10 µs slower at the median and 50 µs at p99).
-    let mask_listener = transport::event_listener(&node, cfg, "masks")?;
-    let interval = Duration::from_secs_f64(cfg.report_interval_s);
-    let mut last_report = Instant::now();
-    info!(prefix = %cfg.prefix, "consumer started");
-
-    let mut stage = ConsumerStage::new(opts.labels.clone(), output, opts.warmup);
-    // The subscribers exist from here on.
-    stage.listening_since(groundwork_msg::new_epoch());
-    let mut first: Option<Instant> = None;
-    // Each stage's CPU time at the first mask, and the scans segmented by then.
-    let mut cpu_start: Option<(crate::cpu::CpuSnapshot, u64)> = None;
-    let mut last_mask = Instant::now();
-    let mut stalled = false;
-
-    let drain = |stage: &mut ConsumerStage| -> anyhow::Result<()> {
-        // A mask is stamped the moment it is taken, before the scans it answers are read
-        // (they are published earlier, so they are queued by now).
-        loop {
-            let next = mask_sub.receive().context("receive mask")?;
-            let now = monotonic_ns();
-            while let Some(scan) = scan_sub.receive().context("receive scan")? {
-                stage.on_scan(scan.user_header(), scan.payload());
-            }
-            while let Some(p) = proposals_sub.receive().context("receive proposals")? {
-                stage.on_proposals(p.user_header());
-            }
-            let Some(mask) = next else {
-                return Ok(());
-            };
-            stage.on_mask(mask.user_header(), mask.payload(), now);
-        }
+    // when the segmenter needs it, and cost the pipeline latency. Proposals (if a detector
+    // runs) are read then too; their latency comes from their own stamps.
+    const WIRING: Wiring = Wiring {
+        wakes_on: Some(Topic::Masks),
+        reads: &[Topic::Scans, Topic::Proposals],
+        publishes: None,
+        parallel: false,
+        unique: false,
     };
+    type Report = ConsumerReport;
 
-    loop {
-        if opts.count.is_some_and(|c| stage.report().masks >= c) {
-            break;
+    fn start(&mut self) -> anyhow::Result<()> {
+        // The subscribers exist from here on.
+        self.stage.listening_since(groundwork_msg::new_epoch());
+        Ok(())
+    }
+
+    /// A mask is stamped the moment it is taken, before the scans it answers are read
+    /// (they were published earlier, so they are queued by now).
+    fn process(
+        &mut self,
+        input: Input<'_>,
+        received_ns: u64,
+        _: &mut Outbox,
+    ) -> anyhow::Result<()> {
+        match input {
+            Input::Scan(h, points) => self.stage.on_scan(h, points),
+            Input::Proposals(h, _) => self.stage.on_proposals(h),
+            Input::Mask(h, probabilities) => {
+                self.stage.on_mask(h, probabilities, received_ns);
+                self.last_mask = Instant::now();
+                self.first.get_or_insert(self.last_mask);
+                if self.cpu_start.is_none() {
+                    self.cpu_start =
+                        Some((CpuSnapshot::take(&self.cfg), self.stage.report().segmented));
+                }
+            }
+            Input::Tick => {}
         }
-        if let (Some(t), Some(_)) = (opts.idle_timeout, first)
-            && last_mask.elapsed() > t
+        Ok(())
+    }
+
+    fn done(&self) -> bool {
+        self.opts
+            .count
+            .is_some_and(|c| self.stage.report().masks >= c)
+    }
+
+    fn before_wait(&mut self) -> bool {
+        if let (Some(t), Some(_)) = (self.opts.idle_timeout, self.first)
+            && self.last_mask.elapsed() > t
         {
             info!("no mask for {t:?}: stopping");
-            break;
+            return false;
         }
-        if let Some(after) = opts.stall_after
-            && !stalled
-            && stage.report().masks >= after
+        if let Some(after) = self.opts.stall_after
+            && !self.stalled
+            && self.stage.report().masks >= after
         {
-            stalled = true;
-            info!(seconds = opts.stall.as_secs_f64(), "stalling: not reading");
-            if !signals::sleep(opts.stall) {
-                break;
+            self.stalled = true;
+            info!(
+                seconds = self.opts.stall.as_secs_f64(),
+                "stalling: not reading"
+            );
+            if !signals::sleep(self.opts.stall) {
+                return false;
             }
             info!("resuming");
         }
-        let before = stage.report().masks;
-        if !transport::wait_or_stop(&mask_listener, Duration::from_millis(200))? {
-            break;
-        }
-        drain(&mut stage)?;
-        if stage.report().masks > before {
-            last_mask = Instant::now();
-            first.get_or_insert_with(Instant::now);
-            if cpu_start.is_none() {
-                cpu_start = Some((crate::cpu::CpuSnapshot::take(cfg), stage.report().segmented));
+        true
+    }
+
+    fn log_state(&self) {
+        self.stage.log_state();
+    }
+
+    fn stop(mut self, rest: &Inputs) -> anyhow::Result<ConsumerReport> {
+        // Scans already queued are seen, so that they count (as unanswered if no mask came).
+        rest.read(Topic::Scans, |input, _| {
+            if let Input::Scan(h, points) = input {
+                self.stage.on_scan(h, points);
+            }
+            Ok(())
+        })?;
+        // The detector answers a mask after we have read it: with a detector running, its
+        // last proposals get a moment (until 200 ms pass without one, 1 s at most), so that
+        // the report counts what it published.
+        let (since, mut last) = (Instant::now(), Instant::now());
+        while self.stage.report().detections.messages > 0
+            && since.elapsed() < Duration::from_secs(1)
+            && last.elapsed() < Duration::from_millis(200)
+        {
+            let read = rest.read(Topic::Proposals, |input, _| {
+                if let Input::Proposals(h, _) = input {
+                    self.stage.on_proposals(h);
+                }
+                Ok(())
+            })?;
+            if read > 0 {
+                last = Instant::now();
+            }
+            if !signals::sleep(Duration::from_millis(10)) {
+                break;
             }
         }
-        if last_report.elapsed() >= interval {
-            last_report = Instant::now();
-            stage.log_state();
-            transport::cleanup_dead(&node);
+        let table = self.stage.stats().table();
+        let cpu_end = CpuSnapshot::take(&self.cfg);
+        let segmented = self.stage.report().segmented;
+        let seconds = self.first.map_or(0.0, |f| f.elapsed().as_secs_f64());
+        let mut report = self.stage.finish(seconds);
+        if let Some((start, at)) = self.cpu_start {
+            report.cpu_ms_per_scan = start.per_scan(&cpu_end, segmented.saturating_sub(at));
         }
-    }
-    // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
-    transport::cleanup_dead(&node);
-    // Scans already queued are seen, so that they count (as unanswered if no mask came).
-    while let Some(scan) = scan_sub.receive().context("receive scan")? {
-        stage.on_scan(scan.user_header(), scan.payload());
-    }
-    // The detector answers a mask after we have read it: with a detector running, its last
-    // proposals get a moment (until 200 ms pass without one, 1 s at most), so that the
-    // report counts what it published.
-    let (since, mut last) = (Instant::now(), Instant::now());
-    while stage.report().detections.messages > 0
-        && since.elapsed() < Duration::from_secs(1)
-        && last.elapsed() < Duration::from_millis(200)
-    {
-        while let Some(p) = proposals_sub.receive().context("receive proposals")? {
-            stage.on_proposals(p.user_header());
-            last = Instant::now();
+        // The machine-readable report first: stdout may be a terminal that is gone (SIGHUP).
+        if let Some(p) = &self.opts.report_json {
+            write_report(p, &report)?;
         }
-        if !signals::sleep(Duration::from_millis(10)) {
-            break;
-        }
+        let _ = std::io::stdout().write_all(summary(&report, &table).as_bytes());
+        info!(
+            masks = report.masks,
+            masked = report.scan_fate.masked,
+            rejected = report.scan_fate.rejected,
+            unanswered = report.scan_fate.unanswered,
+            dropped = report.scan_fate.dropped,
+            "consumer stopped"
+        );
+        Ok(report)
     }
-    let table = stage.stats().table();
-    let cpu_end = crate::cpu::CpuSnapshot::take(cfg);
-    let segmented = stage.report().segmented;
-    let mut report = stage.finish(first.map_or(0.0, |f| f.elapsed().as_secs_f64()));
-    if let Some((start, at)) = cpu_start {
-        report.cpu_ms_per_scan = start.per_scan(&cpu_end, segmented.saturating_sub(at));
-    }
-    // The machine-readable report first: stdout may be a terminal that is gone (SIGHUP).
-    if let Some(p) = &opts.report_json {
-        write_report(p, &report)?;
-    }
-    let _ = std::io::stdout().write_all(summary(&report, &table).as_bytes());
-    info!(
-        masks = report.masks,
-        masked = report.scan_fate.masked,
-        rejected = report.scan_fate.rejected,
-        unanswered = report.scan_fate.unanswered,
-        dropped = report.scan_fate.dropped,
-        "consumer stopped"
-    );
-    Ok(report)
+}
+
+/// Runs the consumer until `count` masks, the idle timeout, or a termination signal.
+pub fn run(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<ConsumerReport> {
+    crate::stage::run(cfg, || Consumer::new(cfg, opts))
 }
 
 #[cfg(test)]

@@ -1,28 +1,25 @@
 //! The detector stage: scans and masks in, object proposals out (`<prefix>/proposals`).
 //!
-//! [`DetectorStage`] is the whole per-mask step (pairing the mask with its scan, checks,
-//! detection, the proposals header and the per-point ids) with no IPC, in the shape of the
-//! segmenter's stage; [`run`] is the thin iceoryx2 loop around it. A mask that cannot be
+//! [`DetectorStage::detect`] is the whole per-mask step (pairing the mask with its scan,
+//! checks, detection, the proposals header and the per-point ids) with no IPC; as a
+//! [`Stage`] it holds each scan and answers its mask with proposals, and [`run`] runs it. A mask that cannot be
 //! answered (rejected by the segmenter, its scan no longer held, bad probabilities) is
 //! counted by reason and skipped; the next one is served as usual.
 
 use std::collections::BTreeMap;
-use std::time::Duration;
 
-use anyhow::Context;
 use groundwork_core::SegmenterConfig;
 use groundwork_detect::{Detections, Detector, DetectorConfig};
 use groundwork_msg::{
     MAX_PROPOSALS, MaskHeader, MaskStatus, ProposalRecord, ProposalsHeader, ScanHeader, ScanPoint,
-    monotonic_ns, new_epoch,
+    new_epoch,
 };
 use serde::Serialize;
 use tracing::{info, warn};
 
-use crate::awake::{ScanWait, Woken};
-use crate::config::{ServiceConfig, check_shared_memory};
+use crate::config::ServiceConfig;
+use crate::stage::{Input, Inputs, Outbox, Stage, Topic, Wiring};
 use crate::window::ScanWindow;
-use crate::{signals, transport};
 
 /// What the detector did.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -48,6 +45,8 @@ pub struct DetectorStage {
     window: ScanWindow,
     out: Detections,
     epoch: u64,
+    /// Stop after this many masks (None: until stopped).
+    count: Option<u64>,
     rejection: Option<String>,
     report: DetectorReport,
 }
@@ -60,9 +59,16 @@ impl DetectorStage {
             window: ScanWindow::default(),
             out: Detections::default(),
             epoch: new_epoch(),
+            count: None,
             rejection: None,
             report: DetectorReport::default(),
         })
+    }
+
+    /// Stops the stage after `count` masks (None: until stopped).
+    pub fn stop_after(mut self, count: Option<u64>) -> Self {
+        self.count = count;
+        self
     }
 
     /// A scan was read: its points are held until its mask comes (scans whose header does
@@ -83,7 +89,7 @@ impl DetectorStage {
     /// Handles one mask: the proposals header, with the per-point ids in
     /// [`DetectorStage::clusters`] (ids of proposals left out for capacity are 0); `None`
     /// (counted, reason in [`DetectorStage::last_rejection`]) if it cannot be answered.
-    pub fn process(
+    pub fn detect(
         &mut self,
         m: &MaskHeader,
         probabilities: &[f32],
@@ -188,94 +194,70 @@ pub struct DetectorOptions {
     pub count: Option<u64>,
 }
 
-/// Runs the detector until `count` masks were handled or a termination signal arrives.
-pub fn run(cfg: &ServiceConfig, opts: &DetectorOptions) -> anyhow::Result<DetectorReport> {
-    signals::die_with_launcher()?;
-    check_shared_memory(cfg)?;
-    let mut stage = DetectorStage::new(&opts.segmenter, opts.detector.clone())?;
-    let node = transport::node(cfg, "detector")?;
-    signals::install(&node)?;
-    let scans = transport::scan_service(&node, cfg)?;
-    let masks = transport::mask_service(&node, cfg)?;
-    let proposals = transport::proposals_service(&node, cfg)?;
-    let scan_sub = transport::scan_subscriber(&scans, cfg)?;
-    let mask_sub = transport::mask_subscriber(&masks, cfg)?;
-    let publisher = transport::proposals_publisher(&proposals, cfg)?;
-    // Like the consumer, only masks wake the detector: the scan a mask answers is queued
-    // by then.
-    let mask_listener = transport::event_listener(&node, cfg, "masks")?;
-    let notifier = transport::event_notifier(&node, cfg, "proposals")?;
-    info!(prefix = %cfg.prefix, "detector started");
+impl Stage for DetectorStage {
+    const NAME: &'static str = "detector";
+    // Like the consumer, only masks wake the detector: the scan a mask answers is queued by
+    // then.
+    const WIRING: Wiring = Wiring {
+        wakes_on: Some(Topic::Masks),
+        reads: &[Topic::Scans],
+        publishes: Some(Topic::Proposals),
+        parallel: true,
+        unique: true,
+    };
+    type Report = DetectorReport;
 
-    let done = |stage: &DetectorStage| opts.count.is_some_and(|c| stage.report().masks >= c);
-    let mut wait = ScanWait::new(cfg.prewarm(), Duration::from_millis(250));
-    let drain = |stage: &mut DetectorStage, wait: &mut ScanWait| -> anyhow::Result<()> {
-        loop {
-            let next = mask_sub.receive().context("receive mask")?;
-            let received_ns = monotonic_ns();
-            if next.is_some() {
-                wait.arrived(std::time::Instant::now());
-            }
-            while let Some(scan) = scan_sub.receive().context("receive scan")? {
-                stage.on_scan(scan.user_header(), scan.payload());
-            }
-            let Some(mask) = next else {
-                return Ok(());
-            };
-            let header = stage.process(mask.user_header(), mask.payload(), received_ns);
-            let sequence = mask.user_header().scan_sequence;
-            drop(mask);
-            match header {
-                Some(mut h) => {
-                    let ids = stage.clusters();
-                    let mut sample = publisher
-                        .loan_slice_uninit(ids.len())
-                        .map_err(|e| anyhow::anyhow!("loan proposals of {}: {e:?}", ids.len()))?
-                        .write_from_slice(ids);
-                    h.detector_published_ns = monotonic_ns();
-                    *sample.user_header_mut() = h;
-                    sample.send().context("send proposals")?;
-                    let _ = notifier.notify();
+    fn process(
+        &mut self,
+        input: Input<'_>,
+        received_ns: u64,
+        out: &mut Outbox,
+    ) -> anyhow::Result<()> {
+        match input {
+            Input::Scan(h, points) => self.on_scan(h, points),
+            Input::Mask(m, probabilities) => match self.detect(m, probabilities, received_ns) {
+                Some(h) => {
+                    out.send_proposals(&self.out.clusters, h)?;
                 }
                 None => warn!(
-                    sequence,
+                    sequence = m.scan_sequence,
                     "no proposals: {}",
-                    stage.last_rejection().unwrap_or("unknown")
+                    self.last_rejection().unwrap_or("unknown")
                 ),
-            }
-            if done(stage) {
-                return Ok(());
-            }
+            },
+            _ => {}
         }
-    };
-
-    drain(&mut stage, &mut wait)?;
-    let interval = Duration::from_secs_f64(cfg.report_interval_s);
-    let mut last_report = std::time::Instant::now();
-    while !done(&stage) {
-        let Woken::Look(spinner) = wait.wait(&mask_listener)? else {
-            break;
-        };
-        drain(&mut stage, &mut wait)?;
-        drop(spinner);
-        if last_report.elapsed() >= interval {
-            last_report = std::time::Instant::now();
-            let r = stage.report();
-            info!(masks = r.masks, detected = r.detected, proposals = r.proposals, skipped = ?r.skipped, "detector state");
-            transport::cleanup_dead(&node);
-        }
+        Ok(())
     }
-    transport::cleanup_dead(&node);
-    let r = stage.report().clone();
-    info!(
-        masks = r.masks,
-        detected = r.detected,
-        proposals = r.proposals,
-        dropped_proposals = r.dropped_proposals,
-        skipped = ?r.skipped,
-        "detector stopped"
-    );
-    Ok(r)
+
+    fn done(&self) -> bool {
+        self.count.is_some_and(|c| self.report.masks >= c)
+    }
+
+    fn log_state(&self) {
+        let r = &self.report;
+        info!(masks = r.masks, detected = r.detected, proposals = r.proposals, skipped = ?r.skipped, "detector state");
+    }
+
+    fn stop(self, _: &Inputs) -> anyhow::Result<DetectorReport> {
+        let r = self.report;
+        info!(
+            masks = r.masks,
+            detected = r.detected,
+            proposals = r.proposals,
+            dropped_proposals = r.dropped_proposals,
+            skipped = ?r.skipped,
+            "detector stopped"
+        );
+        Ok(r)
+    }
+}
+
+/// Runs the detector until `count` masks were handled or a termination signal arrives.
+pub fn run(cfg: &ServiceConfig, opts: &DetectorOptions) -> anyhow::Result<DetectorReport> {
+    crate::stage::run(cfg, || {
+        Ok(DetectorStage::new(&opts.segmenter, opts.detector.clone())?.stop_after(opts.count))
+    })
 }
 
 /// A proposal as the proposals message carries it (the message crate knows no detector).
@@ -347,7 +329,7 @@ mod tests {
         let mut s = stage();
         let (sh, mh) = headers(3, pts.len());
         s.on_scan(&sh, &pts);
-        let h = s.process(&mh, &probs, 42).expect("answered");
+        let h = s.detect(&mh, &probs, 42).expect("answered");
         assert_eq!((h.scan_sequence, h.point_count), (3, pts.len() as u32));
         assert_eq!(h.detector_received_ns, 42);
         assert!(h.proposal_count > 0, "the synthetic scene has objects");
@@ -357,7 +339,7 @@ mod tests {
             assert_eq!(n as u32, r.points);
         }
         // The scan left the window with its mask: the same mask again finds nothing.
-        assert!(s.process(&mh, &probs, 43).is_none());
+        assert!(s.detect(&mh, &probs, 43).is_none());
         assert_eq!(s.report().skipped["scan_missing"], 1);
     }
 
@@ -369,19 +351,19 @@ mod tests {
         s.on_scan(&sh, &pts);
         mh.status = MaskStatus::NON_FINITE;
         mh.point_count = 0;
-        assert!(s.process(&mh, &[], 1).is_none());
+        assert!(s.detect(&mh, &[], 1).is_none());
         assert!(s.last_rejection().unwrap().contains("non_finite"));
         // Wrong mask size.
         let (sh, mut mh) = headers(2, pts.len());
         s.on_scan(&sh, &pts);
         mh.point_count = 5;
-        assert!(s.process(&mh, &[0.0; 5], 1).is_none());
+        assert!(s.detect(&mh, &[0.0; 5], 1).is_none());
         // A probability outside [0, 1].
         let (sh, mh) = headers(3, pts.len());
         s.on_scan(&sh, &pts);
         let mut probs = vec![0.0; pts.len()];
         probs[9] = f32::NAN;
-        assert!(s.process(&mh, &probs, 1).is_none());
+        assert!(s.detect(&mh, &probs, 1).is_none());
         assert!(s.last_rejection().unwrap().contains("point 9"));
         let r = s.report();
         assert_eq!(

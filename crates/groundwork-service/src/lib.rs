@@ -12,6 +12,7 @@ pub mod launcher;
 pub mod producer;
 pub mod segmenter;
 pub mod signals;
+pub mod stage;
 pub mod stats;
 pub mod synthetic;
 pub mod transport;

@@ -2,21 +2,23 @@
 //! chosen size, writing each straight into loaned shared memory.
 //!
 //! [`ProducerStage`] holds the frames and builds each message's header (sequence, run,
-//! pose, stamps, injected faults) with no IPC; [`run`] is the thin iceoryx2 loop around it.
+//! pose, stamps, injected faults) with no IPC; as a [`Stage`] (a source) it publishes one
+//! scan per tick at the configured or recorded rate, and [`run`] runs it.
 
 use std::path::PathBuf;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::Context;
 use groundwork_core::{Point, Pose};
 use groundwork_eval::Sequence;
-use groundwork_msg::{SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch};
+use groundwork_msg::{SCHEMA_VERSION, ScanHeader, ScanPoint, new_epoch};
 use serde::Serialize;
 use tracing::{info, warn};
 
-use crate::config::{ServiceConfig, check_shared_memory};
-use crate::{signals, transport};
+use crate::config::ServiceConfig;
+use crate::signals;
+use crate::stage::{Input, Inputs, Outbox, Stage, Topic, Wiring};
 
 /// Where scans come from.
 #[derive(Debug, Clone)]
@@ -293,7 +295,20 @@ pub struct ProducerStage {
     epoch: u64,
     sequence: u64,
     malformed_every: Option<u64>,
+    /// How it runs: count, linger, rate.
+    pace: Pace,
     report: ProducerReport,
+}
+
+/// When the producer publishes, and when it stops.
+#[derive(Debug, Clone, Default)]
+struct Pace {
+    count: Option<u64>,
+    linger: Duration,
+    /// Time between scans (None: flat out).
+    period: Option<Duration>,
+    /// Replay a recording at its recorded rate.
+    recorded: bool,
 }
 
 /// The next message: which frame, its header, and the fault to inject (if any).
@@ -316,6 +331,7 @@ impl ProducerStage {
             epoch: new_epoch(),
             sequence: 0,
             malformed_every,
+            pace: Pace::default(),
             report: ProducerReport {
                 skipped_files: skipped,
                 ..Default::default()
@@ -360,7 +376,7 @@ impl ProducerStage {
 
     /// Builds the next message's header; `now_ns` is its production stamp (and, for
     /// replays, its sensor time).
-    pub fn process(&mut self, now_ns: u64) -> Outgoing {
+    pub fn next_scan(&mut self, now_ns: u64) -> Outgoing {
         self.advance();
         let seq = self.sequence;
         let frame = self.frame();
@@ -432,76 +448,94 @@ impl ProducerStage {
     }
 }
 
+impl Stage for ProducerStage {
+    const NAME: &'static str = "producer";
+    const WIRING: Wiring = Wiring {
+        wakes_on: None,
+        reads: &[],
+        publishes: Some(Topic::Scans),
+        parallel: false,
+        unique: true,
+    };
+    type Report = ProducerReport;
+
+    fn process(&mut self, _: Input<'_>, now_ns: u64, out: &mut Outbox) -> anyhow::Result<()> {
+        let next = self.next_scan(now_ns);
+        // The only copy of the scan on the hot path: from the "driver" into shared memory.
+        let reached = out.send_scan(next.len, |i| self.point(&next, i), next.header)?;
+        if reached == 0 {
+            self.count_unreceived();
+        }
+        Ok(())
+    }
+
+    fn done(&self) -> bool {
+        self.pace.count.is_some_and(|c| self.report.published >= c)
+    }
+
+    /// A recording replays at its recorded rate unless a rate is asked for.
+    fn period(&self) -> Duration {
+        let gap = if self.pace.recorded {
+            self.recorded_gap().or(self.pace.period)
+        } else {
+            self.pace.period
+        };
+        gap.unwrap_or_default()
+    }
+
+    fn log_state(&self) {
+        let r = &self.report;
+        info!(
+            published = r.published,
+            unreceived = r.unreceived,
+            "producer state"
+        );
+    }
+
+    fn stop(self, _: &Inputs) -> anyhow::Result<ProducerReport> {
+        if self.done() && !self.pace.linger.is_zero() {
+            info!(
+                published = self.report.published,
+                "all scans out: staying until the subscribers have read them (or stopped)"
+            );
+            signals::sleep(self.pace.linger);
+        }
+        let r = self.report;
+        info!(
+            published = r.published,
+            unreceived = r.unreceived,
+            malformed = r.malformed,
+            skipped_files = r.skipped_files.len(),
+            "producer stopped"
+        );
+        Ok(r)
+    }
+}
+
 /// Runs the producer until `count` scans are out or a termination signal arrives.
 pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<ProducerReport> {
     if let Some(r) = opts.rate_hz {
         crate::config::check_rate("--rate", r)?;
     }
-    signals::die_with_launcher()?;
-    check_shared_memory(cfg)?;
-    let (frames, skipped) = Frames::load(&opts.source, cfg.max_points)?;
-    let mut stage = ProducerStage::new(frames, skipped, opts.malformed_every);
-    let node = transport::node(cfg, "producer")?;
-    signals::install(&node)?;
-    let svc = transport::scan_service(&node, cfg)?;
-    let publisher = transport::scan_publisher(&svc, cfg)?;
-    let notifier = transport::event_notifier(&node, cfg, "scans")?;
-    // A recording replays at its recorded rate unless a rate is asked for.
-    let recorded = opts.rate_hz.is_none() && matches!(opts.source, Source::Recording(..));
-    let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
-    let period = (rate > 0.0).then(|| Duration::from_secs_f64(1.0 / rate));
-    info!(
-        frames_in_memory = stage.frames().loaded(),
-        recorded_rate = recorded,
-        skipped_files = stage.report().skipped_files.len(),
-        rate_hz = rate,
-        prefix = %cfg.prefix,
-        "producer started"
-    );
-    while opts.count.is_none_or(|c| stage.report().published < c) {
-        let t0 = Instant::now();
-        let out = stage.process(monotonic_ns());
-        let sample = publisher
-            .loan_slice_uninit(out.len)
-            .map_err(|e| anyhow::anyhow!("loan of {} points: {e:?}", out.len))?;
-        // The only copy of the scan on the hot path: from the "driver" into shared memory.
-        let mut sample = sample.write_from_fn(|i| stage.point(&out, i));
-        *sample.user_header_mut() = out.header;
-        sample.user_header_mut().stamps.published_ns = monotonic_ns();
-        let reached = sample.send().context("send scan")?;
-        let _ = notifier.notify();
-        if reached == 0 {
-            stage.count_unreceived();
-        }
-        let gap = if recorded {
-            stage.recorded_gap().or(period)
-        } else {
-            period
+    crate::stage::run(cfg, || {
+        let (frames, skipped) = Frames::load(&opts.source, cfg.max_points)?;
+        let mut stage = ProducerStage::new(frames, skipped, opts.malformed_every);
+        let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
+        stage.pace = Pace {
+            count: opts.count,
+            linger: opts.linger,
+            period: (rate > 0.0).then(|| Duration::from_secs_f64(1.0 / rate)),
+            recorded: opts.rate_hz.is_none() && matches!(opts.source, Source::Recording(..)),
         };
-        let wait = gap.map_or(Duration::ZERO, |p| p.saturating_sub(t0.elapsed()));
-        if !signals::sleep(wait) {
-            info!("termination requested");
-            break;
-        }
-    }
-    if opts.count.is_some_and(|c| stage.report().published >= c) && !opts.linger.is_zero() {
         info!(
-            published = stage.report().published,
-            "all scans out: staying until the subscribers have read them (or stopped)"
+            frames_in_memory = stage.frames().loaded(),
+            recorded_rate = stage.pace.recorded,
+            skipped_files = stage.report().skipped_files.len(),
+            rate_hz = rate,
+            "producer ready"
         );
-        signals::sleep(opts.linger);
-    }
-    // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
-    transport::cleanup_dead(&node);
-    let r = stage.report().clone();
-    info!(
-        published = r.published,
-        unreceived = r.unreceived,
-        malformed = r.malformed,
-        skipped_files = r.skipped_files.len(),
-        "producer stopped"
-    );
-    Ok(r)
+        Ok(stage)
+    })
 }
 
 #[cfg(test)]
@@ -524,7 +558,7 @@ mod tests {
         let mut stage = ProducerStage::new(frames, skipped, None);
         let mut order = Vec::new();
         for k in 0..7 {
-            let out = stage.process(k);
+            let out = stage.next_scan(k);
             order.push(out.header.source_index);
             assert_eq!(out.len, out.header.point_count as usize);
             if out.header.source_index < 2 {
@@ -535,9 +569,9 @@ mod tests {
         // Message 1 holds two NaN placeholders: left out of the published points.
         let (frames, _) = Frames::load(&Source::Recording(recording(), None), 10_000).unwrap();
         let mut stage = ProducerStage::new(frames, Vec::new(), None);
-        let lens: Vec<usize> = (0..3).map(|k| stage.process(k).len).collect();
+        let lens: Vec<usize> = (0..3).map(|k| stage.next_scan(k).len).collect();
         assert_eq!(lens, [1286, 1284, 1286]);
-        let out = stage.process(3);
+        let out = stage.next_scan(3);
         let p = stage.point(&out, 0);
         assert!(p.x.is_finite());
     }
@@ -557,7 +591,7 @@ mod tests {
         let mut stage = ProducerStage::new(frames, skipped, None);
         let mut order = Vec::new();
         for k in 0..45 {
-            let out = stage.process(k);
+            let out = stage.next_scan(k);
             order.push(out.header.source_index);
             assert_eq!(stage.point(&out, 0).x, out.header.source_index as f32 + 3.0);
             assert!(stage.frames().loaded() <= 2);

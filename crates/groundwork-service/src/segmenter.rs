@@ -1,25 +1,21 @@
 //! The segmenter stage: scans in, masks out, multi-frame history kept between frames.
 //!
-//! [`SegmenterStage::process`] is the whole per-scan step (validation, sequence and
+//! [`SegmenterStage::segment`] is the whole per-scan step (validation, sequence and
 //! producer-run bookkeeping, pose decoding, segmentation, the mask header) with no IPC, so
-//! unit tests and the offline CLI run exactly what the process runs; [`run`] is the thin
-//! iceoryx2 loop around it. A malformed scan is rejected with a counted, logged reason (and
-//! an empty mask naming it), and the next scan is served as usual.
+//! unit tests and the offline CLI run exactly what the process runs; as a [`Stage`] it
+//! answers each scan with a mask, and [`run`] runs it. A malformed scan is rejected with a
+//! counted, logged reason (and an empty mask naming it), and the next scan is served as
+//! usual.
 
 use std::collections::BTreeMap;
-use std::time::Duration;
 
-use anyhow::Context;
 use groundwork_core::{PointXyz, Pose, SegmentError, Segmenter, SegmenterConfig, pose_from_matrix};
-use groundwork_msg::{
-    MaskHeader, MaskStatus, SCHEMA_VERSION, ScanHeader, ScanPoint, monotonic_ns, new_epoch,
-};
+use groundwork_msg::{MaskHeader, MaskStatus, SCHEMA_VERSION, ScanHeader, new_epoch};
 use serde::Serialize;
 use tracing::{info, warn};
 
-use crate::awake::{ScanWait, Woken};
-use crate::config::{ServiceConfig, check_shared_memory};
-use crate::{signals, transport};
+use crate::config::ServiceConfig;
+use crate::stage::{Input, Inputs, Outbox, Stage, Topic, Wiring};
 
 /// Segmenter options beyond the shared configuration.
 #[derive(Debug, Clone)]
@@ -126,6 +122,8 @@ pub struct SegmenterStage {
     echo: bool,
     max_points: usize,
     epoch: u64,
+    /// Stop after this many scans (None: until stopped).
+    count: Option<u64>,
     /// (producer epoch, sequence) of the last scan.
     last: Option<(u64, u64)>,
     /// Why the last scan was rejected.
@@ -142,6 +140,7 @@ impl SegmenterStage {
             seg: Segmenter::new(opts.segmenter.clone())?,
             echo: opts.echo,
             epoch: new_epoch(),
+            count: opts.count,
             last: None,
             rejection: None,
             report: SegmenterReport::default(),
@@ -159,8 +158,9 @@ impl SegmenterStage {
 
     /// Handles one scan: writes its probabilities into `out` (which must hold
     /// [`SegmenterStage::mask_len`] values) and returns the mask header. Never fails: a bad
-    /// scan becomes a rejection status, counted and logged.
-    pub fn process<P: PointXyz + Sync>(
+    /// scan becomes a rejection status, counted (the reason in
+    /// [`SegmenterStage::last_rejection`]).
+    pub fn segment<P: PointXyz + Sync>(
         &mut self,
         h: &ScanHeader,
         points: &[P],
@@ -281,9 +281,64 @@ impl SegmenterStage {
     pub fn segmenter(&self) -> &Segmenter {
         &self.seg
     }
+}
 
-    /// Logs the counters and the segmenter's state.
-    pub fn log_state(&self) {
+impl Stage for SegmenterStage {
+    const NAME: &'static str = "segmenter";
+    const WIRING: Wiring = Wiring {
+        wakes_on: Some(Topic::Scans),
+        reads: &[],
+        publishes: Some(Topic::Masks),
+        parallel: true,
+        unique: true,
+    };
+    type Report = SegmenterReport;
+
+    fn start(&mut self) -> anyhow::Result<()> {
+        info!(
+            frames = self.seg.config().history.frames,
+            echo = self.echo,
+            "segmenter ready"
+        );
+        Ok(())
+    }
+
+    /// Answers a scan with its mask: the segmenter reads the scan in shared memory and
+    /// writes the probabilities straight into the loaned mask, no copies.
+    fn process(
+        &mut self,
+        input: Input<'_>,
+        received_ns: u64,
+        out: &mut Outbox,
+    ) -> anyhow::Result<()> {
+        let Input::Scan(h, points) = input else {
+            return Ok(());
+        };
+        let len = self.mask_len(h, points);
+        let mut status = MaskStatus::OK;
+        let reached = out.send_mask(len, |mask| {
+            let header = self.segment(h, points, received_ns, mask);
+            status = header.status;
+            header
+        })?;
+        if reached == 0 {
+            self.count_unreceived();
+        }
+        if let Some(reason) = self.last_rejection() {
+            warn!(
+                sequence = h.sequence,
+                reason = status.name(),
+                "rejected scan: {reason}"
+            );
+        }
+        Ok(())
+    }
+
+    fn done(&self) -> bool {
+        self.count.is_some_and(|c| self.report.received >= c)
+    }
+
+    fn log_state(&self) {
         let r = &self.report;
         info!(
             received = r.received,
@@ -296,97 +351,33 @@ impl SegmenterStage {
         );
         self.seg.log_state();
     }
+
+    fn stop(self, _: &Inputs) -> anyhow::Result<SegmenterReport> {
+        let r = self.report;
+        info!(
+            received = r.received,
+            segmented = r.segmented,
+            rejected = ?r.rejected,
+            dropped = r.dropped,
+            unreceived_masks = r.unreceived_masks,
+            producer_runs = r.producer_runs,
+            history_resets = self.seg.counters().history_resets,
+            out_of_bounds_points = r.out_of_bounds_points,
+            "segmenter stopped"
+        );
+        Ok(r)
+    }
 }
 
 /// Runs the segmenter until `count` scans were handled or a termination signal arrives.
 pub fn run(cfg: &ServiceConfig, opts: &SegmenterOptions) -> anyhow::Result<SegmenterReport> {
-    signals::die_with_launcher()?;
-    check_shared_memory(cfg)?;
-    let mut stage = SegmenterStage::new(opts, cfg.max_points)?;
-    let node = transport::node(cfg, "segmenter")?;
-    signals::install(&node)?;
-    let scans = transport::scan_service(&node, cfg)?;
-    let masks = transport::mask_service(&node, cfg)?;
-    let subscriber = transport::scan_subscriber(&scans, cfg)?;
-    let publisher = transport::mask_publisher(&masks, cfg)?;
-    let scan_listener = transport::event_listener(&node, cfg, "scans")?;
-    let mask_notifier = transport::event_notifier(&node, cfg, "masks")?;
-    info!(prefix = %cfg.prefix, frames = opts.segmenter.history.frames, echo = opts.echo, "segmenter started");
-
-    let done = |stage: &SegmenterStage| opts.count.is_some_and(|c| stage.report().received >= c);
-    let mut wait = ScanWait::new(cfg.prewarm(), Duration::from_millis(250));
-    let handle_scans = |stage: &mut SegmenterStage, wait: &mut ScanWait| -> anyhow::Result<()> {
-        while let Some(scan) = subscriber.receive().context("receive scan")? {
-            let received_ns = monotonic_ns();
-            wait.arrived(std::time::Instant::now());
-            let h = *scan.user_header();
-            let points: &[ScanPoint] = scan.payload();
-            let n = stage.mask_len(&h, points);
-            let mut mask = publisher
-                .loan_slice(n)
-                .map_err(|e| anyhow::anyhow!("loan mask of {n}: {e:?}"))?;
-            let mut header = stage.process(&h, points, received_ns, mask.payload_mut());
-            drop(scan);
-            if let Some(reason) = stage.last_rejection() {
-                warn!(
-                    sequence = h.sequence,
-                    reason = header.status.name(),
-                    "rejected scan: {reason}"
-                );
-            }
-            header.stamps.segmenter_published_ns = monotonic_ns();
-            *mask.user_header_mut() = header;
-            if mask.send().context("send mask")? == 0 {
-                stage.count_unreceived();
-            }
-            let _ = mask_notifier.notify();
-            if done(stage) {
-                break;
-            }
-        }
-        Ok(())
-    };
-
-    // Scans published before our listener existed wake nobody: look once at start.
-    handle_scans(&mut stage, &mut wait)?;
-    let interval = Duration::from_secs_f64(cfg.report_interval_s);
-    let mut last_report = std::time::Instant::now();
-    while !done(&stage) {
-        // The bounded wait also lets the periodic work run while idle; the pool's workers
-        // spin from just before a periodic scan is due until it is processed.
-        let Woken::Look(spinner) = wait.wait(&scan_listener)? else {
-            break;
-        };
-        // Also serves scans whose wake-up was missed (e.g. a producer restarted between
-        // our listener's cleanups): nothing strands in the queue.
-        handle_scans(&mut stage, &mut wait)?;
-        drop(spinner);
-        if last_report.elapsed() >= interval {
-            last_report = std::time::Instant::now();
-            stage.log_state();
-            transport::cleanup_dead(&node);
-        }
-    }
-    // A launcher killed with -9 (whose death is why we stop) leaves its node: sweep it.
-    transport::cleanup_dead(&node);
-    let r = stage.report().clone();
-    info!(
-        received = r.received,
-        segmented = r.segmented,
-        rejected = ?r.rejected,
-        dropped = r.dropped,
-        unreceived_masks = r.unreceived_masks,
-        producer_runs = r.producer_runs,
-        history_resets = stage.segmenter().counters().history_resets,
-        out_of_bounds_points = r.out_of_bounds_points,
-        "segmenter stopped"
-    );
-    Ok(r)
+    crate::stage::run(cfg, || SegmenterStage::new(opts, cfg.max_points))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use groundwork_msg::ScanPoint;
 
     fn header(epoch: u64, seq: u64, n: usize, x: f64, t_ms: u64) -> ScanHeader {
         let mut pose = ScanHeader::default().pose;
@@ -428,7 +419,7 @@ mod tests {
         let mut s = stage();
         let mut out = vec![0.0; pts.len()];
         let mut run = |s: &mut SegmenterStage, h: ScanHeader| {
-            let m = s.process(&h, &pts, 1, &mut out);
+            let m = s.segment(&h, &pts, 1, &mut out);
             assert_eq!(m.status, MaskStatus::OK, "{:?}", s.last_rejection());
             m
         };
@@ -458,13 +449,13 @@ mod tests {
         let pts = vec![ScanPoint::default(); 10];
         let mut h = header(1, 0, 11, 0.0, 0);
         assert_eq!(s.mask_len(&h, &pts), 0);
-        let m = s.process(&h, &pts, 1, &mut []);
+        let m = s.segment(&h, &pts, 1, &mut []);
         assert_eq!((m.status, m.point_count), (MaskStatus::COUNT_MISMATCH, 0));
         assert!(s.last_rejection().unwrap().contains("11"));
         h.point_count = 10;
         h.pose[0] = 2.0; // not a rotation
         let mut out = vec![0.0; 10];
-        let m = s.process(&h, &pts, 1, &mut out);
+        let m = s.segment(&h, &pts, 1, &mut out);
         assert_eq!(m.status, MaskStatus::OTHER);
         assert!(s.last_rejection().unwrap().contains("pose"));
         assert_eq!(s.report().rejected.values().sum::<u64>(), 2);

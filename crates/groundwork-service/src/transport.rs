@@ -93,22 +93,32 @@ pub fn pipeline_nodes(cfg: &ServiceConfig) -> Vec<(String, bool, i32)> {
 /// Creates this process's node, named after the pipeline and the stage. Creating a node
 /// removes the ports and shared memory of processes that died without cleaning up (killed
 /// with -9, crashed); we count this pipeline's first so that the log says what was removed.
-///
-/// A stage that must be unique in its pipeline (`producer`, `segmenter`) is refused while
-/// another live process holds that role: two segmenters would answer every scan twice.
-/// (The topics also admit one publisher each, which settles a race of two starts.)
 pub fn node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Service>> {
-    let name = node_name(cfg, stage);
+    create_node(cfg, stage, &pipeline_nodes(cfg))
+}
+
+/// [`node`] for a stage that must be unique in its pipeline (the producer, the segmenter):
+/// refused while another live process holds that role, since two segmenters would answer
+/// every scan twice. (The topics also admit one publisher each, which settles a race of two
+/// starts.)
+pub fn unique_node(cfg: &ServiceConfig, stage: &str) -> anyhow::Result<Node<ipc::Service>> {
     let before = pipeline_nodes(cfg);
-    if matches!(stage, "producer" | "segmenter" | "detector")
-        && let Some((_, _, pid)) = before.iter().find(|(s, alive, _)| s == stage && *alive)
-    {
+    if let Some((_, _, pid)) = before.iter().find(|(s, alive, _)| s == stage && *alive) {
         anyhow::bail!(
             "another {stage} of pipeline \"{}\" is running (pid {pid}): refusing to start a \
                  second one (use another --prefix to run a second pipeline)",
             cfg.prefix
         );
     }
+    create_node(cfg, stage, &before)
+}
+
+fn create_node(
+    cfg: &ServiceConfig,
+    stage: &str,
+    before: &[(String, bool, i32)],
+) -> anyhow::Result<Node<ipc::Service>> {
+    let name = node_name(cfg, stage);
     let stale = before.iter().filter(|(_, alive, _)| !alive).count();
     let node = NodeBuilder::new()
         .config(ipc_config())
