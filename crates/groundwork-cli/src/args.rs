@@ -328,8 +328,8 @@ pub struct RenderArgs {
     #[arg(long)]
     pub labels: Option<PathBuf>,
     /// Ground colouring.
-    #[arg(long, value_enum, default_value_t = crate::render::ColourArg::Height)]
-    pub colour: crate::render::ColourArg,
+    #[arg(long, value_enum, default_value_t = ColourArg::Height)]
+    pub colour: ColourArg,
     /// Half the picture's side, metres.
     #[arg(long, default_value_t = 40.0)]
     pub range: f32,
@@ -375,15 +375,15 @@ pub struct LabelArgs {
     #[command(flatten)]
     pub sensor: SensorArgs,
     /// Per-scan method (the GMM keeps a history over scans in order: use `segment`).
-    #[arg(long, value_enum, default_value_t = crate::label::LabelMethod::Pseudolabeler)]
-    pub method: crate::label::LabelMethod,
+    #[arg(long, value_enum, default_value_t = LabelMethod::Pseudolabeler)]
+    pub method: LabelMethod,
     /// Output folder (created if missing).
     #[arg(long)]
     pub out: PathBuf,
     /// Label only shard i of n (0-based): scans whose place in the sorted list is i
     /// modulo n. Every scan is in exactly one shard.
-    #[arg(long, value_parser = crate::label::parse_shard)]
-    pub shard: Option<crate::label::Shard>,
+    #[arg(long, value_parser = parse_shard)]
+    pub shard: Option<Shard>,
     /// Label again even scans whose outputs are complete.
     #[arg(long)]
     pub overwrite: bool,
@@ -396,4 +396,67 @@ pub struct LabelArgs {
 pub enum ProtocolArg {
     Gmm,
     Terraseg,
+}
+
+/// How ground points are coloured.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ColourArg {
+    /// Ground by height.
+    Height,
+    /// Ground by probability.
+    Probability,
+}
+
+/// The per-scan methods `label` runs.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LabelMethod {
+    /// TerraSeg's PseudoLabeler (per-scan MLP elevation map).
+    Pseudolabeler,
+    /// The RANSAC plane baseline.
+    Ransac,
+}
+
+/// Shard i of n.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    /// 0-based index.
+    pub index: u64,
+    /// Number of shards.
+    pub count: u64,
+}
+
+impl Default for Shard {
+    fn default() -> Self {
+        Self { index: 0, count: 1 }
+    }
+}
+
+impl Shard {
+    /// Whether the k-th scan of the sorted list is in this shard.
+    pub fn contains(&self, k: usize) -> bool {
+        k as u64 % self.count == self.index
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+/// Parses `i/n` with 0 ≤ i < n (a Slurm array's `$SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT`).
+pub fn parse_shard(s: &str) -> Result<Shard, String> {
+    let (i, n) = s
+        .split_once('/')
+        .ok_or_else(|| format!("{s:?}: expected i/n, e.g. 0/8"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u64>()
+            .map_err(|e| format!("{s:?}: {v:?} is not a count ({e})"))
+    };
+    let (index, count) = (parse(i)?, parse(n)?);
+    if count == 0 || index >= count {
+        return Err(format!("{s:?}: need 0 ≤ i < n"));
+    }
+    Ok(Shard { index, count })
 }

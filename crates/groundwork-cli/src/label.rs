@@ -19,59 +19,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{error, info};
 
-/// The per-scan methods `label` runs.
-#[derive(Copy, Clone, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum LabelMethod {
-    /// TerraSeg's PseudoLabeler (per-scan MLP elevation map).
-    Pseudolabeler,
-    /// The RANSAC plane baseline.
-    Ransac,
-}
-
-/// Shard i of n.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Shard {
-    /// 0-based index.
-    pub index: u64,
-    /// Number of shards.
-    pub count: u64,
-}
-
-impl Default for Shard {
-    fn default() -> Self {
-        Self { index: 0, count: 1 }
-    }
-}
-
-impl Shard {
-    /// Whether the k-th scan of the sorted list is in this shard.
-    pub fn contains(&self, k: usize) -> bool {
-        k as u64 % self.count == self.index
-    }
-}
-
-impl std::fmt::Display for Shard {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}/{}", self.index, self.count)
-    }
-}
-
-/// Parses `i/n` with 0 ≤ i < n (a Slurm array's `$SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT`).
-pub fn parse_shard(s: &str) -> Result<Shard, String> {
-    let (i, n) = s
-        .split_once('/')
-        .ok_or_else(|| format!("{s:?}: expected i/n, e.g. 0/8"))?;
-    let parse = |v: &str| {
-        v.trim()
-            .parse::<u64>()
-            .map_err(|e| format!("{s:?}: {v:?} is not a count ({e})"))
-    };
-    let (index, count) = (parse(i)?, parse(n)?);
-    if count == 0 || index >= count {
-        return Err(format!("{s:?}: need 0 ≤ i < n"));
-    }
-    Ok(Shard { index, count })
-}
+use crate::args::{LabelMethod, Shard};
 
 /// The per-scan methods `label` runs (shared by all threads: labelling takes `&self`).
 enum PerScan {
@@ -363,6 +311,7 @@ pub fn command(a: crate::args::LabelArgs) -> Result<ExitCode> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::args::parse_shard;
 
     #[test]
     fn shards_partition_any_list_exactly() {

@@ -9,16 +9,8 @@ use groundwork_eval::MethodsConfig;
 use groundwork_io::{LabelMap, read_prob, read_scan, scan_stem, write_atomic};
 use groundwork_viz::{Colouring, Scene, View, render};
 
+use crate::args::ColourArg;
 use crate::methods::{self, MethodArg};
-
-/// How ground points are coloured.
-#[derive(Copy, Clone, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum ColourArg {
-    /// Ground by height.
-    Height,
-    /// Ground by probability.
-    Probability,
-}
 
 /// Options of one picture.
 #[derive(Debug)]

@@ -6,6 +6,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigError;
+use crate::point::{Pose, pose_from_matrix};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 /// Upper bound on the zone model's segment count.
 pub const MAX_SEGMENTS: u64 = 1 << 20;
@@ -589,7 +591,7 @@ impl SegmenterConfig {
                     " m",
                 )?;
             }
-            crate::point::pose_from_matrix(mat)
+            pose_from_matrix(mat)
                 .map_err(|e| ConfigError::invalid("sensor.mount.matrix", &e.to_string()))?;
         }
         within("sensor.ego_radius", s.ego_radius, 0.0, 50.0, " m")?;
@@ -684,9 +686,35 @@ impl SegmenterConfig {
     }
 }
 
+/// The ground-aligned-from-sensor transform described by a mount configuration.
+pub fn mount_transform(mount: &MountConfig) -> Result<Pose, ConfigError> {
+    if let Some(m) = &mount.matrix {
+        return pose_from_matrix(m).map_err(|e| ConfigError {
+            field: "sensor.mount.matrix".into(),
+            reason: e.to_string(),
+        });
+    }
+    let rotation = UnitQuaternion::from_euler_angles(mount.roll, mount.pitch, mount.yaw);
+    Ok(Isometry3::from_parts(
+        Translation3::from(Vector3::new(0.0, 0.0, mount.height)),
+        rotation,
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn mount_lifts_points_by_the_sensor_height() {
+        let m = MountConfig {
+            height: 1.73,
+            ..Default::default()
+        };
+        let t = mount_transform(&m).unwrap();
+        let p = t * nalgebra::Point3::new(1.0, 2.0, -1.73);
+        assert!((p.z).abs() < 1e-12 && (p.x - 1.0).abs() < 1e-12);
+    }
 
     #[test]
     fn defaults_are_the_papers_values_and_valid() {

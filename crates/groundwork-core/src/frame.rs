@@ -3,8 +3,9 @@
 //! ego vehicle's own returns. The same sensor standardisation as the GMM segmenter's, for
 //! the methods beside it (PseudoLabeler, RANSAC) and the detector.
 
+use crate::config::mount_transform;
 use crate::error::{ConfigError, SegmentError};
-use crate::point::{PointXyz, Pose, check_finite, mount_transform};
+use crate::point::{PointXyz, Pose, check_finite};
 use glam::{Affine3A, Vec3A};
 use rayon::prelude::*;
 

@@ -10,8 +10,20 @@
 //! split on while it writes every point's place (see [`group_points`]).
 
 use crate::config::BeyondRangePolicy;
-use crate::model::SegmentedPoints;
 use crate::zones::{BEYOND, NEAR};
+
+/// Points of one scan in the ground-aligned frame, grouped by segment (structure of arrays).
+#[derive(Debug, Clone, Default)]
+pub struct SegmentedPoints {
+    /// x of every in-range point, segment by segment.
+    pub xs: Vec<f64>,
+    /// y, likewise.
+    pub ys: Vec<f64>,
+    /// z, likewise.
+    pub zs: Vec<f64>,
+    /// Points of segment s are at `start[s]..start[s+1]`.
+    pub start: Vec<u32>,
+}
 
 /// A scan's points in the ground-aligned frame, in input order (structure of arrays: the
 /// transform writes whole vectors of each coordinate).

@@ -55,9 +55,9 @@ pub mod segmenter;
 mod simd;
 pub mod zones;
 
-pub use config::SegmenterConfig;
+pub use config::{SegmenterConfig, mount_transform};
 pub use error::{ConfigError, SegmentError};
 pub use frame::GroundFrame;
 pub use method::GroundMethod;
-pub use point::{Point, PointXyz, Pose, check_finite, mount_transform, pose_from_matrix};
+pub use point::{Point, PointXyz, Pose, check_finite, pose_from_matrix};
 pub use segmenter::{FrameReport, HistoryReset, Segmenter, SegmenterCounters};

@@ -4,6 +4,7 @@ use rayon::prelude::*;
 
 use crate::config::SegmenterConfig;
 use crate::gmm::{EmScratch, Evaluator, Gaussian, fit_segment_with};
+use crate::grouping::SegmentedPoints;
 use crate::likelihood::{flatness, inverted_sigmoid};
 use crate::query::QueryTable;
 
@@ -78,19 +79,6 @@ impl FrameModel {
     pub fn fitted_segments(&self) -> usize {
         self.start.windows(2).filter(|w| w[1] > w[0]).count()
     }
-}
-
-/// Points of one scan in the ground-aligned frame, grouped by segment (structure of arrays).
-#[derive(Debug, Clone, Default)]
-pub struct SegmentedPoints {
-    /// x of every in-range point, segment by segment.
-    pub xs: Vec<f64>,
-    /// y, likewise.
-    pub ys: Vec<f64>,
-    /// z, likewise.
-    pub zs: Vec<f64>,
-    /// Points of segment s are at `start[s]..start[s+1]`.
-    pub start: Vec<u32>,
 }
 
 thread_local! {

@@ -1,9 +1,8 @@
 //! Input points and rigid transforms.
 
-use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion};
 
-use crate::config::MountConfig;
-use crate::error::{ConfigError, SegmentError};
+use crate::error::SegmentError;
 
 /// A LiDAR return as KITTI stores it: x, y, z in metres and intensity, 16 bytes.
 #[repr(C)]
@@ -100,35 +99,9 @@ pub fn pose_from_matrix(m: &[[f64; 4]; 4]) -> Result<Pose, SegmentError> {
     Ok(Isometry3::from_parts(translation, rotation))
 }
 
-/// The ground-aligned-from-sensor transform described by a mount configuration.
-pub fn mount_transform(mount: &MountConfig) -> Result<Pose, ConfigError> {
-    if let Some(m) = &mount.matrix {
-        return pose_from_matrix(m).map_err(|e| ConfigError {
-            field: "sensor.mount.matrix".into(),
-            reason: e.to_string(),
-        });
-    }
-    let rotation = UnitQuaternion::from_euler_angles(mount.roll, mount.pitch, mount.yaw);
-    Ok(Isometry3::from_parts(
-        Translation3::from(Vector3::new(0.0, 0.0, mount.height)),
-        rotation,
-    ))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn mount_lifts_points_by_the_sensor_height() {
-        let m = MountConfig {
-            height: 1.73,
-            ..Default::default()
-        };
-        let t = mount_transform(&m).unwrap();
-        let p = t * nalgebra::Point3::new(1.0, 2.0, -1.73);
-        assert!((p.z).abs() < 1e-12 && (p.x - 1.0).abs() < 1e-12);
-    }
 
     #[test]
     fn pose_from_matrix_rejects_non_rigid_and_non_finite() {

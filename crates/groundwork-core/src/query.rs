@@ -36,7 +36,8 @@ use regrid::{RegriddedTable, SegmentRuns};
 use crate::fastmath::{exp2_from, exp2_v};
 use crate::gmm::{Evaluator, Sym3, half_precision_factor};
 use crate::grouping::QueryGroups;
-use crate::model::{FrameModel, SegmentedPoints};
+use crate::grouping::SegmentedPoints;
+use crate::model::FrameModel;
 use crate::zones::LaneBinner;
 
 use crate::zones::{BEYOND, NEAR};
@@ -785,9 +786,9 @@ mod tests {
     #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
     use super::*;
+    use crate::config::mount_transform;
     use crate::grouping::{GroundPoints, SegmentCounts, group_points};
     use crate::model::GroundComponent;
-    use crate::point::mount_transform;
     use crate::zones::{Bin, ZoneModel};
     use crate::{Point, Segmenter, SegmenterConfig};
     use nalgebra::{Point3, Translation3, UnitQuaternion};

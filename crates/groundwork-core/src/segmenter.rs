@@ -8,13 +8,15 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 use tracing::{debug, info, warn};
 
+use crate::config::mount_transform;
 use crate::config::{PastQuery, SegmenterConfig};
 use crate::error::{ConfigError, SegmentError};
+use crate::grouping::SegmentedPoints;
 use crate::grouping::{GroundPoints, SegmentCounts, group_points};
 use crate::height_filter::HeightFilter;
 use crate::history::History;
-use crate::model::{FrameModel, SegmentedPoints, fit_frame};
-use crate::point::{PointXyz, Pose, check_finite, mount_transform};
+use crate::model::{FrameModel, fit_frame};
+use crate::point::{PointXyz, Pose, check_finite};
 use crate::query::{OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
 use crate::simd::LANES;
 use crate::zones::NEAR;
