@@ -496,6 +496,25 @@ impl Consumer {
             stalled: false,
         })
     }
+
+    /// One message read: one that woke the consumer, one read beside it, or one still
+    /// queued at the end.
+    fn see(&mut self, input: Input<'_>, received_ns: u64) {
+        match input {
+            Input::Scan(h, points) => self.stage.on_scan(h, points),
+            Input::Proposals(h, _) => self.stage.on_proposals(h),
+            Input::Mask(h, probabilities) => {
+                self.stage.on_mask(h, probabilities, received_ns);
+                self.last_mask = Instant::now();
+                self.first.get_or_insert(self.last_mask);
+                if self.cpu_start.is_none() {
+                    self.cpu_start =
+                        Some((CpuSnapshot::take(&self.cfg), self.stage.report().segmented));
+                }
+            }
+            Input::Tick => {}
+        }
+    }
 }
 
 impl Stage for Consumer {
@@ -527,20 +546,7 @@ impl Stage for Consumer {
         received_ns: u64,
         _: &mut Outbox,
     ) -> anyhow::Result<()> {
-        match input {
-            Input::Scan(h, points) => self.stage.on_scan(h, points),
-            Input::Proposals(h, _) => self.stage.on_proposals(h),
-            Input::Mask(h, probabilities) => {
-                self.stage.on_mask(h, probabilities, received_ns);
-                self.last_mask = Instant::now();
-                self.first.get_or_insert(self.last_mask);
-                if self.cpu_start.is_none() {
-                    self.cpu_start =
-                        Some((CpuSnapshot::take(&self.cfg), self.stage.report().segmented));
-                }
-            }
-            Input::Tick => {}
-        }
+        self.see(input, received_ns);
         Ok(())
     }
 
@@ -580,10 +586,8 @@ impl Stage for Consumer {
 
     fn stop(mut self, rest: &Inputs) -> anyhow::Result<ConsumerReport> {
         // Scans already queued are seen, so that they count (as unanswered if no mask came).
-        rest.read(Topic::Scans, |input, _| {
-            if let Input::Scan(h, points) = input {
-                self.stage.on_scan(h, points);
-            }
+        rest.read(Topic::Scans, |input, at| {
+            self.see(input, at);
             Ok(())
         })?;
         // The detector answers a mask after we have read it: with a detector running, its
@@ -594,10 +598,8 @@ impl Stage for Consumer {
             && since.elapsed() < Duration::from_secs(1)
             && last.elapsed() < Duration::from_millis(200)
         {
-            let read = rest.read(Topic::Proposals, |input, _| {
-                if let Input::Proposals(h, _) = input {
-                    self.stage.on_proposals(h);
-                }
+            let read = rest.read(Topic::Proposals, |input, at| {
+                self.see(input, at);
                 Ok(())
             })?;
             if read > 0 {
