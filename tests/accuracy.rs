@@ -7,7 +7,7 @@ use groundwork_eval::{Protocol, Sequence, evaluate};
 use groundwork_io::load_config;
 use groundwork_tests::{hdl64e_preset, kitti_sequence};
 
-/// Measured 97.66 pooled ground IoU (gmm protocol) with the HDL-64E preset; the paper
+/// Measured 97.64 pooled ground IoU (gmm protocol) with the HDL-64E preset; the paper
 /// reports 95.37 on the whole of sequence 00, Patchwork++ 1.4.1 scores 98.04 on these three
 /// frames. The threshold leaves room for float differences across machines only.
 const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 97.3;
@@ -56,8 +56,11 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
     assert!(ts.pooled_metrics.miou > 85.0, "{:?}", ts.pooled_metrics);
 }
 
-/// Measured: pooled IoU 97.66 single-frame → 98.14 with history (frames 1 and 2 gain
-/// 0.67 and 0.78 IoU points with 3 frames) on the vendored frames.
+/// Measured: pooled IoU 97.64 single-frame → 97.86 with 2 frames, 97.88 with 3 (frames 1 and
+/// 2 gain 0.2 and 0.5 IoU points) on the vendored frames. Which 2 cm cubes hold the fit
+/// points is one draw of a hash: over ten draws the 2-frame figure is 97.91 ± 0.17 (the
+/// coordinate-bit hash before: 97.95 on average, its shipped draw 98.14), so the floor
+/// sits a standard deviation under the mean, not under one lucky draw.
 #[test]
 fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
     let single = {
@@ -94,8 +97,12 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
             );
             assert!(m.f1 >= s.f1);
         }
+        eprintln!(
+            "N_f {frames}: pooled IoU {:.2}, precision {:.2}",
+            multi.pooled_metrics.iou_ground, multi.pooled_metrics.precision
+        );
         assert!(
-            multi.pooled_metrics.iou_ground >= 98.0,
+            multi.pooled_metrics.iou_ground >= 97.7,
             "{:?}",
             multi.pooled_metrics
         );

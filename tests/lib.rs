@@ -55,9 +55,20 @@ pub fn synthetic(
     frames: usize,
     mount: Option<MountConfig>,
 ) -> Generator {
+    synthetic_seeded(sensor, scene, frames, mount, 1)
+}
+
+/// [`synthetic`] with the generator's seed.
+pub fn synthetic_seeded(
+    sensor: &str,
+    scene: SceneKind,
+    frames: usize,
+    mount: Option<MountConfig>,
+    seed: u64,
+) -> Generator {
     let preset = sensor_preset(sensor).expect("preset");
     let mount = mount.unwrap_or(preset.sensor.mount);
-    let synth = SynthConfig::new(sensor, mount, scene, 1).expect("pattern");
+    let synth = SynthConfig::new(sensor, mount, scene, seed).expect("pattern");
     Generator::new(synth, frames).expect("generator")
 }
 

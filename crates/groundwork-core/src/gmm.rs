@@ -155,7 +155,8 @@ pub struct EmScratch {
     x: Vec<f32>,
     y: Vec<f32>,
     z: Vec<f32>,
-    /// 1 for real points, 0 for the padding up to a multiple of `LANES`.
+    /// Fit weight: 1 inside a drawn cube, in (0, 1) near a face between a drawn and an
+    /// undrawn cube, 0 for the padding up to a multiple of `LANES`.
     w: Vec<f32>,
     /// Component-major log-densities, then responsibilities: `k × padded`.
     resp: Vec<f32>,
@@ -163,24 +164,29 @@ pub struct EmScratch {
     /// w / Σ_c e^{l_c − max}
     inv: Vec<f32>,
     best: Vec<u32>,
-    /// (coordinate hash, index) of the points fitted, in canonical order.
+    /// (sort key, index) of the candidate points, in canonical order.
     order: Vec<(u64, u32)>,
-    hashes: Vec<u64>,
+    /// Indices of the points fitted (weight > 0), in canonical order.
+    fitted: Vec<u32>,
+    /// Cube hash of every point of the segment.
+    hashes: Vec<u32>,
+    /// 1 where a point lies within the face band of its cube.
+    near: Vec<u8>,
     spare: Vec<(u64, u32)>,
     counts: Vec<u32>,
 }
 
-/// Sorts `src` by hash into `dst[..src.len()]` (`dst` grows as needed, never shrinks:
-/// refilling it per segment was a memset of every point), every hash at most `max_key`.
-/// Hashes spread evenly, so a counting sort on their top bits (about one bucket per
-/// element) leaves only neighbours out of order, which an insertion sort then fixes:
-/// linear time, against n·log n comparisons of a general sort (4 % of a scan's time).
-/// Equal hashes keep their order.
-fn sort_by_hash(
+/// Sorts `src` into `dst[..src.len()]` (`dst` grows as needed, never shrinks: refilling it
+/// per segment was a memset of every point) by key, then by `tie` for equal keys; every
+/// key is at most `max_key`. Keys spread evenly, so a counting sort on their top bits
+/// (about one bucket per element) leaves only neighbours out of order, which an insertion
+/// sort then fixes: linear time, against n·log n comparisons of a general sort.
+fn sort_by_key(
     src: &[(u64, u32)],
     dst: &mut Vec<(u64, u32)>,
     counts: &mut Vec<u32>,
     max_key: u64,
+    mut tie: impl FnMut(u32, u32) -> std::cmp::Ordering,
 ) {
     let m = src.len();
     if dst.len() < m {
@@ -209,7 +215,7 @@ fn sort_by_hash(
     for i in 1..m {
         let e = v[i];
         let mut j = i;
-        while j > 0 && v[j - 1].0 > e.0 {
+        while j > 0 && (v[j - 1].0 > e.0 || (v[j - 1].0 == e.0 && tie(v[j - 1].1, e.1).is_gt())) {
             v[j] = v[j - 1];
             j -= 1;
         }
@@ -217,15 +223,96 @@ fn sort_by_hash(
     }
 }
 
-/// A well-mixed 64-bit hash of a point's coordinates (splitmix64 finaliser).
-#[inline]
-fn point_hash(x: f64, y: f64, z: f64) -> u64 {
-    let mut h = x.to_bits() ^ y.to_bits().rotate_left(21) ^ z.to_bits().rotate_left(42);
-    h ^= h >> 30;
-    h = h.wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    h ^= h >> 27;
-    h = h.wrapping_mul(0x94d0_49bb_1331_11eb);
-    h ^ (h >> 31)
+/// Edge of the cubes that choose a dense segment's fit points (m). Much finer than any
+/// component (a ground component spans metres and a few centimetres of height), coarse
+/// enough that a rounding error almost never moves a point into another cube.
+const CUBE_EDGE: f64 = 0.02;
+/// Within this share of the edge from a face, a point's weight slides linearly from its
+/// own cube's draw to its neighbour's (half and half on the face): the fit is a continuous
+/// function of the coordinates. One ulp of an f32 coordinate at 50 m is 2e-4 of the edge.
+const FACE_BAND: f64 = 0.005;
+
+/// The mean of `v` (not empty), exactly independent of the order of `v`: each value is
+/// rounded to a multiple of 2⁻²⁴ m (6e-8 m) and the multiples are summed as integers. A
+/// float sum would round differently for every order of the same points. Values beyond
+/// ±2²⁷ m (no LiDAR range) give a meaningless mean, never a panic.
+fn exact_mean(v: &[f64]) -> f64 {
+    // Adding 1.5·2²⁸ puts a value in the binade whose ulp is 2⁻²⁴: the low bits of the sum
+    // are the value rounded to that ulp (round to nearest even), read as an integer.
+    const MAGIC: f64 = 402_653_184.0; // 1.5 · 2^28
+    const QUANTUM: f64 = 1.0 / 16_777_216.0; // 2^-24
+    let base = MAGIC.to_bits() as i64;
+    let sum = v.iter().fold(0i64, |acc, &x| {
+        acc.wrapping_add(((x + MAGIC).to_bits() as i64).wrapping_sub(base))
+    });
+    sum as f64 * QUANTUM / v.len() as f64
+}
+
+/// A well-mixed 32-bit hash of a cube's integer coordinates (murmur3's finaliser). 32-bit
+/// multiplies vectorise on every x86-64-v3 and aarch64 CPU; 64-bit ones do not.
+#[inline(always)]
+fn cube_hash(ix: i32, iy: i32, iz: i32) -> u32 {
+    let mut h = (ix as u32)
+        .wrapping_mul(0x9e37_79b1)
+        .wrapping_add((iy as u32).wrapping_mul(0x85eb_ca77))
+        .wrapping_add((iz as u32).wrapping_mul(0xc2b2_ae3d));
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x85eb_ca6b);
+    h ^= h >> 13;
+    h = h.wrapping_mul(0xc2b2_ae35);
+    h ^ (h >> 16)
+}
+
+/// Cube index and place in the cube (in [0, 1)) of one coordinate.
+#[inline(always)]
+fn cube_coordinate(v: f64) -> (i32, f64) {
+    // Adding 1.5·2⁵² to an integer-valued f64 puts the integer in the low mantissa bits
+    // (two's complement for negatives): a conversion that vectorises, where `as i32`
+    // saturates lane by lane. Beyond ±2³¹ cubes (43,000 km) the index wraps, harmlessly.
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    let q = v * (1.0 / CUBE_EDGE);
+    let f = q.floor();
+    ((f + MAGIC).to_bits() as u32 as i32, q - f)
+}
+
+/// Share of the own cube (vs the neighbour `step` away) for a place `t` in the cube:
+/// 1 outside the band, ½ on the face.
+#[inline(always)]
+fn face_share(t: f64) -> (f64, i32) {
+    if t < FACE_BAND {
+        (0.5 + 0.5 * t / FACE_BAND, -1)
+    } else if t > 1.0 - FACE_BAND {
+        (0.5 + 0.5 * (1.0 - t) / FACE_BAND, 1)
+    } else {
+        (1.0, 0)
+    }
+}
+
+/// Fit weight of a point near a face: the draws (`hash <= threshold`) of its cube and of
+/// the neighbours across the near faces, blended trilinearly by [`face_share`].
+fn band_weight(x: f64, y: f64, z: f64, threshold: u32) -> f32 {
+    let ((cx, tx), (cy, ty), (cz, tz)) =
+        (cube_coordinate(x), cube_coordinate(y), cube_coordinate(z));
+    let shares = [face_share(tx), face_share(ty), face_share(tz)];
+    let mut w = 0.0;
+    for corner in 0..8u32 {
+        let mut share = 1.0;
+        let mut cube = [cx, cy, cz];
+        for (a, &(own, step)) in shares.iter().enumerate() {
+            if corner >> a & 1 == 0 {
+                share *= own;
+            } else if step == 0 {
+                share = 0.0;
+            } else {
+                share *= 1.0 - own;
+                cube[a] = cube[a].saturating_add(step);
+            }
+        }
+        if share > 0.0 && cube_hash(cube[0], cube[1], cube[2]) <= threshold {
+            w += share;
+        }
+    }
+    w as f32
 }
 
 /// f32 parameters of one component for the vectorised E-step.
@@ -274,70 +361,138 @@ pub fn fit_segment_with(
         });
     let reg = cfg.covariance_regularization;
 
-    // Dense segments are fitted on a subsample of about `max_fit_points` points. Which
-    // points are kept depends on a hash of their coordinates, and they are fitted in the
-    // order of that hash, not in the order of the scan: EM's float sums then see the same
-    // sequence whatever order a driver delivers points in, so the fit (and every output) is
-    // exactly independent of it. Support counts are scaled back to the whole segment for τ_N
-    // pruning.
+    // Dense segments are fitted on a subsample of about `max_fit_points` points chosen by
+    // the geometry: space is cut into 2 cm cubes, and a cube is drawn (its points fitted)
+    // when a hash of its integer coordinates falls within the segment's share. Near a face
+    // a point's weight slides between the draws of the cubes it touches, so the fit is a
+    // continuous function of the coordinates: a rounding error does not pick another
+    // subsample. Points are fitted in the order of their cube's hash, then of their
+    // coordinates: EM's float sums see the same sequence whatever order a driver delivers
+    // points in, so the fit (and every output) is exactly independent of it. Support
+    // counts are scaled back to the whole segment for τ_N pruning.
     let stride = match cfg.max_fit_points {
         0 => 1,
         cap => n.div_ceil(cap as usize).max(1),
     };
-    let threshold = u64::MAX / stride as u64;
-    // Hashes first in a plain loop (vectorised), then the kept points without a branch:
-    // a filtered push mispredicted on every other point of a dense segment.
-    s.hashes.clear();
-    s.hashes.extend(
-        xs.iter()
-            .zip(ys)
-            .zip(zs)
-            .map(|((&x, &y), &z)| point_hash(x, y, z)),
-    );
-    // The kept points go to `spare` (grown as needed, never cleared), sorted into `order`.
+    let threshold = (u64::from(u32::MAX) / stride as u64) as u32;
+    let banded = stride > 1;
+    // Cube hashes and "near a face" first in a plain loop (vectorised), then the candidate
+    // points without a branch: a filtered push mispredicted on every other point.
+    // The cubes are laid from the segment's mean, not from the sensor: a scan moved as a
+    // whole (a pose, a frame change, the last bit of every coordinate rounded up) keeps
+    // every point in its cube. (Buffers grown as needed, never shrunk: no memset per
+    // segment.)
+    if s.hashes.len() < n {
+        s.hashes.resize(n, 0);
+    }
+    if s.near.len() < n {
+        s.near.resize(n, 0);
+    }
+    let cells = s.hashes[..n].iter_mut().zip(&mut s.near[..n]);
+    let points = xs.iter().zip(ys).zip(zs);
+    let anchor = if banded {
+        [xs, ys, zs].map(exact_mean)
+    } else {
+        [0.0; 3]
+    };
+    if banded {
+        for ((h, near), ((&x, &y), &z)) in cells.zip(points) {
+            let ((cx, tx), (cy, ty), (cz, tz)) = (
+                cube_coordinate(x - anchor[0]),
+                cube_coordinate(y - anchor[1]),
+                cube_coordinate(z - anchor[2]),
+            );
+            let band = |t: f64| !(FACE_BAND..=1.0 - FACE_BAND).contains(&t);
+            *h = cube_hash(cx, cy, cz);
+            *near = u8::from(band(tx) | band(ty) | band(tz));
+        }
+    } else {
+        // Every point is fitted: only the order is needed, from the coordinates' bits.
+        let fold = |v: f64| {
+            let b = v.to_bits();
+            (b ^ (b >> 32)) as u32 as i32
+        };
+        for ((h, near), ((&x, &y), &z)) in cells.zip(points) {
+            *h = cube_hash(fold(x), fold(y), fold(z));
+            *near = 0;
+        }
+    }
+    // The candidates go to `spare` (grown as needed, never cleared) with their sort key:
+    // the cube hash rotated, so that the draw (its top bits) does not crowd the buckets.
     if s.spare.len() < n {
         s.spare.resize(n, (0, 0));
     }
     let mut kept = 0;
-    for (i, &h) in s.hashes.iter().enumerate() {
-        s.spare[kept] = (h, i as u32);
-        kept += usize::from(h <= threshold);
+    for (i, (&h, &near)) in s.hashes[..n].iter().zip(&s.near[..n]).enumerate() {
+        s.spare[kept] = (u64::from(h.rotate_left(16)), i as u32);
+        kept += usize::from((h <= threshold) | (banded & (near != 0)));
     }
-    if kept == 0 {
-        // Astronomically unlikely; fall back to one point rather than fit nothing.
-        s.spare[0] = (0, 0);
-        kept = 1;
-    }
-    // Equal hashes mean equal coordinates (or a 2^-64 collision): their order is moot.
-    sort_by_hash(&s.spare[..kept], &mut s.order, &mut s.counts, threshold);
-    let order = &s.order[..kept];
-    let m = kept;
-    let mut centroid = [0.0; 3];
-    for &(_, i) in order {
-        let i = i as usize;
-        centroid[0] += xs[i];
-        centroid[1] += ys[i];
-        centroid[2] += zs[i];
-    }
-    let centroid = centroid.map(|c| c / m as f64);
-    for v in [&mut s.x, &mut s.y, &mut s.z] {
+    let lexicographic = |a: u32, b: u32| {
+        let (a, b) = (a as usize, b as usize);
+        xs[a]
+            .total_cmp(&xs[b])
+            .then(ys[a].total_cmp(&ys[b]))
+            .then(zs[a].total_cmp(&zs[b]))
+    };
+    sort_by_key(
+        &s.spare[..kept],
+        &mut s.order,
+        &mut s.counts,
+        u64::from(u32::MAX),
+        lexicographic,
+    );
+    for v in [&mut s.x, &mut s.y, &mut s.z, &mut s.w] {
         v.clear();
     }
-    for &(_, i) in order {
+    s.fitted.clear();
+    for &(_, i) in &s.order[..kept] {
+        let i = i as usize;
+        let w = if banded && s.near[i] != 0 {
+            band_weight(
+                xs[i] - anchor[0],
+                ys[i] - anchor[1],
+                zs[i] - anchor[2],
+                threshold,
+            )
+        } else {
+            1.0
+        };
+        if w > 0.0 {
+            s.fitted.push(i as u32);
+            s.w.push(w);
+        }
+    }
+    if s.fitted.is_empty() {
+        // No cube drawn (a few cubes holding every point, none within the share): fit
+        // every point rather than nothing.
+        s.fitted.extend(s.order[..kept].iter().map(|e| e.1));
+        if s.fitted.is_empty() {
+            s.fitted.extend(0..n as u32);
+        }
+        s.w.clear();
+        s.w.resize(s.fitted.len(), 1.0);
+    }
+    let total_weight: f64 = s.w.iter().map(|&w| f64::from(w)).sum();
+    let mut centroid = [0.0; 3];
+    for (&i, &w) in s.fitted.iter().zip(&s.w) {
+        let (i, w) = (i as usize, f64::from(w));
+        centroid[0] += w * xs[i];
+        centroid[1] += w * ys[i];
+        centroid[2] += w * zs[i];
+    }
+    let centroid = centroid.map(|c| c / total_weight);
+    for &i in &s.fitted {
         let i = i as usize;
         s.x.push((xs[i] - centroid[0]) as f32);
         s.y.push((ys[i] - centroid[1]) as f32);
         s.z.push((zs[i] - centroid[2]) as f32);
     }
     let m = s.x.len();
-    let scale = n as f64 / m as f64;
+    let scale = n as f64 / total_weight;
     let np = m.div_ceil(LANES) * LANES;
-    for v in [&mut s.x, &mut s.y, &mut s.z] {
+    for v in [&mut s.x, &mut s.y, &mut s.z, &mut s.w] {
         v.resize(np, 0.0);
     }
-    s.w.clear();
-    s.w.resize(m, 1.0);
-    s.w.resize(np, 0.0);
     s.max.resize(np, 0.0);
     s.inv.resize(np, 0.0);
     s.best.resize(np, 0);
@@ -477,8 +632,18 @@ pub fn fit_segment_with(
         // One vectorised count per component: a scattered `owned[best] += 1` serialises
         // on store-to-load forwarding.
         for (c, o) in owned[..k].iter_mut().enumerate() {
-            let count: u32 = s.best[..m].iter().map(|&b| u32::from(b == c as u32)).sum();
-            *o = (f64::from(count) * scale).round() as u32;
+            // Lane-wise sums: a single f32 sum is a serial chain of adds.
+            let (mut acc, cv) = (f32x8::splat(0.0), i32x8::splat(c as i32));
+            for (b, w) in s.best.chunks_exact(LANES).zip(s.w.chunks_exact(LANES)) {
+                let (Some(b), Some(w)) = (b.first_chunk::<LANES>(), w.first_chunk::<LANES>())
+                else {
+                    break; // cannot happen: exact chunks of LANES
+                };
+                let mine = cast::<i32x8, f32x8>(cast::<[u32; LANES], i32x8>(*b).simd_eq(cv));
+                acc += mine & f32x8::new(*w);
+            }
+            let count: f64 = acc.to_array().iter().map(|&v| f64::from(v)).sum();
+            *o = (count * scale).round() as u32;
         }
 
         // M-step (closed form, paper eq. 2) from moments about each component's current
@@ -559,7 +724,7 @@ pub fn fit_segment_with(
             }
         }
         comps = next;
-        mean_ll = ll / m as f64;
+        mean_ll = ll / total_weight;
         if comps.is_empty() {
             break;
         }
@@ -693,7 +858,7 @@ mod tests {
     }
 
     #[test]
-    fn the_hash_sort_orders_like_a_comparison_sort() {
+    fn the_key_sort_orders_like_a_stable_comparison_sort() {
         use rand::Rng;
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         // One output buffer for all, longer than needed after the 1000 keys.
@@ -717,8 +882,90 @@ mod tests {
             }
             let mut want = v.clone();
             want.sort_by_key(|e| e.0); // stable, as the hash sort is
-            sort_by_hash(&v, &mut dst, &mut counts, max_key);
+            sort_by_key(&v, &mut dst, &mut counts, max_key, |a, b| a.cmp(&b));
             assert_eq!(&dst[..m], &want[..], "{m} keys up to {max_key}");
+        }
+    }
+
+    #[test]
+    fn the_exact_mean_ignores_order_and_matches_the_float_mean() {
+        use rand::Rng;
+        use rand::seq::SliceRandom;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let mut v: Vec<f64> = (0..5000).map(|_| rng.random_range(-80.0..80.0)).collect();
+        let m = exact_mean(&v);
+        let float: f64 = v.iter().sum::<f64>() / v.len() as f64;
+        assert!((m - float).abs() < 1e-7, "{m} vs {float}");
+        for _ in 0..5 {
+            v.shuffle(&mut rng);
+            assert_eq!(exact_mean(&v).to_bits(), m.to_bits());
+        }
+        // Moved as a whole, the mean moves with it.
+        let moved: Vec<f64> = v.iter().map(|x| x + 0.123).collect();
+        assert!((exact_mean(&moved) - m - 0.123).abs() < 1e-7);
+    }
+
+    #[test]
+    fn a_point_sliding_across_a_face_changes_its_weight_continuously() {
+        let half = u32::MAX / 2;
+        // A face between a drawn cube and an undrawn one, along x.
+        let i = (0..1000)
+            .find(|&i| (cube_hash(i, 3, -2) <= half) != (cube_hash(i + 1, 3, -2) <= half))
+            .expect("a face between a drawn and an undrawn cube");
+        let (y, z) = (3.5 * CUBE_EDGE, -1.5 * CUBE_EDGE);
+        let face = f64::from(i + 1) * CUBE_EDGE;
+        let weight = |x: f64| band_weight(x, y, z, half);
+        // Away from the face each point has its cube's draw; on it, half of each.
+        let own = |c: i32| {
+            if cube_hash(c, 3, -2) <= half {
+                1.0
+            } else {
+                0.0
+            }
+        };
+        assert_eq!(weight(face - 0.3 * CUBE_EDGE), own(i));
+        assert_eq!(weight(face + 0.3 * CUBE_EDGE), own(i + 1));
+        assert!((weight(face) - 0.5).abs() < 1e-6);
+        // Across the band the weight moves by steps no larger than the motion.
+        let step = 1e-3 * FACE_BAND * CUBE_EDGE;
+        let mut last = weight(face - 2.0 * FACE_BAND * CUBE_EDGE);
+        for k in 1..4000 {
+            let w = weight(face - 2.0 * FACE_BAND * CUBE_EDGE + f64::from(k) * step);
+            assert!((0.0..=1.0).contains(&w));
+            assert!((w - last).abs() <= 1e-3, "{k}: {last} -> {w}");
+            last = w;
+        }
+    }
+
+    #[test]
+    fn a_dense_segment_moved_as_a_whole_keeps_its_fit() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let mut pts = [Vec::new(), Vec::new(), Vec::new()];
+        sample(
+            &mut rng,
+            3000,
+            [12.0, 3.0, -1.7],
+            [1.0, 1.0, 0.02],
+            &mut pts,
+        );
+        sample(&mut rng, 600, [12.3, 3.2, -0.9], [0.3, 0.3, 0.4], &mut pts);
+        let cfg = GmmConfig::default(); // 256 fit points: a subsample
+        let a = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
+        let shift = [0.37, -1.21, 0.0043];
+        let moved: Vec<Vec<f64>> = (0..3)
+            .map(|d| pts[d].iter().map(|v| v + shift[d]).collect())
+            .collect();
+        let b = fit_segment(&moved[0], &moved[1], &moved[2], &cfg);
+        assert_eq!(a.components.len(), b.components.len());
+        assert_eq!(a.iterations, b.iterations);
+        for (ga, gb) in a.components.iter().zip(&b.components) {
+            assert!((ga.weight - gb.weight).abs() < 1e-4, "{ga:?} {gb:?}");
+            for ((mb, ma), d) in gb.mean.iter().zip(&ga.mean).zip(shift) {
+                assert!((mb - ma - d).abs() < 1e-4, "{ga:?} {gb:?}");
+            }
+            for (ca, cb) in ga.covariance.iter().zip(&gb.covariance) {
+                assert!((ca - cb).abs() < 1e-5, "{ga:?} {gb:?}");
+            }
         }
     }
 
