@@ -59,8 +59,8 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
 /// Measured: pooled IoU 97.64 single-frame → 97.86 with 2 frames, 97.88 with 3 (frames 1 and
 /// 2 gain 0.2 and 0.5 IoU points) on the vendored frames. Which 2 cm cubes hold the fit
 /// points is one draw of a hash: over ten draws the 2-frame figure is 97.91 ± 0.17 (the
-/// coordinate-bit hash before: 97.95 on average, its shipped draw 98.14), so the floor
-/// sits a standard deviation under the mean, not under one lucky draw.
+/// coordinate-bit hash before shipped a draw of 98.14), so the floor sits a standard
+/// deviation under the mean, not under one lucky draw.
 #[test]
 fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
     let single = {
