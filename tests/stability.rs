@@ -59,6 +59,14 @@ impl Change {
         c
     }
 
+    /// Adds another run's counts (pooled over scans).
+    fn merge(&mut self, other: Change) {
+        self.points += other.points;
+        self.flipped += other.flipped;
+        self.moved += other.moved;
+        self.max = self.max.max(other.max);
+    }
+
     fn flip_rate(&self) -> f64 {
         100.0 * self.flipped as f64 / self.points as f64
     }
@@ -135,10 +143,9 @@ fn turned(points: &[Point], yaw: f32) -> Vec<Point> {
 /// whole segments gain or lose their boundary points).
 #[test]
 fn one_ulp_on_every_coordinate_does_not_move_the_ground_of_synthetic_scenes() {
+    let cfg = hdl64e_single_frame();
     for scene in [SceneKind::Urban, SceneKind::Offroad, SceneKind::Parking] {
         let generator = synthetic("hdl64e", scene, 1, None);
-        let mut cfg = groundwork_io::sensor_preset("hdl64e").unwrap();
-        cfg.history.frames = 1;
         for yaw in [0.0003, 0.001, 0.003, 0.01] {
             let points = turned(&generator.scan(0).points, yaw);
             let c = one_ulp_change(&cfg, &points, &format!("{scene:?} turned {yaw} rad"));
@@ -194,11 +201,7 @@ fn one_millimetre_of_jitter_flips_fewer_decisions_than_before() {
                     ..*p
                 })
                 .collect();
-            let c = Change::between(&base, &probabilities(&cfg, &jittered), thr);
-            total.points += c.points;
-            total.flipped += c.flipped;
-            total.moved += c.moved;
-            total.max = total.max.max(c.max);
+            total.merge(Change::between(&base, &probabilities(&cfg, &jittered), thr));
         }
     }
     eprintln!(

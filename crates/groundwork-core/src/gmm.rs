@@ -315,6 +315,29 @@ fn band_weight(x: f64, y: f64, z: f64, threshold: u32) -> f32 {
     w as f32
 }
 
+/// Puts the points whose cube is drawn (`hash <= threshold`) and, when `banded`, those
+/// near a face of their cube, into `spare[..kept]` (grown as needed, never cleared) with
+/// their sort key, and returns `kept`. The key is the cube hash rotated, so that the draw
+/// (its top bits) does not crowd the counting sort's buckets. Branch-free: a filtered push
+/// mispredicted on every other point.
+fn gather_candidates(
+    hashes: &[u32],
+    near: &[u8],
+    spare: &mut Vec<(u64, u32)>,
+    threshold: u32,
+    banded: bool,
+) -> usize {
+    if spare.len() < hashes.len() {
+        spare.resize(hashes.len(), (0, 0));
+    }
+    let mut kept = 0;
+    for (i, (&h, &near)) in hashes.iter().zip(near).enumerate() {
+        spare[kept] = (u64::from(h.rotate_left(16)), i as u32);
+        kept += usize::from((h <= threshold) | (banded & (near != 0)));
+    }
+    kept
+}
+
 /// f32 parameters of one component for the vectorised E-step.
 #[derive(Debug, Clone, Copy)]
 struct Lanes {
@@ -377,7 +400,7 @@ pub fn fit_segment_with(
     let threshold = (u64::from(u32::MAX) / stride as u64) as u32;
     let banded = stride > 1;
     // Cube hashes and "near a face" first in a plain loop (vectorised), then the candidate
-    // points without a branch: a filtered push mispredicted on every other point.
+    // points (`gather_candidates`).
     // The cubes are laid from the segment's mean, not from the sensor: a scan moved as a
     // whole (a pose, a frame change, the last bit of every coordinate rounded up) keeps
     // every point in its cube. (Buffers grown as needed, never shrunk: no memset per
@@ -417,16 +440,13 @@ pub fn fit_segment_with(
             *near = 0;
         }
     }
-    // The candidates go to `spare` (grown as needed, never cleared) with their sort key:
-    // the cube hash rotated, so that the draw (its top bits) does not crowd the buckets.
-    if s.spare.len() < n {
-        s.spare.resize(n, (0, 0));
-    }
-    let mut kept = 0;
-    for (i, (&h, &near)) in s.hashes[..n].iter().zip(&s.near[..n]).enumerate() {
-        s.spare[kept] = (u64::from(h.rotate_left(16)), i as u32);
-        kept += usize::from((h <= threshold) | (banded & (near != 0)));
-    }
+    let kept = gather_candidates(
+        &s.hashes[..n],
+        &s.near[..n],
+        &mut s.spare,
+        threshold,
+        banded,
+    );
     let lexicographic = |a: u32, b: u32| {
         let (a, b) = (a as usize, b as usize);
         xs[a]
@@ -464,13 +484,17 @@ pub fn fit_segment_with(
     }
     if s.fitted.is_empty() {
         // No cube drawn (a few cubes holding every point, none within the share): fit
-        // every point rather than nothing.
-        s.fitted.extend(s.order[..kept].iter().map(|e| e.1));
-        if s.fitted.is_empty() {
-            s.fitted.extend(0..n as u32);
-        }
-        s.w.clear();
-        s.w.resize(s.fitted.len(), 1.0);
+        // every point, in the same canonical order, rather than nothing.
+        let all = gather_candidates(&s.hashes[..n], &s.near[..n], &mut s.spare, u32::MAX, false);
+        sort_by_key(
+            &s.spare[..all],
+            &mut s.order,
+            &mut s.counts,
+            u64::from(u32::MAX),
+            lexicographic,
+        );
+        s.fitted.extend(s.order[..all].iter().map(|e| e.1));
+        s.w.resize(all, 1.0);
     }
     let total_weight: f64 = s.w.iter().map(|&w| f64::from(w)).sum();
     let mut centroid = [0.0; 3];
@@ -967,6 +991,34 @@ mod tests {
                 assert!((ca - cb).abs() < 1e-5, "{ga:?} {gb:?}");
             }
         }
+    }
+
+    #[test]
+    fn a_segment_with_no_cube_drawn_fits_every_point_in_any_order() {
+        use rand::seq::SliceRandom;
+        // 2000 points in a few 2 cm cubes and a share of 1/2000: no cube is drawn, so every
+        // point is fitted, in the canonical order whatever the input order. (Two clusters
+        // 12 mm apart across the mean keep the cube at the mean's corner empty: it hashes
+        // to 0 and is drawn in every segment.)
+        let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+        let mut pts = [Vec::new(), Vec::new(), Vec::new()];
+        sample(&mut rng, 1000, [5.006, 0.994, -1.7], [0.001; 3], &mut pts);
+        sample(&mut rng, 1000, [4.994, 1.006, -1.7], [0.001; 3], &mut pts);
+        let cfg = GmmConfig {
+            max_fit_points: 1,
+            ..GmmConfig::default()
+        };
+        let fit = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
+        assert!(!fit.components.is_empty());
+        let mut order: Vec<usize> = (0..2000).collect();
+        order.shuffle(&mut rng);
+        let permuted: Vec<Vec<f64>> = (0..3)
+            .map(|d| order.iter().map(|&i| pts[d][i]).collect())
+            .collect();
+        assert_eq!(
+            fit_segment(&permuted[0], &permuted[1], &permuted[2], &cfg),
+            fit
+        );
     }
 
     #[test]
