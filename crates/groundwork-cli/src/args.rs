@@ -123,8 +123,9 @@ pub struct PipelineArgs {
     pub common: Common,
     #[command(flatten)]
     pub service: ServiceArgs,
-    /// Scans to replay (looping): a folder of scans or an MCAP recording; default: the
-    /// bundled KITTI sequence.
+    /// Scans to replay (looping): a folder of scans or an MCAP recording; default:
+    /// $GROUNDWORK_DATA, else the sample KITTI scans installed beside the binary
+    /// (<prefix>/share/groundwork/) or in the checkout it was built in.
     #[arg(long)]
     pub data: Option<PathBuf>,
     /// Stop after this many scans (default: run until Ctrl-C).
@@ -173,7 +174,7 @@ pub struct ProducerArgs {
     #[arg(long)]
     pub topic: Option<String>,
     /// Folder of scans or MCAP recording to replay (a recording at its recorded rate
-    /// unless --rate is given); default: the bundled KITTI sequence.
+    /// unless --rate is given); default: the sample scans, found as for `pipeline`.
     pub data: Option<PathBuf>,
 }
 

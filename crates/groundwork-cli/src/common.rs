@@ -14,11 +14,53 @@ use crate::args::{Common, ServiceArgs};
 
 /// The built-in service configuration (`config/service.toml`).
 pub const DEFAULT_SERVICE: &str = include_str!("../../../config/service.toml");
-/// The bundled sample scans (this checkout's copy).
-pub const BUNDLED_DATA: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../tests/data/semantickitti-00"
-);
+/// Where the sample scans live below an installation prefix (`<prefix>/bin/groundwork`).
+const SHARED_DATA: &str = "share/groundwork/semantickitti-00";
+/// Where they live in a checkout of the repository.
+const CHECKOUT_DATA: &str = "tests/data/semantickitti-00";
+
+/// The scans a pipeline or producer replays when `--data` is not given: `$GROUNDWORK_DATA`,
+/// else the samples installed beside the binary (`<prefix>/share/groundwork/`, as the
+/// release tarball lays them out), else the checkout the binary was built in (found from
+/// where the binary is at run time, never from a path fixed at build time, so an installed
+/// or copied binary does not depend on the build machine's files).
+pub fn sample_data() -> Result<PathBuf> {
+    if let Some(d) = std::env::var_os("GROUNDWORK_DATA") {
+        let d = PathBuf::from(d);
+        anyhow::ensure!(
+            d.exists(),
+            "GROUNDWORK_DATA={}: no such folder or recording",
+            d.display()
+        );
+        return Ok(d);
+    }
+    let exe = std::env::current_exe().context("cannot find this executable")?;
+    let exe = exe.canonicalize().unwrap_or(exe);
+    sample_data_near(&exe).ok_or_else(|| {
+        anyhow::anyhow!(
+            "no sample scans found: pass --data <folder of scans or .mcap>, or set \
+             GROUNDWORK_DATA, or unpack the release tarball's share/ beside bin/ (looked for \
+             {SHARED_DATA} and {CHECKOUT_DATA} around {})",
+            exe.display()
+        )
+    })
+}
+
+/// The samples beside an executable: `<prefix>/share/...` for `<prefix>/bin/<exe>`, or a
+/// checkout's copy for a binary inside the checkout's `target/` folder.
+fn sample_data_near(exe: &Path) -> Option<PathBuf> {
+    let dir = exe.parent()?;
+    let installed = dir.parent().map(|prefix| prefix.join(SHARED_DATA));
+    let checkout = exe
+        .ancestors()
+        .find(|a| a.file_name().is_some_and(|n| n == "target"))
+        .and_then(Path::parent)
+        .map(|root| root.join(CHECKOUT_DATA));
+    [installed, checkout]
+        .into_iter()
+        .flatten()
+        .find(|d| d.is_dir())
+}
 
 pub fn load_service(args: &ServiceArgs) -> Result<ServiceConfig> {
     let mut cfg = match &args.service {

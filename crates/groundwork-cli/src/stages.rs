@@ -13,7 +13,7 @@ use crate::args::{
     Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, SegmenterArgs, ServiceArgs,
     ShmSizeArgs,
 };
-use crate::common::{BUNDLED_DATA, load, load_methods, load_service};
+use crate::common::{load, load_methods, load_service, sample_data};
 
 /// `groundwork pipeline`.
 pub fn pipeline_command(a: PipelineArgs) -> Result<ExitCode> {
@@ -42,7 +42,13 @@ pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
     let linger = Duration::try_from_secs_f64(a.linger).unwrap_or(Duration::MAX);
     let source = match a.synthetic {
         Some(n) => producer::Source::Synthetic(n),
-        None => producer::Source::from_path(a.data.unwrap_or_else(|| BUNDLED_DATA.into()), a.topic),
+        None => producer::Source::from_path(
+            match a.data {
+                Some(d) => d,
+                None => sample_data()?,
+            },
+            a.topic,
+        ),
     };
     let r = producer::run(
         &cfg,
@@ -160,7 +166,10 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     if let Some(r) = rate {
         groundwork_service::config::check_rate("--rate", r)?;
     }
-    let data = data.clone().unwrap_or_else(|| BUNDLED_DATA.into());
+    let data = match data {
+        Some(d) => d.clone(),
+        None => sample_data()?,
+    };
     anyhow::ensure!(
         data.exists(),
         "{}: no such folder or recording",

@@ -879,3 +879,119 @@ fn per_scan_methods_run_one_worker_per_core_with_the_outputs_of_one() {
     }
     assert_eq!(fs::read_dir(&three).unwrap().count(), 8);
 }
+
+/// Copies a folder's files (one level of subfolders), as an install of the samples would.
+fn copy_tree(src: &Path, dst: &Path) {
+    fs::create_dir_all(dst).unwrap();
+    for e in fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        let to = dst.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_tree(&e.path(), &to);
+        } else {
+            fs::copy(e.path(), to).unwrap();
+        }
+    }
+}
+
+/// A binary copied out of the checkout, as `cargo install` or the release tarball leaves it
+/// (`<prefix>/bin/groundwork`), run from `/`: presets and label maps are built in, and the
+/// sample scans come from `--data`, `$GROUNDWORK_DATA` or `<prefix>/share/groundwork/`, never
+/// from the checkout it was built in.
+#[test]
+fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let prefix = tmp.path().join("prefix");
+    fs::create_dir_all(prefix.join("bin")).unwrap();
+    let exe = prefix.join("bin/groundwork");
+    fs::copy(env!("CARGO_BIN_EXE_groundwork"), &exe).unwrap();
+    let run = |args: &[&std::ffi::OsStr], data_env: Option<&Path>| {
+        let mut c = Command::new(&exe);
+        c.current_dir("/").args(args).env_remove("GROUNDWORK_DATA");
+        if let Some(d) = data_env {
+            c.env("GROUNDWORK_DATA", d);
+        }
+        c.output().unwrap()
+    };
+    let os = |s: &'static str| std::ffi::OsStr::new(s);
+    let text = |o: &std::process::Output| {
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        )
+    };
+
+    let sensors = run(&[os("sensors")], None);
+    assert!(sensors.status.success(), "{}", text(&sensors));
+    assert!(text(&sensors).contains("vlp16"), "{}", text(&sensors));
+
+    let scan = copy_scan(0, tmp.path());
+    let out = tmp.path().join("seg");
+    let seg = run(
+        &[
+            os("segment"),
+            os("--sensor"),
+            os("hdl64e"),
+            os("--out"),
+            out.as_os_str(),
+            scan.as_os_str(),
+        ],
+        None,
+    );
+    assert!(seg.status.success(), "{}", text(&seg));
+    assert_eq!(
+        groundwork_io::read_prob(&out.join("000000.prob"))
+            .unwrap()
+            .len(),
+        124_668
+    );
+
+    // No samples anywhere: the pipeline says where it looked and how to give them.
+    let p = format!("gw-cli-installed-{}", std::process::id());
+    let pipe = |data_env: Option<&Path>, extra: &[&std::ffi::OsStr]| {
+        let mut args = vec![
+            os("pipeline"),
+            os("--count"),
+            os("2"),
+            os("--no-detector"),
+            os("--prefix"),
+            std::ffi::OsStr::new(&p),
+        ];
+        args.extend_from_slice(extra);
+        run(&args, data_env)
+    };
+    let none = pipe(None, &[]);
+    assert!(!none.status.success());
+    let said = text(&none);
+    assert!(
+        said.contains("no sample scans found")
+            && said.contains("--data")
+            && said.contains("GROUNDWORK_DATA")
+            && said.contains("share/groundwork/semantickitti-00"),
+        "{said}"
+    );
+    let missing = tmp.path().join("nowhere");
+    let bad_env = pipe(Some(&missing), &[]);
+    assert!(
+        !bad_env.status.success() && text(&bad_env).contains("GROUNDWORK_DATA="),
+        "{}",
+        text(&bad_env)
+    );
+
+    // The samples in --data, in $GROUNDWORK_DATA, and installed beside the binary.
+    let samples = tmp.path().join("samples");
+    copy_tree(&data().join("velodyne"), &samples);
+    let with_data = pipe(None, &[os("--data"), samples.as_os_str()]);
+    assert!(with_data.status.success(), "{}", text(&with_data));
+    assert!(text(&with_data).contains("2 masks"), "{}", text(&with_data));
+    let with_env = pipe(Some(&samples), &[]);
+    assert!(with_env.status.success(), "{}", text(&with_env));
+    copy_tree(
+        &data().join("velodyne"),
+        &prefix.join("share/groundwork/semantickitti-00"),
+    );
+    let installed = pipe(None, &[]);
+    assert!(installed.status.success(), "{}", text(&installed));
+    assert!(text(&installed).contains("2 masks"), "{}", text(&installed));
+}

@@ -8,6 +8,11 @@
 //!
 //! Beyond that level, one loop has a second copy chosen at run time: the multi-frame
 //! query's past components, in 512-bit registers where the CPU has AVX-512 (`query::avx512`).
+//!
+//! aarch64 builds target Armv8-A with NEON, which every 64-bit Arm Linux CPU has, so the
+//! default build checks nothing. A build for a newer core (`-C target-cpu=cortex-a78ae` for
+//! a Jetson Orin, docs/install.md) may use Armv8.1+ instructions an older core (Raspberry Pi
+//! 4) lacks: the features it was compiled with are checked against the kernel's report.
 
 /// The features the compiler was told it may use, by name, with how to test for them.
 #[cfg(target_arch = "x86_64")]
@@ -34,6 +39,21 @@ enum Feature {
     Ext1Ecx(u32),
 }
 
+/// Features beyond Armv8-A a build for a newer core may use: name, whether this build was
+/// compiled to use it.
+#[cfg(target_arch = "aarch64")]
+const REQUIRED: [(&str, bool); 9] = [
+    ("lse", cfg!(target_feature = "lse")),
+    ("rdm", cfg!(target_feature = "rdm")),
+    ("rcpc", cfg!(target_feature = "rcpc")),
+    ("fp16", cfg!(target_feature = "fp16")),
+    ("dotprod", cfg!(target_feature = "dotprod")),
+    ("crc", cfg!(target_feature = "crc")),
+    ("aes", cfg!(target_feature = "aes")),
+    ("sha2", cfg!(target_feature = "sha2")),
+    ("sve", cfg!(target_feature = "sve")),
+];
+
 /// The CPU lacks features this build was compiled to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MissingCpuFeatures {
@@ -45,17 +65,25 @@ impl std::fmt::Display for MissingCpuFeatures {
     // Runs on CPUs without AVX: plain indexed loop, barriers against vectorisation.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str("this CPU lacks")?;
-        #[cfg(target_arch = "x86_64")]
+        #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
         for (i, (name, _)) in REQUIRED.iter().enumerate() {
             if std::hint::black_box(self.missing[i]) {
                 f.write_str(" ")?;
                 f.write_str(name)?;
             }
         }
+        #[cfg(target_arch = "aarch64")]
+        f.write_str(
+            ", which this build uses (it was built for a newer Arm core; the default build \
+             targets any Armv8-A CPU). Build for this CPU: RUSTFLAGS='-C target-cpu=native' \
+             cargo build --release",
+        )?;
+        #[cfg(not(target_arch = "aarch64"))]
         f.write_str(
             ", which this build uses (it targets x86-64-v3: Intel Haswell, AMD Zen 1 or later). \
              Build for this CPU: RUSTFLAGS='-C target-cpu=native' cargo build --release",
-        )
+        )?;
+        Ok(())
     }
 }
 
@@ -99,6 +127,28 @@ pub fn check() -> Result<(), MissingCpuFeatures> {
             return Err(MissingCpuFeatures { missing });
         }
     }
+    #[cfg(target_arch = "aarch64")]
+    {
+        use std::arch::is_aarch64_feature_detected as has;
+        let present = [
+            has!("lse"),
+            has!("rdm"),
+            has!("rcpc"),
+            has!("fp16"),
+            has!("dotprod"),
+            has!("crc"),
+            has!("aes"),
+            has!("sha2"),
+            has!("sve"),
+        ];
+        let mut missing = [false; 9];
+        for (i, (_, compiled)) in REQUIRED.iter().enumerate() {
+            missing[i] = *compiled && !present[i];
+        }
+        if missing.contains(&true) {
+            return Err(MissingCpuFeatures { missing });
+        }
+    }
     Ok(())
 }
 
@@ -116,6 +166,11 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         assert!(
             s.contains("lacks avx2 lzcnt,") && s.contains("x86-64-v3"),
+            "{s}"
+        );
+        #[cfg(target_arch = "aarch64")]
+        assert!(
+            s.contains("lacks rcpc sve,") && s.contains("Armv8-A"),
             "{s}"
         );
         assert!(s.contains("target-cpu=native"), "{s}");

@@ -243,16 +243,19 @@ impl LaneBinner {
             off = hit.select(zoff, off);
         }
         let beyond = r.simd_ge(self.max_range);
+        // `max`, not `fast_max`: a NaN lane (a non-finite point, rejected later) must clamp
+        // to 0 on every CPU. x86's maxps happens to return the second operand for NaN, NEON's
+        // fmax returns NaN, whose bits then index far outside the segments.
         let ring = ((r - lo) * inv_width)
             .floor()
-            .fast_max(c(0.0))
+            .max(c(0.0))
             .fast_min(nr - c(1.0));
         let ring = beyond.select(nr - c(1.0), ring);
         let theta = atan2_v(y, x);
         let theta = theta.simd_lt(c(0.0)).select(theta + c(TAU_F32), theta);
         let sector = (theta * ns * c(1.0 / TAU_F32))
             .floor()
-            .fast_max(c(0.0))
+            .max(c(0.0))
             .fast_min(ns - c(1.0));
         // The index (< 2^23) lands in the low mantissa bits of idx + 2^23.
         let idx: Vi = cast(off + ring * ns + sector + c(8_388_608.0));

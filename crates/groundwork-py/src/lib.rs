@@ -6,7 +6,7 @@
 //! Points are read without a copy when they are a C-contiguous float32 (N, 3) or (N, 4)
 //! array (x, y, z[, intensity], metres, sensor frame); anything else numpy can convert is
 //! converted once. The GIL is released while a scan is processed, so Python threads with
-//! one `Segmenter` each run in parallel. The typed interface is `groundwork.pyi`.
+//! one `Segmenter` each run in parallel. The typed interface is `python/groundwork/__init__.pyi`.
 
 use std::path::PathBuf;
 
@@ -702,8 +702,13 @@ fn sensors() -> Vec<&'static str> {
     SENSOR_PRESETS.iter().map(|(n, _)| *n).collect()
 }
 
-#[pymodule]
+#[pymodule(name = "_native")]
 fn groundwork(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    // python/groundwork/__init__.py checks x86-64's level before this module loads (pyo3's
+    // own set-up already runs vectorised code). This is the check of an aarch64 build for a
+    // newer core, whose features only the native side knows.
+    groundwork_core::cpu::check()
+        .map_err(|e| pyo3::exceptions::PyImportError::new_err(format!("groundwork: {e}")))?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<PySegmenter>()?;
     m.add_class::<PyProposal>()?;

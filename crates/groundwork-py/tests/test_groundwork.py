@@ -316,3 +316,59 @@ def test_an_ascii_pcd_of_a_scan_gives_the_decisions_of_its_bin(cli: Path, tmp_pa
         print(f"frame {i}: ASCII PCD vs .bin: {flipped} decisions differ, largest change {largest:.4f}")
         # The issue's bound: at most 0.05 % of the decisions differ.
         assert flipped <= 0.0005 * len(want), (i, flipped, largest)
+
+
+def test_the_label_folder_example_writes_what_label_writes_and_resumes(
+    cli: Path, tmp_path: Path
+) -> None:
+    """examples/label_folder.py (a process pool over groundwork.pseudo_label) gives the
+    bytes `groundwork label` gives, and a rerun keeps what is complete."""
+    import sys
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for s in SCANS[:3]:
+        (scans / s.name).write_bytes(s.read_bytes())
+    run(cli, "label", "--out", str(tmp_path / "cli"), str(scans))
+    example = ROOT / "examples" / "label_folder.py"
+    out = tmp_path / "py"
+    done = subprocess.run(
+        [sys.executable, str(example), str(scans), str(out), "--workers", "2"],
+        check=True, capture_output=True, text=True,
+    )
+    assert "3 scans, 0 already complete" in done.stderr, done.stderr
+    for s in SCANS[:3]:
+        for ext in ("prob", "ground"):
+            name = f"{s.stem}.{ext}"
+            assert (out / name).read_bytes() == (tmp_path / "cli" / name).read_bytes(), name
+    # A scan whose .ground is missing (killed before its last rename) is done again.
+    (out / f"{SCANS[1].stem}.ground").unlink()
+    again = subprocess.run(
+        [sys.executable, str(example), str(scans), str(out), "--workers", "1"],
+        check=True, capture_output=True, text=True,
+    )
+    assert "3 scans, 2 already complete" in again.stderr and "1 labelled" in again.stderr
+    name = f"{SCANS[1].stem}.ground"
+    assert (out / name).read_bytes() == (tmp_path / "cli" / name).read_bytes()
+
+
+def test_an_older_cpu_gets_an_import_error_not_sigill() -> None:
+    """On a CPU below the wheel's level (x86-64-v3), `import groundwork` raises an
+    ImportError naming the missing features: run under qemu-x86_64 as a Nehalem (no AVX)."""
+    import platform
+    import shutil
+    import sys
+
+    qemu = shutil.which("qemu-x86_64")
+    if platform.machine() != "x86_64":
+        pytest.skip("the x86-64 level's check")
+    if qemu is None:
+        assert not os.environ.get("GROUNDWORK_REQUIRE_QEMU"), "qemu-x86_64 is required"
+        pytest.skip("qemu-x86_64 not installed")
+    r = subprocess.run(
+        [qemu, "-cpu", "Nehalem", sys.executable, "-c", "import groundwork"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
+    assert "ImportError: groundwork: this CPU lacks avx" in r.stderr, r.stderr[-2000:]
+    assert "x86-64-v3" in r.stderr
