@@ -21,9 +21,9 @@ const CHECKOUT_DATA: &str = "tests/data/semantickitti-00";
 
 /// The scans a pipeline or producer replays when `--data` is not given: `$GROUNDWORK_DATA`,
 /// else the samples installed beside the binary (`<prefix>/share/groundwork/`, as the
-/// release tarball lays them out), else the checkout the binary was built in (found from
-/// where the binary is at run time, never from a path fixed at build time, so an installed
-/// or copied binary does not depend on the build machine's files).
+/// release tarball lays them out), else the checkout whose `target/` holds the binary (found
+/// from where the binary is at run time, never from a path fixed at build time, so an
+/// installed or copied binary does not depend on the build machine's files).
 pub fn sample_data() -> Result<PathBuf> {
     if let Some(d) = std::env::var_os("GROUNDWORK_DATA") {
         let d = PathBuf::from(d);
