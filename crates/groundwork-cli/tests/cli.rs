@@ -880,20 +880,6 @@ fn per_scan_methods_run_one_worker_per_core_with_the_outputs_of_one() {
     assert_eq!(fs::read_dir(&three).unwrap().count(), 8);
 }
 
-/// Copies a folder's files (one level of subfolders), as an install of the samples would.
-fn copy_tree(src: &Path, dst: &Path) {
-    fs::create_dir_all(dst).unwrap();
-    for e in fs::read_dir(src).unwrap() {
-        let e = e.unwrap();
-        let to = dst.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_tree(&e.path(), &to);
-        } else {
-            fs::copy(e.path(), to).unwrap();
-        }
-    }
-}
-
 /// A binary copied out of the checkout, as `cargo install` or the release tarball leaves it
 /// (`<prefix>/bin/groundwork`), run from `/`: presets and label maps are built in, and the
 /// sample scans come from `--data`, `$GROUNDWORK_DATA` or `<prefix>/share/groundwork/`, never
@@ -981,16 +967,20 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
 
     // The samples in --data, in $GROUNDWORK_DATA, and installed beside the binary.
     let samples = tmp.path().join("samples");
-    copy_tree(&data().join("velodyne"), &samples);
+    fs::create_dir_all(&samples).unwrap();
+    for n in 0..6 {
+        copy_scan(n, &samples);
+    }
     let with_data = pipe(None, &[os("--data"), samples.as_os_str()]);
     assert!(with_data.status.success(), "{}", text(&with_data));
     assert!(text(&with_data).contains("2 masks"), "{}", text(&with_data));
     let with_env = pipe(Some(&samples), &[]);
     assert!(with_env.status.success(), "{}", text(&with_env));
-    copy_tree(
-        &data().join("velodyne"),
-        &prefix.join("share/groundwork/semantickitti-00"),
-    );
+    let shared = prefix.join("share/groundwork/semantickitti-00");
+    fs::create_dir_all(&shared).unwrap();
+    for n in 0..6 {
+        copy_scan(n, &shared);
+    }
     let installed = pipe(None, &[]);
     assert!(installed.status.success(), "{}", text(&installed));
     assert!(text(&installed).contains("2 masks"), "{}", text(&installed));

@@ -39,20 +39,22 @@ enum Feature {
     Ext1Ecx(u32),
 }
 
-/// Features beyond Armv8-A a build for a newer core may use: name, whether this build was
-/// compiled to use it.
+/// Features beyond Armv8-A a build for a newer core may use, named once: `REQUIRED` (name,
+/// whether this build was compiled to use it) and `detected()` (whether the kernel reports
+/// it, in the same order). `is_aarch64_feature_detected!` takes only literals, hence a macro.
 #[cfg(target_arch = "aarch64")]
-const REQUIRED: [(&str, bool); 9] = [
-    ("lse", cfg!(target_feature = "lse")),
-    ("rdm", cfg!(target_feature = "rdm")),
-    ("rcpc", cfg!(target_feature = "rcpc")),
-    ("fp16", cfg!(target_feature = "fp16")),
-    ("dotprod", cfg!(target_feature = "dotprod")),
-    ("crc", cfg!(target_feature = "crc")),
-    ("aes", cfg!(target_feature = "aes")),
-    ("sha2", cfg!(target_feature = "sha2")),
-    ("sve", cfg!(target_feature = "sve")),
-];
+macro_rules! beyond_armv8a {
+    ($($f:tt),*) => {
+        const REQUIRED: [(&str, bool); 9] = [$(($f, cfg!(target_feature = $f))),*];
+        fn detected() -> [bool; 9] {
+            [$(std::arch::is_aarch64_feature_detected!($f)),*]
+        }
+    };
+}
+#[cfg(target_arch = "aarch64")]
+beyond_armv8a!(
+    "lse", "rdm", "rcpc", "fp16", "dotprod", "crc", "aes", "sha2", "sve"
+);
 
 /// The CPU lacks features this build was compiled to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -129,18 +131,7 @@ pub fn check() -> Result<(), MissingCpuFeatures> {
     }
     #[cfg(target_arch = "aarch64")]
     {
-        use std::arch::is_aarch64_feature_detected as has;
-        let present = [
-            has!("lse"),
-            has!("rdm"),
-            has!("rcpc"),
-            has!("fp16"),
-            has!("dotprod"),
-            has!("crc"),
-            has!("aes"),
-            has!("sha2"),
-            has!("sve"),
-        ];
+        let present = detected();
         let mut missing = [false; 9];
         for (i, (_, compiled)) in REQUIRED.iter().enumerate() {
             missing[i] = *compiled && !present[i];
