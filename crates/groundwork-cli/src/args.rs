@@ -110,6 +110,10 @@ pub enum Command {
     Render(RenderArgs),
     /// Evaluate against SemanticKITTI labels: per scan and pooled metrics, plus speed.
     Eval(EvalArgs),
+    /// Fit groundwork to a new sensor from raw scans, no labels: finds the mount (height,
+    /// roll, pitch) by ground-plane consensus over the scans and writes it as a
+    /// configuration to lay over the preset (`--sensor P --config OUT`), with a report.
+    Calibrate(CalibrateArgs),
     /// Label a whole dataset offline (PseudoLabeler by default): <out>/<scan>.prob and
     /// .ground per scan, in parallel across scans, resumable, shardable across machines
     /// (`--shard i/n`), with a summary JSON.
@@ -389,6 +393,40 @@ pub struct LabelArgs {
     #[arg(long)]
     pub overwrite: bool,
     /// Scan files or folders of scans (a sequence folder with velodyne/ works too).
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+}
+
+/// Arguments of `groundwork calibrate`.
+#[derive(clap::Args, Debug)]
+pub struct CalibrateArgs {
+    /// The preset to start from (its mount is the prior; the output holds what differs
+    /// from it). Default: hdl64e.
+    #[arg(long)]
+    pub sensor: Option<String>,
+    /// Configuration laid over the preset before calibrating (a better prior).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// PointCloud2 topic of MCAP recordings (default: the first point cloud topic).
+    #[arg(long)]
+    pub topic: Option<String>,
+    /// The configuration to write (TOML).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write the whole report (per-scan planes, spreads) as JSON here.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Replace --out and --report if they exist (otherwise an existing file is an error).
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Look at no more than this many scans, spread evenly over the inputs where their
+    /// length is known.
+    #[arg(long, default_value_t = 400)]
+    pub max_scans: usize,
+    /// Seed of the plane hypotheses: the same scans and seed give the same file.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Scan files, folders of scans or recordings of one sensor on one mount.
     #[arg(required = true)]
     pub inputs: Vec<PathBuf>,
 }

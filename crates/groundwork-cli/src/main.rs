@@ -7,6 +7,7 @@ use anyhow::Result;
 use clap::Parser;
 
 mod args;
+mod calibrate;
 mod common;
 mod detect;
 mod eval;
@@ -54,6 +55,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Render(a) => render::command(a),
         Command::Label(a) => label::command(a),
         Command::Eval(a) => eval::command(a),
+        Command::Calibrate(a) => calibrate::command(a),
         Command::Synth(a) => synth::command(a),
         Command::Sensors => sensors::command(),
         Command::Pipeline(a) => stages::pipeline_command(a),

@@ -985,3 +985,101 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
     assert!(installed.status.success(), "{}", text(&installed));
     assert!(text(&installed).contains("2 masks"), "{}", text(&installed));
 }
+
+#[test]
+fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_overwrites() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    for n in 0..6 {
+        copy_scan(n, &input);
+    }
+    fs::write(input.join("broken.bin"), [1u8; 7]).unwrap();
+    let out = tmp.path().join("mine.toml");
+    let report = tmp.path().join("mine.json");
+    let calibrate = |extra: &[&str]| {
+        bin()
+            .args(["calibrate", "--sensor", "hdl64e", "--out"])
+            .arg(&out)
+            .arg("--report")
+            .arg(&report)
+            .args(extra)
+            .arg(&input)
+            .output()
+            .unwrap()
+    };
+    let o = calibrate(&[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    // The broken scan is reported and counted; the six others calibrate.
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("broken.bin"), "{stderr}");
+    assert!(stdout.contains("mount from 6 of 6 scans"), "{stdout}");
+    let text = fs::read_to_string(&out).unwrap();
+    assert!(
+        text.contains("height = 1.7") && text.contains("# was 1.73"),
+        "{text}"
+    );
+    let cfg = groundwork_io::load_config_over(Some("hdl64e"), Some(&out)).unwrap();
+    let m = &cfg.sensor.mount;
+    assert!((m.height - 1.775).abs() < 0.02, "{m:?}");
+    assert!(
+        m.roll.to_degrees().abs() < 3.0 && m.pitch.to_degrees().abs() < 2.0,
+        "{m:?}"
+    );
+    let json: serde_json::Value = serde_json::from_slice(&fs::read(&report).unwrap()).unwrap();
+    assert_eq!(json["per_scan"].as_array().unwrap().len(), 7, "{json}");
+    assert_eq!(json["unreadable"], 1);
+    assert!(
+        json["mount"]["height"]["spread"].as_f64().unwrap() < 0.05,
+        "{json}"
+    );
+
+    // The same run again: the outputs exist and are kept.
+    let before = fs::read(&out).unwrap();
+    let o = calibrate(&[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("exists; pass --overwrite"), "{stderr}");
+    assert_eq!(fs::read(&out).unwrap(), before);
+    // With --overwrite, the same scans and seed give the same file.
+    fs::remove_file(input.join("broken.bin")).unwrap();
+    let o = calibrate(&["--overwrite"]);
+    assert_eq!(o.status.code(), Some(0));
+    assert_eq!(fs::read(&out).unwrap(), before);
+
+    // The file configures segment.
+    let o = bin()
+        .args(["segment", "--sensor", "hdl64e", "--config"])
+        .arg(&out)
+        .arg("--out")
+        .arg(tmp.path().join("seg"))
+        .arg(input.join("000000.bin"))
+        .output()
+        .unwrap();
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+
+    // Two scans cannot tell a mount: refused with the reason, nothing written.
+    let two = tmp.path().join("two");
+    fs::create_dir(&two).unwrap();
+    copy_scan(0, &two);
+    copy_scan(1, &two);
+    let o = bin()
+        .args(["calibrate", "--out"])
+        .arg(tmp.path().join("two.toml"))
+        .arg(&two)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("2 of 2 scans show usable ground, 3 needed"),
+        "{stderr}"
+    );
+    assert!(!tmp.path().join("two.toml").exists());
+}

@@ -68,9 +68,11 @@ impl Default for SensorConfig {
 }
 
 /// Sensor pose relative to the ground-aligned frame: either height + roll/pitch/yaw, or a
-/// full 4×4 row-major matrix (which then wins; giving both is an error).
+/// full 4×4 row-major matrix (which then wins; giving both is an error). In TOML each angle
+/// may be given in degrees instead (`roll_deg`, `pitch_deg`, `yaw_deg`); they are held in
+/// radians.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(deny_unknown_fields, default)]
+#[serde(try_from = "MountToml")]
 pub struct MountConfig {
     /// Height of the sensor origin above the ground, metres.
     pub height: f64,
@@ -82,6 +84,48 @@ pub struct MountConfig {
     pub yaw: f64,
     /// Optional 4×4 row-major homogeneous matrix, ground-aligned from sensor.
     pub matrix: Option<[[f64; 4]; 4]>,
+}
+
+/// The mount as written in TOML: each angle in radians or in degrees, not both.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MountToml {
+    #[serde(default)]
+    height: f64,
+    roll: Option<f64>,
+    roll_deg: Option<f64>,
+    pitch: Option<f64>,
+    pitch_deg: Option<f64>,
+    yaw: Option<f64>,
+    yaw_deg: Option<f64>,
+    #[serde(default)]
+    matrix: Option<[[f64; 4]; 4]>,
+}
+
+/// An angle given in radians or in degrees (zero if neither), or why not.
+fn radians(name: &str, rad: Option<f64>, deg: Option<f64>) -> Result<f64, String> {
+    match (rad, deg) {
+        (Some(_), Some(_)) => Err(format!(
+            "give {name} (radians) or {name}_deg (degrees), not both"
+        )),
+        (Some(r), None) => Ok(r),
+        (None, Some(d)) => Ok(d.to_radians()),
+        (None, None) => Ok(0.0),
+    }
+}
+
+impl TryFrom<MountToml> for MountConfig {
+    type Error = String;
+
+    fn try_from(m: MountToml) -> Result<Self, String> {
+        Ok(Self {
+            height: m.height,
+            roll: radians("roll", m.roll, m.roll_deg)?,
+            pitch: radians("pitch", m.pitch, m.pitch_deg)?,
+            yaw: radians("yaw", m.yaw, m.yaw_deg)?,
+            matrix: m.matrix,
+        })
+    }
 }
 
 /// What a point beyond `zones.max_range` gets.
@@ -563,8 +607,10 @@ fn angle(field: &str, v: f64, limit: f64, name: &str) -> Result<(), ConfigError>
     Err(ConfigError::invalid(
         field,
         &format!(
-            "{v} is outside ±{limit:.4} rad ({name}): angles are in radians; if you meant {v}°, write {:.4}",
-            v.to_radians()
+            "{v} is outside ±{limit:.4} rad ({name}): angles are in radians; if you meant {v}°, \
+             write {:.4} or {}_deg = {v}",
+            v.to_radians(),
+            field.rsplit('.').next().unwrap_or(field),
         ),
     ))
 }
@@ -800,7 +846,10 @@ mod tests {
         c.sensor.mount.pitch = -6.0;
         let e = c.validate().unwrap_err().to_string();
         assert!(
-            e.contains("sensor.mount.pitch") && e.contains("radians") && e.contains("-0.1047"),
+            e.contains("sensor.mount.pitch")
+                && e.contains("radians")
+                && e.contains("-0.1047")
+                && e.contains("pitch_deg = -6"),
             "{e}"
         );
         // A yaw of π (a sensor facing backwards) is a mount, not a mistake.

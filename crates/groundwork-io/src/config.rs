@@ -146,6 +146,16 @@ pub fn segmenter_config(
 }
 
 fn merge(base: &mut toml::Table, overlay: toml::Table) {
+    // An angle in the other unit replaces the layer below's (`pitch_deg` over a preset's
+    // `pitch`), rather than clash with it; one layer giving both is left to clash.
+    for angle in ["roll", "pitch", "yaw"] {
+        let deg = format!("{angle}_deg");
+        for (given, other) in [(angle, deg.as_str()), (deg.as_str(), angle)] {
+            if overlay.contains_key(given) && !overlay.contains_key(other) {
+                base.remove(other);
+            }
+        }
+    }
     for (key, value) in overlay {
         let replace_whole =
             key == "mount" && value.as_table().is_some_and(|t| t.contains_key("matrix"));
@@ -175,6 +185,43 @@ pub fn parse_config(path: &Path, text: &str) -> Result<SegmenterConfig, FormatEr
 mod tests {
     use super::*;
     use std::fs;
+
+    #[test]
+    fn mount_angles_may_be_given_in_degrees_but_not_twice() {
+        let p = Path::new("mine.toml");
+        let c = parse_config(
+            p,
+            "[sensor.mount]\nheight = 2.2\npitch_deg = 6\nroll = 0.1\nyaw_deg = -90",
+        )
+        .unwrap();
+        let m = &c.sensor.mount;
+        assert_eq!((m.height, m.roll), (2.2, 0.1));
+        assert!((m.pitch - 6f64.to_radians()).abs() < 1e-15);
+        assert!((m.yaw + std::f64::consts::FRAC_PI_2).abs() < 1e-15);
+        let e = parse_config(p, "[sensor.mount]\npitch = 0.1\npitch_deg = 6")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("mine.toml")
+                && e.contains("pitch (radians) or pitch_deg (degrees), not both"),
+            "{e}"
+        );
+        let e = parse_config(p, "[sensor.mount]\npich_deg = 6")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("pich_deg"), "{e}");
+        // A pitch in degrees over a preset's pitch in radians replaces it (and back).
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("tilt.toml");
+        fs::write(&f, "[sensor.mount]\npitch_deg = -4\nroll = 0.05\n").unwrap();
+        let c = load_config_over(Some("livox"), Some(&f)).unwrap();
+        assert!((c.sensor.mount.pitch + 4f64.to_radians()).abs() < 1e-15);
+        assert_eq!(c.sensor.mount.roll, 0.05);
+        assert_eq!(
+            c.sensor.mount.height,
+            sensor_preset("livox").unwrap().sensor.mount.height
+        );
+    }
 
     #[test]
     fn unknown_keys_and_bad_values_are_errors_naming_the_file() {

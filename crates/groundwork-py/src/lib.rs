@@ -82,7 +82,22 @@ fn load_config(
     overrides: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<MethodsConfig> {
     let overlay = match overrides {
-        Some(d) if !d.is_empty() => Some(("keyword arguments", to_table(d)?)),
+        Some(d) if !d.is_empty() => {
+            let mut t = to_table(d)?;
+            // `mount=dict(height=…, pitch_deg=…)` is short for `sensor={"mount": …}`.
+            if let Some(m) = t.remove("mount") {
+                let sensor = t
+                    .entry("sensor")
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+                match sensor.as_table_mut() {
+                    Some(s) => {
+                        s.insert("mount".into(), m);
+                    }
+                    None => return Err(value_error("sensor= must be a dict")),
+                }
+            }
+            Some(("keyword arguments", t))
+        }
         _ => None,
     };
     let mut cfg = groundwork_eval::load_methods_config_layers(sensor, config.as_deref(), overlay)
@@ -696,6 +711,85 @@ fn evaluate<'py>(
     Ok(d)
 }
 
+/// The sensor's mount from raw scans, no labels (`groundwork calibrate`): ground-plane
+/// consensus over the scans, starting from the preset's mount. Returns the configuration
+/// to lay over the preset (a dict like the keyword arguments: `{"mount": {...}}`, angles in
+/// degrees) and a report (each parameter's median, spread and standard error over the
+/// scans; each scan's view or why it showed no usable ground). Raises ValueError when the
+/// scans cannot determine the mount, with the reason.
+#[pyfunction]
+#[pyo3(signature = (scans, sensor=None, config=None, seed=0, **overrides))]
+fn calibrate<'py>(
+    py: Python<'py>,
+    scans: Vec<Bound<'py, PyAny>>,
+    sensor: Option<&str>,
+    config: Option<PathBuf>,
+    seed: u64,
+    overrides: Option<&Bound<'py, PyDict>>,
+) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
+    use groundwork_calibrate::{MountSearchConfig, combine, frame_mount};
+    let cfg = load_config(sensor, config, None, overrides)?;
+    let prior =
+        groundwork_core::mount_transform(&cfg.segmenter.sensor.mount).map_err(value_error)?;
+    let settings = MountSearchConfig {
+        seed,
+        ..MountSearchConfig::default()
+    };
+    settings.validate().map_err(value_error)?;
+    let mut views = Vec::with_capacity(scans.len());
+    for (k, s) in scans.iter().enumerate() {
+        let arr = points_array(s)?;
+        let xyz: Vec<[f32; 3]> = match Points::of(&arr)? {
+            Points::Xyz(p) => p.to_vec(),
+            Points::Xyzi(p) => p.iter().map(|&[x, y, z, _]| [x, y, z]).collect(),
+        };
+        views.push(py.detach(|| frame_mount(&xyz, &prior, &settings, k as u64)));
+    }
+    let est = combine(&views, &prior, &settings).map_err(value_error)?;
+    let deg =
+        |e: &groundwork_calibrate::mount::Estimate, scale: f64| -> PyResult<Bound<'py, PyDict>> {
+            [
+                ("value", e.value * scale),
+                ("spread", e.spread * scale),
+                ("standard_error", e.standard_error * scale),
+            ]
+            .into_py_dict(py)
+        };
+    let d = 180.0 / std::f64::consts::PI;
+    let m = est.mount();
+    let mount = [
+        ("height", m.height),
+        ("roll_deg", m.roll * d),
+        ("pitch_deg", m.pitch * d),
+        ("yaw_deg", m.yaw * d),
+    ]
+    .into_py_dict(py)?;
+    let preset = PyDict::new(py);
+    preset.set_item("mount", mount)?;
+    let report = PyDict::new(py);
+    report.set_item("height", deg(&est.height, 1.0)?)?;
+    report.set_item("roll_deg", deg(&est.roll, d)?)?;
+    report.set_item("pitch_deg", deg(&est.pitch, d)?)?;
+    report.set_item("frames_used", est.frames_used)?;
+    report.set_item("frames", est.frames)?;
+    let per_scan = pyo3::types::PyList::empty(py);
+    for v in &views {
+        let item = PyDict::new(py);
+        match v {
+            Ok(f) => {
+                item.set_item("height", f.height)?;
+                item.set_item("roll_deg", f.roll * d)?;
+                item.set_item("pitch_deg", f.pitch * d)?;
+                item.set_item("inliers", f.plane.inliers)?;
+            }
+            Err(e) => item.set_item("problem", e.to_string())?,
+        }
+        per_scan.append(item)?;
+    }
+    report.set_item("per_scan", per_scan)?;
+    Ok((preset, report))
+}
+
 /// The sensor presets (`sensor=` of every call).
 #[pyfunction]
 fn sensors() -> Vec<&'static str> {
@@ -721,5 +815,6 @@ fn groundwork(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read_labels, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(sensors, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate, m)?)?;
     Ok(())
 }

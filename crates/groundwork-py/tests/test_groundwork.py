@@ -372,3 +372,37 @@ def test_an_older_cpu_gets_an_import_error_not_sigill() -> None:
     assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
     assert "ImportError: groundwork: this CPU lacks avx" in r.stderr, r.stderr[-2000:]
     assert "x86-64-v3" in r.stderr
+
+
+def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, tmp_path: Path) -> None:
+    """The mount from the six bundled scans, as `groundwork calibrate` finds it (the CLI
+    file's values), usable as keyword arguments; too few scans are refused."""
+    scans = [kitti(s) for s in SCANS]
+    preset, report = groundwork.calibrate(scans, sensor="hdl64e")
+    mount = preset["mount"]
+    assert report["frames_used"] == report["frames"] == len(SCANS)
+    assert abs(mount["height"] - 1.775) < 0.02
+    assert report["height"]["spread"] < 0.05
+    out = tmp_path / "mine.toml"
+    subprocess.run(
+        [str(cli), "calibrate", "--sensor", "hdl64e", "--out", str(out), str(SEQ)],
+        check=True,
+        capture_output=True,
+    )
+    text = out.read_text()
+    for key, digits in [("height", 4), ("roll_deg", 3), ("pitch_deg", 3)]:
+        assert f"{key} = {mount[key]:.{digits}f}" in text, (key, text)
+    # The file keeps 0.1 mm and 0.001°: the same mount, rounded the same, segments the same.
+    digits = {"height": 4, "roll_deg": 3, "pitch_deg": 3, "yaw_deg": 3}
+    rounded = {k: round(v, digits[k]) for k, v in mount.items()}
+    by_kwargs = groundwork.Segmenter(frames=1, mount=rounded)
+    by_file = groundwork.Segmenter(frames=1, config=out)
+    assert np.array_equal(by_kwargs.segment(scans[0]), by_file.segment(scans[0]))
+    # Degrees and radians: the same mount, and not both at once.
+    deg = groundwork.Segmenter(frames=1, mount={"height": 1.8, "pitch_deg": 2.0})
+    rad = groundwork.Segmenter(frames=1, mount={"height": 1.8, "pitch": np.radians(2.0)})
+    assert np.array_equal(deg.segment(scans[0]), rad.segment(scans[0]))
+    with pytest.raises(ValueError, match="pitch_deg"):
+        groundwork.Segmenter(mount={"pitch": 0.1, "pitch_deg": 2.0})
+    with pytest.raises(ValueError, match="2 of 2 scans"):
+        groundwork.calibrate(scans[:2])

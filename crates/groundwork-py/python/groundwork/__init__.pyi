@@ -178,3 +178,16 @@ def evaluate(
 
 def sensors() -> Sequence[str]:
     """The sensor presets."""
+
+def calibrate(
+    scans: Sequence[_Points],
+    sensor: str | None = None,
+    config: _Path | None = None,
+    seed: int = 0,
+    **overrides: Any,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The sensor's mount from raw scans, no labels (`groundwork calibrate`): the
+    configuration to lay over the preset ({"mount": {"height", "roll_deg", "pitch_deg",
+    "yaw_deg"}}, usable as keyword arguments) and a report (median, spread and standard
+    error of each over the scans; each scan's view or why it showed no usable ground).
+    Raises ValueError, with the reason, when the scans cannot determine the mount."""

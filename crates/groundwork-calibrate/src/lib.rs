@@ -1,0 +1,27 @@
+//! groundwork-calibrate: fit groundwork to a new sensor from its raw scans, without labels.
+//!
+//! - [`mount`]: the sensor's height, roll and pitch above the ground, by ground-plane
+//!   consensus ([`plane`]) over many scans, with the spread across scans as confidence and a
+//!   refusal (with the reason) when the scans cannot determine it.
+//!
+//! Pure algorithm: the caller reads the scans (the `groundwork calibrate` command).
+
+#![warn(missing_docs)]
+
+pub mod mount;
+pub mod plane;
+
+pub use mount::{MountEstimate, MountSearchConfig, combine, frame_mount};
+pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
+
+/// Why a calibration could not be done.
+#[derive(Debug, thiserror::Error)]
+pub enum CalibrateError {
+    /// A setting is out of its range.
+    #[error("calibration setting {0}")]
+    Config(String),
+    /// The scans cannot determine what was asked (no flat ground, too few scans, scans that
+    /// disagree): the reason.
+    #[error("cannot calibrate: {0}")]
+    Refused(String),
+}

@@ -1,0 +1,407 @@
+//! The sensor mount from many scans' ground planes: each plane gives a height, roll and
+//! pitch; the mount is their per-parameter median (a frame on a speed bump, on a ramp or with
+//! a wrong plane does not move it), and their robust spread is the confidence. Yaw cannot be
+//! seen in the ground and is kept from the prior.
+
+use groundwork_core::config::MountConfig;
+use groundwork_core::point::Pose;
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::CalibrateError;
+use crate::plane::{NoGround, PlaneFit, PlaneSearchConfig, ground_plane};
+
+/// How the mount is estimated and when it is refused.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MountSearchConfig {
+    /// The per-scan plane search.
+    pub plane: PlaneSearchConfig,
+    /// Scans with usable ground needed to state a mount.
+    pub min_frames: usize,
+    /// Refuse when the frames' roll or pitch spread (robust standard deviation) exceeds
+    /// this, radians: the ground is not flat or the sensor moved on its mount.
+    pub max_angle_spread: f64,
+    /// ... or when their height spread exceeds this, metres.
+    pub max_height_spread: f64,
+    /// Seed of the plane hypotheses (scan k uses seed + k).
+    pub seed: u64,
+}
+
+impl Default for MountSearchConfig {
+    fn default() -> Self {
+        Self {
+            plane: PlaneSearchConfig::default(),
+            min_frames: 3,
+            max_angle_spread: 2f64.to_radians(),
+            max_height_spread: 0.15,
+            seed: 0,
+        }
+    }
+}
+
+impl MountSearchConfig {
+    /// Refuses settings that cannot state a mount, by field name.
+    pub fn validate(&self) -> Result<(), CalibrateError> {
+        self.plane.validate()?;
+        let bad = |f: &str| {
+            Err(CalibrateError::Config(format!(
+                "{f} must be finite and > 0"
+            )))
+        };
+        if self.min_frames == 0 {
+            return bad("min_frames");
+        }
+        if !(self.max_angle_spread.is_finite() && self.max_angle_spread > 0.0) {
+            return bad("max_angle_spread");
+        }
+        if !(self.max_height_spread.is_finite() && self.max_height_spread > 0.0) {
+            return bad("max_height_spread");
+        }
+        Ok(())
+    }
+}
+
+/// One scan's view of the mount.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FrameMount {
+    /// Height above its ground plane, metres.
+    pub height: f64,
+    /// Roll, radians.
+    pub roll: f64,
+    /// Pitch, radians.
+    pub pitch: f64,
+    /// The plane it comes from.
+    pub plane: PlaneFit,
+}
+
+/// Median and spread of one mount parameter over the frames.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Estimate {
+    /// Median over the frames.
+    pub value: f64,
+    /// Robust standard deviation over the frames (1.4826 × median absolute deviation).
+    pub spread: f64,
+    /// Standard error of the median (1.2533 × spread / √frames).
+    pub standard_error: f64,
+}
+
+impl Estimate {
+    fn of(mut v: Vec<f64>) -> Self {
+        let value = median(&mut v);
+        let mut dev: Vec<f64> = v.iter().map(|x| (x - value).abs()).collect();
+        let spread = 1.4826 * median(&mut dev);
+        Self {
+            value,
+            spread,
+            standard_error: 1.2533 * spread / (v.len() as f64).sqrt(),
+        }
+    }
+}
+
+/// The mount found in the scans.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MountEstimate {
+    /// Sensor height above the ground, metres.
+    pub height: Estimate,
+    /// Roll, radians.
+    pub roll: Estimate,
+    /// Pitch, radians.
+    pub pitch: Estimate,
+    /// Yaw, radians (the prior's: the ground does not show it).
+    pub yaw: f64,
+    /// Scans that gave a plane.
+    pub frames_used: usize,
+    /// Scans looked at.
+    pub frames: usize,
+}
+
+impl MountEstimate {
+    /// As a mount configuration (height, roll, pitch, yaw).
+    pub fn mount(&self) -> MountConfig {
+        MountConfig {
+            height: self.height.value,
+            roll: self.roll.value,
+            pitch: self.pitch.value,
+            yaw: self.yaw,
+            ..Default::default()
+        }
+    }
+}
+
+/// The prior's vertical in the sensor frame, and its yaw.
+pub fn prior_up(prior: &Pose) -> (Vector3<f64>, f64) {
+    let up = prior.rotation.inverse() * Vector3::z();
+    (up, prior.rotation.euler_angles().2)
+}
+
+/// Roll and pitch that carry the sensor-frame `normal` to the vertical (any yaw):
+/// the mount's rotation Rz(yaw)·Ry(pitch)·Rx(roll) maps n = (−sin p, sin r cos p, cos r cos p)
+/// to z.
+pub fn roll_pitch(normal: &[f64; 3]) -> (f64, f64) {
+    let [x, y, z] = *normal;
+    (y.atan2(z), (-x).clamp(-1.0, 1.0).asin())
+}
+
+/// One scan's view of the mount (its index `k` picks its hypotheses' seed).
+pub fn frame_mount(
+    points: &[[f32; 3]],
+    prior: &Pose,
+    cfg: &MountSearchConfig,
+    k: u64,
+) -> Result<FrameMount, NoGround> {
+    let (up, _) = prior_up(prior);
+    let plane = ground_plane(points, &up, &cfg.plane, cfg.seed.wrapping_add(k))?;
+    let (roll, pitch) = roll_pitch(&plane.normal);
+    Ok(FrameMount {
+        height: plane.height,
+        roll,
+        pitch,
+        plane,
+    })
+}
+
+/// The mount from the scans' views (`Err` entries are scans without usable ground), or why
+/// the data cannot determine it.
+pub fn combine(
+    frames: &[Result<FrameMount, NoGround>],
+    prior: &Pose,
+    cfg: &MountSearchConfig,
+) -> Result<MountEstimate, CalibrateError> {
+    let good: Vec<&FrameMount> = frames.iter().filter_map(|f| f.as_ref().ok()).collect();
+    if good.len() < cfg.min_frames.max(1) {
+        let mut reasons: Vec<String> = frames
+            .iter()
+            .filter_map(|f| f.as_ref().err().map(ToString::to_string))
+            .collect();
+        reasons.sort();
+        reasons.dedup();
+        return Err(CalibrateError::Refused(format!(
+            "{} of {} scans show usable ground, {} needed{}",
+            good.len(),
+            frames.len(),
+            cfg.min_frames.max(1),
+            if reasons.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", reasons.join("; "))
+            }
+        )));
+    }
+    let est = MountEstimate {
+        height: Estimate::of(good.iter().map(|f| f.height).collect()),
+        roll: Estimate::of(good.iter().map(|f| f.roll).collect()),
+        pitch: Estimate::of(good.iter().map(|f| f.pitch).collect()),
+        yaw: prior_up(prior).1,
+        frames_used: good.len(),
+        frames: frames.len(),
+    };
+    let worst = est.roll.spread.max(est.pitch.spread);
+    if worst > cfg.max_angle_spread || est.height.spread > cfg.max_height_spread {
+        return Err(CalibrateError::Refused(format!(
+            "the scans disagree about the ground: roll spread {:.2}°, pitch {:.2}°, height \
+             {:.3} m over {} scans (limits {:.1}° and {:.2} m): not flat ground, or the sensor \
+             moved",
+            est.roll.spread.to_degrees(),
+            est.pitch.spread.to_degrees(),
+            est.height.spread,
+            good.len(),
+            cfg.max_angle_spread.to_degrees(),
+            cfg.max_height_spread,
+        )));
+    }
+    Ok(est)
+}
+
+/// Median of a non-empty slice (reorders it; the mean of the middle two for even lengths).
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use groundwork_core::mount_transform;
+    use proptest::prelude::*;
+
+    /// A scene in the ground frame: flat ground on a polar grid from 2 to 45 m, a few boxes
+    /// (cars) and a wall, seen by a sensor at `mount`: returned in the sensor frame.
+    fn scene_seen_from(mount: &MountConfig, jitter: u32) -> Vec<[f32; 3]> {
+        let t = mount_transform(mount).unwrap();
+        let mut world = Vec::new();
+        for i in 0..70 {
+            let r = 2.0 + f64::from(i) * 0.62;
+            for j in 0..240 {
+                let a = f64::from(j) * std::f64::consts::TAU / 240.0;
+                // A few millimetres of deterministic roughness.
+                let z = 0.004 * f64::from((i * 31 + j * 17 + jitter) % 7) - 0.012;
+                world.push(Vector3::new(r * a.cos(), r * a.sin(), z));
+            }
+        }
+        for (cx, cy) in [(8.0, 3.0), (-6.0, -4.0), (15.0, -5.0)] {
+            for i in 0..40 {
+                for k in 0..15 {
+                    world.push(Vector3::new(
+                        cx + f64::from(i) * 0.1,
+                        cy,
+                        0.1 * f64::from(k),
+                    ));
+                }
+            }
+        }
+        for i in 0..300 {
+            for k in 0..30 {
+                world.push(Vector3::new(
+                    -20.0 + f64::from(i) * 0.15,
+                    12.0,
+                    0.15 * f64::from(k),
+                ));
+            }
+        }
+        world
+            .into_iter()
+            .map(|w| {
+                let p = t.inverse_transform_point(&w.into());
+                [p.x as f32, p.y as f32, p.z as f32]
+            })
+            .collect()
+    }
+
+    fn calibrate(
+        frames: &[Vec<[f32; 3]>],
+        prior: &MountConfig,
+    ) -> Result<MountEstimate, CalibrateError> {
+        let cfg = MountSearchConfig::default();
+        let prior = mount_transform(prior).unwrap();
+        let views: Vec<_> = frames
+            .iter()
+            .enumerate()
+            .map(|(k, f)| frame_mount(f, &prior, &cfg, k as u64))
+            .collect();
+        combine(&views, &prior, &cfg)
+    }
+
+    #[test]
+    fn settings_are_checked_by_name() {
+        MountSearchConfig::default().validate().unwrap();
+        let c = MountSearchConfig {
+            max_height_spread: -1.0,
+            ..MountSearchConfig::default()
+        };
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("max_height_spread")
+        );
+    }
+
+    #[test]
+    fn roll_and_pitch_invert_the_mount_rotation() {
+        let m = MountConfig {
+            height: 1.0,
+            roll: 0.1,
+            pitch: -0.2,
+            yaw: 0.7,
+            matrix: None,
+        };
+        let t = mount_transform(&m).unwrap();
+        let n = t.rotation.inverse() * Vector3::z();
+        let (r, p) = roll_pitch(&[n.x, n.y, n.z]);
+        assert!((r - 0.1).abs() < 1e-12 && (p + 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn too_few_frames_and_disagreeing_frames_are_refused_with_the_reason() {
+        let level = MountConfig {
+            height: 1.5,
+            ..Default::default()
+        };
+        let one = vec![scene_seen_from(&level, 0)];
+        let e = calibrate(&one, &level).unwrap_err().to_string();
+        assert!(e.contains("1 of 1 scans") && e.contains("3 needed"), "{e}");
+        let none = vec![vec![[1.0f32, 2.0, 3.0]; 10]; 4];
+        let e = calibrate(&none, &level).unwrap_err().to_string();
+        assert!(
+            e.contains("0 of 4") && e.contains("no plane below the sensor"),
+            "{e}"
+        );
+        // Frames seen from sensors 1.0, 1.5 and 2.0 m high: no single mount.
+        let frames: Vec<_> = [1.0, 1.5, 2.0, 1.0, 2.0]
+            .iter()
+            .map(|&h| {
+                scene_seen_from(
+                    &MountConfig {
+                        height: h,
+                        ..Default::default()
+                    },
+                    0,
+                )
+            })
+            .collect();
+        let e = calibrate(&frames, &level).unwrap_err().to_string();
+        assert!(e.contains("disagree"), "{e}");
+    }
+
+    #[test]
+    fn a_frame_on_a_bump_does_not_move_the_mount() {
+        let truth = MountConfig {
+            height: 1.2,
+            pitch: 0.05,
+            ..Default::default()
+        };
+        let mut frames: Vec<_> = (0..4).map(|k| scene_seen_from(&truth, k)).collect();
+        let bumped = MountConfig {
+            pitch: 0.15,
+            ..truth.clone()
+        };
+        frames.push(scene_seen_from(&bumped, 9));
+        let e = calibrate(
+            &frames,
+            &MountConfig {
+                height: 1.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert!((e.pitch.value - 0.05).abs() < 1e-3, "{e:?}");
+        assert_eq!((e.frames_used, e.frames), (5, 5));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+        /// A scene seen through a known mount and calibrated from a level prior gives the
+        /// mount back.
+        #[test]
+        fn a_known_mount_is_recovered(
+            height in 0.4f64..2.6,
+            roll in -6f64..6.0,
+            pitch in -11f64..11.0,
+            yaw in -3f64..3.0,
+        ) {
+            let truth = MountConfig {
+                height,
+                roll: roll.to_radians(),
+                pitch: pitch.to_radians(),
+                yaw,
+                matrix: None,
+            };
+            let frames: Vec<_> = (0..3).map(|k| scene_seen_from(&truth, k)).collect();
+            let prior = MountConfig { height: 1.5, yaw, ..Default::default() };
+            let e = calibrate(&frames, &prior).unwrap();
+            prop_assert!((e.height.value - height).abs() < 0.02, "{e:?}");
+            prop_assert!((e.roll.value - truth.roll).abs() < 0.2f64.to_radians(), "{e:?}");
+            prop_assert!((e.pitch.value - truth.pitch).abs() < 0.2f64.to_radians(), "{e:?}");
+            prop_assert!((e.yaw - yaw).abs() < 1e-9);
+        }
+    }
+}

@@ -1,0 +1,336 @@
+//! `groundwork calibrate`: the sensor's mount from raw scans, written as a configuration to
+//! lay over the preset it started from, with a report.
+//!
+//! Scans are read in order (every k-th where the inputs' length is known, so that
+//! `--max-scans` spreads over the whole drive) and their ground planes found in parallel;
+//! each scan's plane depends only on the scan and its place (the seed), so the file written
+//! does not depend on the number of cores.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use groundwork_calibrate::mount::{Estimate, FrameMount};
+use groundwork_calibrate::{MountEstimate, MountSearchConfig, NoGround, combine, frame_mount};
+use groundwork_core::config::MountConfig;
+use groundwork_core::mount_transform;
+use rayon::prelude::*;
+use serde::Serialize;
+use tracing::{error, info};
+
+use crate::args::CalibrateArgs;
+use crate::common::{open_inputs, progress};
+
+/// One scan's line in the report.
+#[derive(Debug, Serialize)]
+struct ScanReport {
+    /// The scan's name (file stem, or recording and index).
+    scan: String,
+    /// Its view of the mount, if it showed usable ground.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    mount: Option<FrameMount>,
+    /// Why not, otherwise (no ground, or the scan could not be read).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    problem: Option<String>,
+}
+
+/// One scan looked at: its place, its report line, its view of the mount (None: unreadable).
+struct Looked {
+    k: usize,
+    line: ScanReport,
+    view: Option<Result<FrameMount, NoGround>>,
+}
+
+/// The report `--report` writes.
+#[derive(Debug, Serialize)]
+struct Report {
+    /// The preset the calibration started from.
+    base_preset: String,
+    /// Its mount (the prior).
+    prior: MountConfig,
+    /// The mount found (absent when refused).
+    mount: Option<MountEstimate>,
+    /// Why it was refused.
+    refused: Option<String>,
+    /// Scans looked at.
+    scans: usize,
+    /// Scans that could not be read.
+    unreadable: usize,
+    /// Every scan, in input order.
+    per_scan: Vec<ScanReport>,
+    /// The search's settings.
+    settings: MountSearchConfig,
+    /// Wall time, s.
+    seconds: f64,
+}
+
+pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
+    let t = Instant::now();
+    let base = a
+        .sensor
+        .clone()
+        .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_string());
+    let cfg = groundwork_eval::load_methods_config_over(Some(&base), a.config.as_deref())?;
+    for out in std::iter::once(&a.out).chain(a.report.as_ref()) {
+        if out.exists() && !a.overwrite {
+            bail!("{}: exists; pass --overwrite to replace it", out.display());
+        }
+    }
+    anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");
+    let prior_mount = cfg.segmenter.sensor.mount.clone();
+    let prior = mount_transform(&prior_mount)?;
+    let settings = MountSearchConfig {
+        seed: a.seed,
+        ..MountSearchConfig::default()
+    };
+    settings.validate()?;
+    let (sequences, skipped_inputs) = open_inputs(&a.inputs, None, None, a.topic.as_deref());
+    if sequences.is_empty() {
+        bail!("no readable input among {} given", a.inputs.len());
+    }
+    // Spread the scans looked at over the whole inputs where their length is known.
+    let total: Option<usize> = sequences.iter().map(|s| s.len_hint()).sum();
+    let stride = total.map_or(1, |n| n.div_ceil(a.max_scans).max(1));
+    let pb = progress(
+        total.map_or(a.max_scans, |n| n.div_ceil(stride).min(a.max_scans)),
+        "calibrate",
+    );
+    let max_points = cfg.segmenter.sensor.max_points;
+    info!(
+        base = %base,
+        inputs = a.inputs.len(),
+        scans = ?total,
+        every = stride,
+        "finding the mount"
+    );
+    let mut views: Vec<Looked> = sequences
+        .iter()
+        .flat_map(|s| s.scans(max_points))
+        .enumerate()
+        .filter(|(k, _)| k % stride == 0)
+        .take(a.max_scans)
+        .par_bridge()
+        .map(|(k, item)| {
+            let result = item.scan.as_ref().map(|scan| {
+                let xyz: Vec<[f32; 3]> = scan.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+                frame_mount(&xyz, &prior, &settings, k as u64)
+            });
+            pb.inc(1);
+            let (mount, problem, view) = match result {
+                Ok(Ok(m)) => (Some(m.clone()), None, Some(Ok(m))),
+                Ok(Err(no)) => (None, Some(no.to_string()), Some(Err(no))),
+                Err(e) => {
+                    pb.suspend(|| error!("skipped: {e}"));
+                    (None, Some(e.to_string()), None)
+                }
+            };
+            let line = ScanReport {
+                scan: item.name,
+                mount,
+                problem,
+            };
+            Looked { k, line, view }
+        })
+        .collect();
+    pb.finish_and_clear();
+    views.sort_by_key(|v| v.k);
+    let unreadable = views.iter().filter(|v| v.view.is_none()).count();
+    let frames: Vec<Result<FrameMount, NoGround>> =
+        views.iter_mut().filter_map(|v| v.view.take()).collect();
+    let result = combine(&frames, &prior, &settings);
+    let report = Report {
+        base_preset: base.clone(),
+        prior: prior_mount.clone(),
+        mount: result.as_ref().ok().cloned(),
+        refused: result.as_ref().err().map(ToString::to_string),
+        scans: views.len(),
+        unreadable,
+        per_scan: views.into_iter().map(|v| v.line).collect(),
+        settings,
+        seconds: t.elapsed().as_secs_f64(),
+    };
+    if let Some(path) = &a.report {
+        let json = serde_json::to_string_pretty(&report)?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("{}: cannot write", path.display()))?;
+    }
+    let est = match result {
+        Ok(e) => e,
+        Err(e) => bail!("{e} (nothing written to {})", a.out.display()),
+    };
+    let name = a
+        .out
+        .file_stem()
+        .map_or_else(|| "calibrated".into(), |s| s.to_string_lossy().into_owned());
+    let text = preset_text(&base, &name, &prior_mount, &est, &a.inputs);
+    std::fs::write(&a.out, &text).with_context(|| format!("{}: cannot write", a.out.display()))?;
+    print!("{}", summary(&base, &prior_mount, &est));
+    println!(
+        "wrote {} (use: --sensor {base} --config {}) in {:.1} s",
+        a.out.display(),
+        a.out.display(),
+        t.elapsed().as_secs_f64()
+    );
+    Ok(if unreadable + skipped_inputs > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// `value ± error unit`, with the spread over the scans.
+fn shown(e: &Estimate, scale: f64, unit: &str, digits: usize) -> String {
+    format!(
+        "{:.digits$}{unit} ± {:.digits$}{unit} (spread {:.digits$}{unit})",
+        e.value * scale,
+        e.standard_error * scale,
+        e.spread * scale,
+    )
+}
+
+/// What was found, for the terminal.
+fn summary(base: &str, prior: &MountConfig, est: &MountEstimate) -> String {
+    let d = 180.0 / std::f64::consts::PI;
+    let mut s = format!(
+        "mount from {} of {} scans (prior: the {base} preset's)\n",
+        est.frames_used, est.frames
+    );
+    let _ = writeln!(
+        s,
+        "  height {}  was {:.3} m",
+        shown(&est.height, 1.0, " m", 3),
+        prior.height
+    );
+    let _ = writeln!(
+        s,
+        "  roll   {}  was {:.2}°",
+        shown(&est.roll, d, "°", 2),
+        prior.roll * d
+    );
+    let _ = writeln!(
+        s,
+        "  pitch  {}  was {:.2}°",
+        shown(&est.pitch, d, "°", 2),
+        prior.pitch * d
+    );
+    s
+}
+
+/// The configuration file: what differs from the base preset, each changed value's old one
+/// in a comment, readable and loadable with `--sensor <base> --config <file>`.
+fn preset_text(
+    base: &str,
+    name: &str,
+    prior: &MountConfig,
+    est: &MountEstimate,
+    inputs: &[PathBuf],
+) -> String {
+    let d = 180.0 / std::f64::consts::PI;
+    let shown_inputs: Vec<String> = inputs.iter().map(|p| display(p)).collect();
+    let mut s = format!(
+        "# Calibrated by `groundwork calibrate` from {} of {} scans of {}.\n\
+         # Use: groundwork segment --sensor {base} --config <this file> ...\n\
+         # It holds what differs from the {base} preset; each changed value's old one is in\n\
+         # the comment after it, with the estimate's standard error and its spread over the\n\
+         # scans.\n\n\
+         [sensor]\n\
+         name = {name:?}  # was {:?}\n\n\
+         [sensor.mount]\n",
+        est.frames_used,
+        est.frames,
+        shown_inputs.join(", "),
+        base,
+    );
+    let m = est.mount();
+    if prior.matrix.is_some() {
+        // The preset gives a matrix; the file must too (a mount is one or the other).
+        let h = mount_transform(&m).map(|t| t.to_homogeneous());
+        if let Ok(h) = h {
+            let rows: Vec<String> = (0..4)
+                .map(|r| {
+                    let v: Vec<String> = (0..4).map(|c| format!("{:.6}", h[(r, c)])).collect();
+                    format!("[{}]", v.join(", "))
+                })
+                .collect();
+            let _ = writeln!(
+                s,
+                "matrix = [{}]  # the preset gave a matrix",
+                rows.join(", ")
+            );
+        }
+    } else {
+        let _ = writeln!(
+            s,
+            "height = {:.4}  # was {}; ± {:.4} m (spread {:.4} m)",
+            m.height, prior.height, est.height.standard_error, est.height.spread
+        );
+        for (key, new, old, e) in [
+            ("roll_deg", m.roll, prior.roll, &est.roll),
+            ("pitch_deg", m.pitch, prior.pitch, &est.pitch),
+        ] {
+            let _ = writeln!(
+                s,
+                "{key} = {:.3}  # was {:.3}°; ± {:.3}° (spread {:.3}°)",
+                new * d,
+                old * d,
+                e.standard_error * d,
+                e.spread * d
+            );
+        }
+        let _ = writeln!(
+            s,
+            "yaw_deg = {:.3}  # kept: the ground does not show yaw",
+            m.yaw * d
+        );
+    }
+    s
+}
+
+fn display(p: &Path) -> String {
+    p.display().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn est(v: [f64; 3]) -> MountEstimate {
+        let e = |value| Estimate {
+            value,
+            spread: 0.01,
+            standard_error: 0.004,
+        };
+        MountEstimate {
+            height: e(v[0]),
+            roll: e(v[1]),
+            pitch: e(v[2]),
+            yaw: 0.0,
+            frames_used: 5,
+            frames: 6,
+        }
+    }
+
+    #[test]
+    fn the_written_file_loads_over_its_preset_and_gives_the_mount() {
+        let dir = tempfile::tempdir().unwrap();
+        for base in ["vlp16", "livox", "hdl32e"] {
+            let prior = groundwork_io::sensor_preset(base).unwrap().sensor.mount;
+            let e = est([1.9, 0.1, -0.07]);
+            let text = preset_text(base, "mine", &prior, &e, &[PathBuf::from("a")]);
+            let path = dir.path().join(format!("{base}.toml"));
+            std::fs::write(&path, &text).unwrap();
+            let c = groundwork_io::load_config_over(Some(base), Some(&path)).unwrap();
+            let m = &c.sensor.mount;
+            assert!((m.height - 1.9).abs() < 1e-4, "{text}");
+            assert!(
+                (m.roll - 0.1).abs() < 1e-4 && (m.pitch + 0.07).abs() < 1e-4,
+                "{text}"
+            );
+            assert!((m.yaw - prior.yaw).abs() < 1e-4, "{text}");
+            assert_eq!(c.sensor.name, "mine");
+            assert!(text.contains(&format!("# was {}", prior.height)), "{text}");
+        }
+    }
+}
