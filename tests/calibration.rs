@@ -222,3 +222,72 @@ fn kitti_in_a_tilted_mount_is_calibrated() {
     );
     assert!(precision >= 99.3, "{precision:.2}");
 }
+
+/// The segmenter observes the mount in the ground it fits: told a mount 4° off in pitch and
+/// 20 cm off in height, it sees the true one (within 1° and 10 cm: it is a check, not a
+/// calibration; in this urban scene the sidewalks and lawns above the road lift its plane by
+/// 6 cm and the crown tilts it by 0.8°) and says how far the configured one is beyond the
+/// tolerances (3°, 20 cm); told the true one, it stays within them. With the check off it
+/// observes nothing.
+#[test]
+fn the_segmenter_observes_the_mount_it_was_not_told() {
+    let truth = MountConfig {
+        height: 1.6,
+        roll: 2f64.to_radians(),
+        pitch: -3f64.to_radians(),
+        yaw: 0.0,
+        matrix: None,
+    };
+    let g = synthetic_seeded("os1-64", SceneKind::Urban, 300, Some(truth.clone()), 5);
+    let scans: Vec<Vec<Point>> = (0..g.frames())
+        .step_by(12)
+        .map(|i| g.scan(i).points)
+        .collect();
+    let wrong = MountConfig {
+        height: 1.4,
+        pitch: 1f64.to_radians(),
+        ..truth.clone()
+    };
+    for (told, off) in [(&truth, false), (&wrong, true)] {
+        let mut cfg = sensor_preset("os1-64").unwrap();
+        cfg.sensor.mount = told.clone();
+        let mut seg = Segmenter::new(cfg).unwrap();
+        for s in &scans {
+            let mut p = vec![0.0; s.len()];
+            seg.segment(s, None, &mut p).unwrap();
+        }
+        let seen = seg.observed_mount().unwrap();
+        let found = MountConfig {
+            height: seen.height,
+            roll: seen.roll,
+            pitch: seen.pitch,
+            yaw: 0.0,
+            matrix: None,
+        };
+        let (angle, dh) = mount_error(&found, &truth);
+        eprintln!(
+            "told h {:.2} pitch {:.1}°: observed h {:.3} roll {:.2}° pitch {:.2}° over {} scans \
+             ({angle:.2}°, {dh:.3} m from the truth; {:.2}°, {:.3} m from what it was told)",
+            told.height,
+            told.pitch.to_degrees(),
+            seen.height,
+            seen.roll.to_degrees(),
+            seen.pitch.to_degrees(),
+            seen.scans,
+            seen.tilt_from_configured.to_degrees(),
+            seen.height_from_configured,
+        );
+        assert!(angle < 1.0 && dh < 0.1, "{seen:?}");
+        assert_eq!(seen.scans, scans.len() as u64);
+        let tolerance = groundwork_core::config::MountCheckConfig::default();
+        let disagrees = seen.tilt_from_configured.to_degrees() > tolerance.max_tilt_deg
+            || seen.height_from_configured.abs() > tolerance.max_height;
+        assert_eq!(disagrees, off, "{seen:?}");
+    }
+    let mut cfg = sensor_preset("os1-64").unwrap();
+    cfg.mount_check.mode = groundwork_core::config::MountCheckMode::Off;
+    let mut seg = Segmenter::new(cfg).unwrap();
+    let mut p = vec![0.0; scans[0].len()];
+    seg.segment(&scans[0], None, &mut p).unwrap();
+    assert!(seg.observed_mount().is_none());
+}

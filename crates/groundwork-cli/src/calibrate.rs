@@ -317,7 +317,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for base in ["vlp16", "livox", "hdl32e"] {
             let prior = groundwork_io::sensor_preset(base).unwrap().sensor.mount;
-            let e = est([1.9, 0.1, -0.07]);
+            // The estimate keeps the prior's yaw, as `combine` does.
+            let e = MountEstimate {
+                yaw: prior.yaw,
+                ..est([1.9, 0.1, -0.07])
+            };
             let text = preset_text(base, "mine", &prior, &e, &[PathBuf::from("a")]);
             let path = dir.path().join(format!("{base}.toml"));
             std::fs::write(&path, &text).unwrap();

@@ -1083,3 +1083,41 @@ fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_
     );
     assert!(!tmp.path().join("two.toml").exists());
 }
+
+#[test]
+fn a_mount_that_disagrees_with_the_ground_is_reported_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tmp.path().join("tilted.toml");
+    // Degrees where radians were meant, in the right range: 5° of pitch the ground lacks.
+    fs::write(
+        &cfg,
+        "[sensor]\nmount = { height = 1.73, pitch_deg = 5.0 }\n[mount_check]\nwarmup_scans = 3\n",
+    )
+    .unwrap();
+    let segment = |config: Option<&Path>| {
+        let mut c = bin();
+        let out = if config.is_some() {
+            "out-tilted"
+        } else {
+            "out-preset"
+        };
+        c.args(["segment", "--out"]).arg(tmp.path().join(out));
+        if let Some(f) = config {
+            c.arg("--config").arg(f);
+        }
+        c.arg(data()).output().unwrap()
+    };
+    let o = segment(Some(&cfg));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{stderr}");
+    assert_eq!(
+        stderr.matches("disagrees with sensor.mount").count(),
+        1,
+        "{stderr}"
+    );
+    assert!(stderr.contains("configured_pitch_deg=5.00"), "{stderr}");
+    // The preset's mount is within the tolerances.
+    let o = segment(None);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("disagrees"), "{stderr}");
+}

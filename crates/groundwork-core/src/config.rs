@@ -28,6 +28,8 @@ pub struct SegmenterConfig {
     pub height_filter: HeightFilterConfig,
     /// Multi-frame history (paper §III-F).
     pub history: HistoryConfig,
+    /// The mount observed in the fitted ground, checked against `sensor.mount`.
+    pub mount_check: MountCheckConfig,
 }
 
 /// How the sensor sits on the vehicle, and what the segmenter accepts from it.
@@ -125,6 +127,48 @@ impl TryFrom<MountToml> for MountConfig {
             yaw: radians("yaw", m.yaw, m.yaw_deg)?,
             matrix: m.matrix,
         })
+    }
+}
+
+/// What the segmenter does when the ground it fits disagrees with the configured mount.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MountCheckMode {
+    /// Nothing is observed.
+    Off,
+    /// The observed mount is kept (`Segmenter::observed_mount`) and a warning is logged,
+    /// once, when it disagrees beyond the tolerances.
+    Warn,
+}
+
+/// Settings of the mount check (`[mount_check]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MountCheckConfig {
+    /// `off`, or `warn`: log once when the observed mount disagrees beyond the tolerances.
+    pub mode: MountCheckMode,
+    /// Tolerated angle between configured and observed vertical, degrees.
+    pub max_tilt_deg: f64,
+    /// Tolerated height difference, metres.
+    pub max_height: f64,
+    /// Weight of the newest scan in the moving average (0 < w ≤ 1).
+    pub smoothing: f64,
+    /// Scans observed before any verdict.
+    pub warmup_scans: u32,
+    /// Ground components whose mean lies within this horizontal range are used, metres.
+    pub range: f64,
+}
+
+impl Default for MountCheckConfig {
+    fn default() -> Self {
+        Self {
+            mode: MountCheckMode::Warn,
+            max_tilt_deg: 3.0,
+            max_height: 0.2,
+            smoothing: 0.05,
+            warmup_scans: 20,
+            range: 20.0,
+        }
     }
 }
 
@@ -728,6 +772,18 @@ impl SegmenterConfig {
             " rad",
         )?;
         positive("history.max_time_gap", hi.max_time_gap, 3600.0, " s")?;
+        let mc = &self.mount_check;
+        positive("mount_check.max_tilt_deg", mc.max_tilt_deg, 90.0, "°")?;
+        positive("mount_check.max_height", mc.max_height, 100.0, " m")?;
+        positive("mount_check.smoothing", mc.smoothing, 1.0, "")?;
+        positive("mount_check.range", mc.range, 10_000.0, " m")?;
+        within(
+            "mount_check.warmup_scans",
+            f64::from(mc.warmup_scans),
+            1.0,
+            1e6,
+            "",
+        )?;
         Ok(())
     }
 }

@@ -49,6 +49,7 @@ mod history;
 pub mod likelihood;
 pub mod method;
 pub mod model;
+pub mod mount_watch;
 pub mod point;
 pub mod query;
 pub mod segmenter;

@@ -8,6 +8,8 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 use tracing::{debug, info, warn};
 
+use crate::mount_watch::{MountWatch, ObservedMount};
+
 use crate::config::mount_transform;
 use crate::config::{PastQuery, SegmenterConfig};
 use crate::error::{ConfigError, SegmentError};
@@ -121,6 +123,7 @@ pub struct Segmenter {
     binner: LaneBinner,
     mount: Isometry3<f64>,
     height: HeightFilter,
+    mount_watch: MountWatch,
     history: History,
     /// Sensor time of the last stamped scan, ns.
     last_time_ns: Option<u64>,
@@ -149,6 +152,7 @@ impl Segmenter {
             zones,
             mount,
             height,
+            mount_watch: MountWatch::default(),
             counters: SegmenterCounters::default(),
             ground: GroundPoints::default(),
             bins: Vec::new(),
@@ -192,7 +196,15 @@ impl Segmenter {
     /// requested history reset if there was a history. Returns whether frames were dropped.
     pub fn reset(&mut self) -> bool {
         self.height.reset();
+        self.mount_watch.reset();
         self.reset_history()
+    }
+
+    /// The mount observed in the ground fitted so far (`mount_check.mode = "warn"`): height,
+    /// roll and pitch, and how far they are from the configured mount. None before the
+    /// first scan with enough ground, or with the check off.
+    pub fn observed_mount(&self) -> Option<ObservedMount> {
+        self.mount_watch.observed(&self.mount)
     }
 
     /// Forgets the multi-frame history (a new producer run, a new sequence); counted as a
@@ -378,6 +390,26 @@ impl Segmenter {
         self.group(true);
         let (model, stats) = self.fit_grouped();
         self.update_height_filter(&model);
+        let threshold = f64::from(self.cfg.ground.ground_threshold);
+        if let Some(seen) =
+            self.mount_watch
+                .observe(&model, &self.cfg.mount_check, &self.mount, threshold)
+        {
+            let m = &self.cfg.sensor.mount;
+            warn!(
+                scans = seen.scans,
+                observed_height_m = %format!("{:.3}", seen.height),
+                configured_height_m = %format!("{:.3}", self.mount.translation.z),
+                observed_roll_deg = %format!("{:.2}", seen.roll.to_degrees()),
+                observed_pitch_deg = %format!("{:.2}", seen.pitch.to_degrees()),
+                configured_roll_deg = %format!("{:.2}", m.roll.to_degrees()),
+                configured_pitch_deg = %format!("{:.2}", m.pitch.to_degrees()),
+                tilt_deg = %format!("{:.2}", seen.tilt_from_configured.to_degrees()),
+                "the ground the segmenter fits disagrees with sensor.mount (beyond \
+                 mount_check's tolerances): check the mount, or find it with `groundwork \
+                 calibrate`"
+            );
+        }
         report.fit_time = t0.elapsed();
 
         for st in &stats {

@@ -362,6 +362,29 @@ impl PySegmenter {
         self.inner.history_len()
     }
 
+    /// The mount observed in the ground fitted so far (height m, roll_deg, pitch_deg,
+    /// tilt_from_configured_deg, height_from_configured m, scans), or None before any
+    /// scan with enough ground or with `mount_check={"mode": "off"}`.
+    #[getter]
+    fn observed_mount<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(m) = self.inner.observed_mount() else {
+            return Ok(None);
+        };
+        let d = [
+            ("height", m.height),
+            ("roll_deg", m.roll.to_degrees()),
+            ("pitch_deg", m.pitch.to_degrees()),
+            (
+                "tilt_from_configured_deg",
+                m.tilt_from_configured.to_degrees(),
+            ),
+            ("height_from_configured", m.height_from_configured),
+        ]
+        .into_py_dict(py)?;
+        d.set_item("scans", m.scans)?;
+        Ok(Some(d))
+    }
+
     /// The sensor preset it was built from.
     #[getter]
     fn sensor(&self) -> &str {

@@ -406,3 +406,13 @@ def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, 
         groundwork.Segmenter(mount={"pitch": 0.1, "pitch_deg": 2.0})
     with pytest.raises(ValueError, match="2 of 2 scans"):
         groundwork.calibrate(scans[:2])
+    # The segmenter observes the mount too: told 5° of pitch, it sees the ground's.
+    seg = groundwork.Segmenter(mount={"height": 1.73, "pitch_deg": 5.0})
+    assert seg.observed_mount is None
+    for s in scans:
+        seg.segment(s)
+    seen = seg.observed_mount
+    assert seen["scans"] == len(scans)
+    assert abs(seen["pitch_deg"] - mount["pitch_deg"]) < 1.0, seen
+    assert seen["tilt_from_configured_deg"] > 3.0, seen
+    assert groundwork.Segmenter(mount_check={"mode": "off"}).observed_mount is None

@@ -63,6 +63,11 @@ class Segmenter:
         dropped."""
 
     @property
+    def observed_mount(self) -> dict[str, float] | None:
+        """The mount observed in the ground fitted so far: height (m), roll_deg, pitch_deg,
+        tilt_from_configured_deg, height_from_configured (m), scans. None before a scan with
+        enough ground, or with mount_check={"mode": "off"}."""
+    @property
     def threshold(self) -> float:
         """Probability at or above which a point is ground."""
 
