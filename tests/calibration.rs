@@ -4,8 +4,9 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
-use groundwork_calibrate::{MountEstimate, MountSearchConfig, combine, frame_mount};
+use groundwork_calibrate::{MountEstimate, MountSearchConfig, estimate_mount};
 use groundwork_core::config::MountConfig;
+use groundwork_core::config::vertical_in_sensor;
 use groundwork_core::mount_transform;
 use groundwork_core::{Point, Segmenter};
 use groundwork_eval::{Confusion, Protocol};
@@ -22,19 +23,12 @@ fn calibrate(
     prior: &MountConfig,
     cfg: &MountSearchConfig,
 ) -> Result<MountEstimate, groundwork_calibrate::CalibrateError> {
-    let prior = mount_transform(prior).unwrap();
-    let views: Vec<_> = scans
-        .iter()
-        .enumerate()
-        .map(|(k, s)| frame_mount(s, &prior, cfg, k as u64))
-        .collect();
-    combine(&views, &prior, cfg)
+    estimate_mount(scans, &mount_transform(prior).unwrap(), cfg).1
 }
 
 /// Angle between the two mounts' verticals (degrees) and their height difference (m).
 fn mount_error(e: &MountConfig, truth: &MountConfig) -> (f64, f64) {
-    let up =
-        |m: &MountConfig| mount_transform(m).unwrap().rotation.inverse() * nalgebra::Vector3::z();
+    let up = |m: &MountConfig| vertical_in_sensor(&mount_transform(m).unwrap());
     (
         up(e).angle(&up(truth)).to_degrees(),
         (e.height - truth.height).abs(),
@@ -196,9 +190,8 @@ fn kitti_in_a_tilted_mount_is_calibrated() {
     // Tilted sensor coordinates p' = T⁻¹·K·p, so ground-from-tilted-sensor = E·K⁻¹·T.
     let expected_pose =
         mount_transform(&own.mount()).unwrap() * kitti.inverse() * mount_transform(&tilt).unwrap();
-    let up = |p: &groundwork_core::Pose| p.rotation.inverse() * nalgebra::Vector3::z();
-    let angle = up(&mount_transform(&found.mount()).unwrap())
-        .angle(&up(&expected_pose))
+    let angle = vertical_in_sensor(&mount_transform(&found.mount()).unwrap())
+        .angle(&vertical_in_sensor(&expected_pose))
         .to_degrees();
     let (_, dh_true) = mount_error(&found.mount(), &tilt);
     let dh = (found.height.value - expected_pose.translation.z).abs();

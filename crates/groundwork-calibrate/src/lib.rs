@@ -11,7 +11,7 @@
 pub mod mount;
 pub mod plane;
 
-pub use mount::{MountEstimate, MountSearchConfig, combine, frame_mount};
+pub use mount::{MountEstimate, MountSearchConfig, combine, estimate_mount, frame_mount};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 
 /// Why a calibration could not be done.

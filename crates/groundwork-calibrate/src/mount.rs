@@ -3,9 +3,10 @@
 //! a wrong plane does not move it), and their robust spread is the confidence. Yaw cannot be
 //! seen in the ground and is kept from the prior.
 
-use groundwork_core::config::MountConfig;
+use groundwork_core::config::{MountConfig, roll_pitch_of, vertical_in_sensor};
 use groundwork_core::point::Pose;
 use nalgebra::Vector3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::CalibrateError;
@@ -131,16 +132,7 @@ impl MountEstimate {
 
 /// The prior's vertical in the sensor frame, and its yaw.
 pub fn prior_up(prior: &Pose) -> (Vector3<f64>, f64) {
-    let up = prior.rotation.inverse() * Vector3::z();
-    (up, prior.rotation.euler_angles().2)
-}
-
-/// Roll and pitch that carry the sensor-frame `normal` to the vertical (any yaw):
-/// the mount's rotation Rz(yaw)·Ry(pitch)·Rx(roll) maps n = (−sin p, sin r cos p, cos r cos p)
-/// to z.
-pub fn roll_pitch(normal: &[f64; 3]) -> (f64, f64) {
-    let [x, y, z] = *normal;
-    (y.atan2(z), (-x).clamp(-1.0, 1.0).asin())
+    (vertical_in_sensor(prior), prior.rotation.euler_angles().2)
 }
 
 /// One scan's view of the mount (its index `k` picks its hypotheses' seed).
@@ -152,7 +144,7 @@ pub fn frame_mount(
 ) -> Result<FrameMount, NoGround> {
     let (up, _) = prior_up(prior);
     let plane = ground_plane(points, &up, &cfg.plane, cfg.seed.wrapping_add(k))?;
-    let (roll, pitch) = roll_pitch(&plane.normal);
+    let (roll, pitch) = roll_pitch_of(&Vector3::from(plane.normal));
     Ok(FrameMount {
         height: plane.height,
         roll,
@@ -211,6 +203,26 @@ pub fn combine(
         )));
     }
     Ok(est)
+}
+
+/// Every scan's view of the mount (in parallel: each depends only on its scan and its
+/// place), and the mount they give or why they cannot: [`frame_mount`] then [`combine`],
+/// for callers that hold the scans (the CLI streams them).
+pub fn estimate_mount<S: AsRef<[[f32; 3]]> + Sync>(
+    scans: &[S],
+    prior: &Pose,
+    cfg: &MountSearchConfig,
+) -> (
+    Vec<Result<FrameMount, NoGround>>,
+    Result<MountEstimate, CalibrateError>,
+) {
+    let views: Vec<_> = scans
+        .par_iter()
+        .enumerate()
+        .map(|(k, s)| frame_mount(s.as_ref(), prior, cfg, k as u64))
+        .collect();
+    let estimate = combine(&views, prior, cfg);
+    (views, estimate)
 }
 
 /// Median of a non-empty slice (reorders it; the mean of the middle two for even lengths).
@@ -280,14 +292,8 @@ mod tests {
         frames: &[Vec<[f32; 3]>],
         prior: &MountConfig,
     ) -> Result<MountEstimate, CalibrateError> {
-        let cfg = MountSearchConfig::default();
         let prior = mount_transform(prior).unwrap();
-        let views: Vec<_> = frames
-            .iter()
-            .enumerate()
-            .map(|(k, f)| frame_mount(f, &prior, &cfg, k as u64))
-            .collect();
-        combine(&views, &prior, &cfg)
+        estimate_mount(frames, &prior, &MountSearchConfig::default()).1
     }
 
     #[test]
@@ -303,21 +309,6 @@ mod tests {
                 .to_string()
                 .contains("max_height_spread")
         );
-    }
-
-    #[test]
-    fn roll_and_pitch_invert_the_mount_rotation() {
-        let m = MountConfig {
-            height: 1.0,
-            roll: 0.1,
-            pitch: -0.2,
-            yaw: 0.7,
-            matrix: None,
-        };
-        let t = mount_transform(&m).unwrap();
-        let n = t.rotation.inverse() * Vector3::z();
-        let (r, p) = roll_pitch(&[n.x, n.y, n.z]);
-        assert!((r - 0.1).abs() < 1e-12 && (p + 0.2).abs() < 1e-12);
     }
 
     #[test]

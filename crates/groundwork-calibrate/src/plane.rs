@@ -343,6 +343,12 @@ impl Plane {
         self.n.dot(p) + self.h
     }
 
+    /// Within the tilt cone around `up` and with the sensor within the height limits above.
+    fn plausible(&self, up: &Vector3<f64>, cfg: &PlaneSearchConfig) -> bool {
+        let [lo, hi] = cfg.height_limits;
+        self.n.dot(up) >= cfg.max_tilt.cos() && (lo..=hi).contains(&self.h)
+    }
+
     /// Through three points, oriented toward `up`; None when they are (nearly) collinear.
     fn through(
         a: &Vector3<f64>,
@@ -437,8 +443,6 @@ fn consensus(
             .collect()
     };
     let sample_near: Vec<bool> = sample.iter().map(|p| p.norm() <= cfg.below_range).collect();
-    let cos_tilt = cfg.max_tilt.cos();
-    let [h_lo, h_hi] = cfg.height_limits;
     let inv = 1.0 / (cfg.inlier_distance * cfg.inlier_distance);
     let mut best: Option<(f64, Plane, usize)> = None;
     for _ in 0..cfg.hypotheses {
@@ -447,7 +451,7 @@ fn consensus(
         let Some(plane) = Plane::through(&a, &b, &c, prior_up) else {
             continue;
         };
-        if plane.n.dot(prior_up) < cos_tilt || !(h_lo..=h_hi).contains(&plane.h) {
+        if !plane.plausible(prior_up, cfg) {
             continue;
         }
         // MSAC: an inlier counts the more the closer it lies, so that a plane tilted to
@@ -507,8 +511,6 @@ pub fn ground_plane(
     let Some((coarse, _)) = from_close.or_else(|| consensus(&band, prior_up, cfg, &mut rng)) else {
         return Err(NoGround::NoPlane);
     };
-    let cos_tilt = cfg.max_tilt.cos();
-    let [h_lo, h_hi] = cfg.height_limits;
     // Where the sensor first sees this ground: the nearest points within half a metre of
     // the plane (2 % quantile; curved terrain leaves the plane farther out). The mount's
     // ground is fitted over the band from there.
@@ -533,7 +535,7 @@ pub fn ground_plane(
     {
         (plane, rms, inliers) = t;
     }
-    if plane.n.dot(prior_up) < cos_tilt || !(h_lo..=h_hi).contains(&plane.h) {
+    if !plane.plausible(prior_up, cfg) {
         return Err(NoGround::NoPlane);
     }
     let share = inliers.len() as f64 / near.len().max(1) as f64;

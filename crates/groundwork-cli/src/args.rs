@@ -401,12 +401,9 @@ pub struct LabelArgs {
 #[derive(clap::Args, Debug)]
 pub struct CalibrateArgs {
     /// The preset to start from (its mount is the prior; the output holds what differs
-    /// from it). Default: hdl64e.
-    #[arg(long)]
-    pub sensor: Option<String>,
-    /// Configuration laid over the preset before calibrating (a better prior).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    /// from it), and a configuration over it (a better prior).
+    #[command(flatten)]
+    pub sensor: SensorArgs,
     /// PointCloud2 topic of MCAP recordings (default: the first point cloud topic).
     #[arg(long)]
     pub topic: Option<String>,

@@ -7,7 +7,7 @@
 //! does not depend on the number of cores.
 
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -70,16 +70,17 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let t = Instant::now();
     let base = a
         .sensor
+        .sensor
         .clone()
         .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_string());
-    let cfg = groundwork_eval::load_methods_config_over(Some(&base), a.config.as_deref())?;
+    let cfg = crate::common::load(&a.sensor.into(), None)?;
     for out in std::iter::once(&a.out).chain(a.report.as_ref()) {
         if out.exists() && !a.overwrite {
             bail!("{}: exists; pass --overwrite to replace it", out.display());
         }
     }
     anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");
-    let prior_mount = cfg.segmenter.sensor.mount.clone();
+    let prior_mount = cfg.sensor.mount.clone();
     let prior = mount_transform(&prior_mount)?;
     let settings = MountSearchConfig {
         seed: a.seed,
@@ -97,7 +98,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         total.map_or(a.max_scans, |n| n.div_ceil(stride).min(a.max_scans)),
         "calibrate",
     );
-    let max_points = cfg.segmenter.sensor.max_points;
+    let max_points = cfg.sensor.max_points;
     info!(
         base = %base,
         inputs = a.inputs.len(),
@@ -228,7 +229,7 @@ fn preset_text(
     inputs: &[PathBuf],
 ) -> String {
     let d = 180.0 / std::f64::consts::PI;
-    let shown_inputs: Vec<String> = inputs.iter().map(|p| display(p)).collect();
+    let shown_inputs: Vec<String> = inputs.iter().map(|p| p.display().to_string()).collect();
     let mut s = format!(
         "# Calibrated by `groundwork calibrate` from {} of {} scans of {}.\n\
          # Use: groundwork segment --sensor {base} --config <this file> ...\n\
@@ -286,10 +287,6 @@ fn preset_text(
         );
     }
     s
-}
-
-fn display(p: &Path) -> String {
-    p.display().to_string()
 }
 
 #[cfg(test)]

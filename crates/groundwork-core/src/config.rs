@@ -803,9 +803,34 @@ pub fn mount_transform(mount: &MountConfig) -> Result<Pose, ConfigError> {
     ))
 }
 
+/// The roll and pitch of a mount whose ground vertical, seen from the sensor, is the unit
+/// vector `up` (any yaw): the inverse of [`mount_transform`]'s rotation
+/// Rz(yaw)·Ry(pitch)·Rx(roll), which carries up = (−sin p, sin r cos p, cos r cos p) to z.
+pub fn roll_pitch_of(up: &Vector3<f64>) -> (f64, f64) {
+    (up.y.atan2(up.z), (-up.x).clamp(-1.0, 1.0).asin())
+}
+
+/// The ground vertical of a mount (ground-from-sensor pose), in the sensor frame.
+pub fn vertical_in_sensor(mount: &Pose) -> Vector3<f64> {
+    mount.rotation.inverse() * Vector3::z()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn roll_and_pitch_invert_the_mount_rotation() {
+        let m = MountConfig {
+            height: 1.0,
+            roll: 0.1,
+            pitch: -0.2,
+            yaw: 0.7,
+            matrix: None,
+        };
+        let (r, p) = roll_pitch_of(&vertical_in_sensor(&mount_transform(&m).unwrap()));
+        assert!((r - 0.1).abs() < 1e-12 && (p + 0.2).abs() < 1e-12);
+    }
 
     #[test]
     fn mount_lifts_points_by_the_sensor_height() {

@@ -7,7 +7,7 @@
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
-use crate::config::{MountCheckConfig, MountCheckMode};
+use crate::config::{MountCheckConfig, MountCheckMode, roll_pitch_of};
 use crate::model::FrameModel;
 use crate::point::Pose;
 
@@ -84,11 +84,7 @@ impl MountWatch {
         }
         // The observed ground's normal in the sensor frame gives roll and pitch; the
         // sensor sits (configured height − the ground's height at its foot) above it.
-        let up_sensor = mount.rotation.inverse() * self.normal;
-        let (roll, pitch) = (
-            up_sensor.y.atan2(up_sensor.z),
-            (-up_sensor.x).clamp(-1.0, 1.0).asin(),
-        );
+        let (roll, pitch) = roll_pitch_of(&(mount.rotation.inverse() * self.normal));
         let height = (mount.translation.z - self.offset) * self.normal.z;
         Some(ObservedMount {
             height,

@@ -10,8 +10,8 @@ use tracing::{debug, info, warn};
 
 use crate::mount_watch::{MountWatch, ObservedMount};
 
-use crate::config::mount_transform;
 use crate::config::{PastQuery, SegmenterConfig};
+use crate::config::{mount_transform, roll_pitch_of, vertical_in_sensor};
 use crate::error::{ConfigError, SegmentError};
 use crate::grouping::SegmentedPoints;
 use crate::grouping::{GroundPoints, SegmentCounts, group_points};
@@ -395,15 +395,16 @@ impl Segmenter {
             self.mount_watch
                 .observe(&model, &self.cfg.mount_check, &self.mount, threshold)
         {
-            let m = &self.cfg.sensor.mount;
+            // From the pose, not the config's angles: a mount given as a matrix has none.
+            let (roll, pitch) = roll_pitch_of(&vertical_in_sensor(&self.mount));
             warn!(
                 scans = seen.scans,
                 observed_height_m = %format!("{:.3}", seen.height),
                 configured_height_m = %format!("{:.3}", self.mount.translation.z),
                 observed_roll_deg = %format!("{:.2}", seen.roll.to_degrees()),
                 observed_pitch_deg = %format!("{:.2}", seen.pitch.to_degrees()),
-                configured_roll_deg = %format!("{:.2}", m.roll.to_degrees()),
-                configured_pitch_deg = %format!("{:.2}", m.pitch.to_degrees()),
+                configured_roll_deg = %format!("{:.2}", roll.to_degrees()),
+                configured_pitch_deg = %format!("{:.2}", pitch.to_degrees()),
                 tilt_deg = %format!("{:.2}", seen.tilt_from_configured.to_degrees()),
                 "the ground the segmenter fits disagrees with sensor.mount (beyond \
                  mount_check's tolerances): check the mount, or find it with `groundwork \

@@ -750,7 +750,7 @@ fn calibrate<'py>(
     seed: u64,
     overrides: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
-    use groundwork_calibrate::{MountSearchConfig, combine, frame_mount};
+    use groundwork_calibrate::{MountSearchConfig, estimate_mount};
     let cfg = load_config(sensor, config, None, overrides)?;
     let prior =
         groundwork_core::mount_transform(&cfg.segmenter.sensor.mount).map_err(value_error)?;
@@ -759,16 +759,18 @@ fn calibrate<'py>(
         ..MountSearchConfig::default()
     };
     settings.validate().map_err(value_error)?;
-    let mut views = Vec::with_capacity(scans.len());
-    for (k, s) in scans.iter().enumerate() {
-        let arr = points_array(s)?;
-        let xyz: Vec<[f32; 3]> = match Points::of(&arr)? {
-            Points::Xyz(p) => p.to_vec(),
-            Points::Xyzi(p) => p.iter().map(|&[x, y, z, _]| [x, y, z]).collect(),
-        };
-        views.push(py.detach(|| frame_mount(&xyz, &prior, &settings, k as u64)));
-    }
-    let est = combine(&views, &prior, &settings).map_err(value_error)?;
+    let xyz: Vec<Vec<[f32; 3]>> = scans
+        .iter()
+        .map(|s| {
+            let arr = points_array(s)?;
+            Ok(match Points::of(&arr)? {
+                Points::Xyz(p) => p.to_vec(),
+                Points::Xyzi(p) => p.iter().map(|&[x, y, z, _]| [x, y, z]).collect(),
+            })
+        })
+        .collect::<PyResult<_>>()?;
+    let (views, est) = py.detach(|| estimate_mount(&xyz, &prior, &settings));
+    let est = est.map_err(value_error)?;
     let deg =
         |e: &groundwork_calibrate::mount::Estimate, scale: f64| -> PyResult<Bound<'py, PyDict>> {
             [
