@@ -14,6 +14,14 @@ fn single_frame(c: &mut Criterion) {
     let mut g = c.benchmark_group("kitti_frame0_124668pts");
     g.sample_size(50);
     g.bench_function("fit", |b| b.iter(|| seg.fit(&points).expect("fit")));
+    // The paper's segment-wide elevation reference, for the cost of the terrain-following
+    // one (`ground.elevation_window`) in the same run.
+    let mut wide = preset().expect("preset");
+    wide.ground.elevation_window = 0.0;
+    let mut seg_wide = Segmenter::new(wide).expect("valid preset");
+    g.bench_function("fit_segment_wide_reference", |b| {
+        b.iter(|| seg_wide.fit(&points).expect("fit"))
+    });
     let model = seg.fit(&points).expect("fit");
     g.bench_function("query", |b| {
         b.iter(|| seg.query_model(&model, &points, &mut out).expect("query"))

@@ -144,7 +144,7 @@ fn turned(points: &[Point], yaw: f32) -> Vec<Point> {
 #[test]
 fn one_ulp_on_every_coordinate_does_not_move_the_ground_of_synthetic_scenes() {
     let cfg = hdl64e_single_frame();
-    for scene in [SceneKind::Urban, SceneKind::Offroad, SceneKind::Parking] {
+    for scene in SceneKind::ALL {
         let generator = synthetic("hdl64e", scene, 1, None);
         for yaw in [0.0003, 0.001, 0.003, 0.01] {
             let points = turned(&generator.scan(0).points, yaw);

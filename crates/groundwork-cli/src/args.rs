@@ -252,7 +252,7 @@ pub struct SynthArgs {
     /// taken with (a tilted or low sensor).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Scene: urban, offroad or parking.
+    /// Scene: urban, offroad, parking or hill.
     #[arg(long, default_value = "urban")]
     pub scene: String,
     /// Frames to generate.

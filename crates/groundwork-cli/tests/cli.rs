@@ -491,7 +491,7 @@ fn synth_writes_a_labeled_sequence_that_segment_and_eval_read() {
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("urban, offroad, parking"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("urban, offroad, parking, hill"));
 }
 
 fn summary(path: &Path) -> serde_json::Value {

@@ -299,6 +299,13 @@ pub struct GroundConfig {
     pub orientation: Sigmoid,
     /// Elevation: on the component mean's height above the segment's lowest inlier (m).
     pub elevation: Sigmoid,
+    /// Terrain-following elevation reference (metres): a component's height is measured
+    /// above the lowest inlier whose horizontal range lies within this distance of the
+    /// component mean's range, not above the whole segment's lowest inlier. On a slope a
+    /// long segment's lowest point is at its far (downhill) or near (uphill) end, and the
+    /// rest of the slope then looks raised; a band follows the terrain. 0: the paper's
+    /// segment-wide reference.
+    pub elevation_window: f64,
     /// Points more than this far below the lowest retained component mean are outliers
     /// and do not define the segment's lowest point (τ_o, metres).
     pub outlier_threshold: f64,
@@ -321,6 +328,7 @@ impl Default for GroundConfig {
                 alpha: 4.0,
                 beta: 0.8,
             },
+            elevation_window: 2.0,
             outlier_threshold: 0.5,
             ground_threshold: 0.5,
         }
@@ -734,6 +742,13 @@ impl SegmenterConfig {
         )?;
         positive("ground.elevation.alpha", gr.elevation.alpha, 1e3, " per m")?;
         positive("ground.elevation.beta", gr.elevation.beta, 10.0, " m")?;
+        within(
+            "ground.elevation_window",
+            gr.elevation_window,
+            0.0,
+            100.0,
+            " m",
+        )?;
         within(
             "ground.outlier_threshold",
             gr.outlier_threshold,

@@ -113,6 +113,106 @@ fn lowest_inlier(zs: &[f64], cut: f64) -> (f64, u32) {
     )
 }
 
+/// Horizontal range (no `hypot`: its overflow care costs several times a square root and
+/// coordinates here are bounded by `sensor.max_coordinate`).
+#[inline]
+fn range(x: f64, y: f64) -> f64 {
+    (x * x + y * y).sqrt()
+}
+
+/// The lowest inlier of a segment per band of horizontal range: the terrain-following
+/// elevation reference (`ground.elevation_window`).
+struct RangeProfile {
+    /// Range of band 0's inner edge, metres.
+    r0: f64,
+    /// Lowest inlier height per band (∞ where a band has none).
+    lows: Vec<f64>,
+    /// The lower envelope of the lows as a line in range (see `envelope`).
+    line: Option<(f64, f64)>,
+}
+
+impl RangeProfile {
+    /// Band width, metres: fine enough that a band's edge moves a window by little.
+    const BAND: f64 = 0.25;
+
+    fn new(xs: &[f64], ys: &[f64], zs: &[f64], cut: f64) -> Self {
+        let ranges = || xs.iter().zip(ys).map(|(&x, &y)| range(x, y));
+        let (lo, hi) = ranges().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r| {
+            (a.min(r), b.max(r))
+        });
+        if !(lo.is_finite() && hi.is_finite()) {
+            return Self {
+                r0: 0.0,
+                lows: Vec::new(),
+                line: None,
+            };
+        }
+        // Segments are bounded (at most the zone model's outer ring); the cap only guards
+        // against an absurd configuration.
+        let bands = (((hi - lo) / Self::BAND) as usize + 1).min(1 << 16);
+        let mut lows = vec![f64::INFINITY; bands];
+        for (r, &z) in ranges().zip(zs) {
+            if z >= cut {
+                let b = (((r - lo) / Self::BAND) as usize).min(bands - 1);
+                lows[b] = lows[b].min(z);
+            }
+        }
+        let line = Self::envelope(&lows);
+        Self { r0: lo, lows, line }
+    }
+
+    /// A line z = a + b·(r − r0) under the bands' lows: a least-squares fit, refitted three
+    /// times to the bands at most `ENVELOPE_SLACK` above it, so that an object hiding the
+    /// ground over a few bands (a car, a wall) does not raise it. `None` with fewer than
+    /// three bands or a slope steeper than any ground.
+    fn envelope(lows: &[f64]) -> Option<(f64, f64)> {
+        const ENVELOPE_SLACK: f64 = 0.1;
+        const MAX_GRADE: f64 = 0.5;
+        let bands = || {
+            lows.iter()
+                .enumerate()
+                .filter(|(_, z)| z.is_finite())
+                .map(|(b, &z)| ((b as f64 + 0.5) * Self::BAND, z))
+        };
+        let mut line: Option<(f64, f64)> = None;
+        for _ in 0..4 {
+            let (mut n, mut sr, mut sz, mut srr, mut srz) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for (r, z) in bands() {
+                if line.is_some_and(|(a, b)| z - (a + b * r) > ENVELOPE_SLACK) {
+                    continue;
+                }
+                (n, sr, sz, srr, srz) = (n + 1.0, sr + r, sz + z, srr + r * r, srz + r * z);
+            }
+            let det = n * srr - sr * sr;
+            if n < 3.0 || det <= 1e-9 {
+                return None;
+            }
+            let b = (n * srz - sr * sz) / det;
+            line = Some(((sz - b * sr) / n, b));
+        }
+        line.filter(|(a, b)| a.is_finite() && b.abs() <= MAX_GRADE)
+    }
+
+    /// The terrain-following reference at range `r`: the lowest inlier within `window`
+    /// metres, unless the envelope line lies lower there (∞ if there is neither).
+    fn reference(&self, r: f64, window: f64) -> f64 {
+        if self.lows.is_empty() {
+            return f64::INFINITY;
+        }
+        let last = self.lows.len() as isize - 1;
+        let band = |r: f64| (((r - self.r0) / Self::BAND).floor() as isize).clamp(0, last) as usize;
+        let (a, b) = (band(r - window), band(r + window));
+        let near = self.lows[a..=b]
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        match self.line {
+            Some((a, b)) => near.min(a + b * (r - self.r0)),
+            None => near,
+        }
+    }
+}
+
 /// Fits the components of one segment and computes their ground likelihoods, with the
 /// outlier rule of §III-D. `lower_bound` comes from the zone-1 height filter.
 fn fit_ground_segment(
@@ -162,16 +262,28 @@ fn fit_ground_segment(
         min_inlier = lowest;
     }
     let g = &cfg.ground;
+    let w = g.elevation_window;
+    let profile = (w > 0.0).then(|| RangeProfile::new(xs, ys, zs, cut));
     let comps = fit
         .components
         .iter()
         .map(|gauss| {
             let f = flatness(&gauss.covariance);
+            let reference = match &profile {
+                Some(p) => p.reference(range(gauss.mean[0], gauss.mean[1]), w),
+                None => min_inlier,
+            };
+            // Never below the segment's lowest inlier (a band is a subset).
+            let reference = if reference.is_finite() {
+                reference.max(min_inlier)
+            } else {
+                min_inlier
+            };
             GroundComponent {
                 gaussian: *gauss,
                 flatness: inverted_sigmoid(f.lambda_min, g.flatness),
                 orientation: inverted_sigmoid(f.tilt, g.orientation),
-                elevation: inverted_sigmoid(gauss.mean[2] - min_inlier, g.elevation),
+                elevation: inverted_sigmoid(gauss.mean[2] - reference, g.elevation),
                 eval: Evaluator::new(gauss).unwrap_or_else(|| Evaluator::unit(gauss)),
             }
         })
@@ -242,6 +354,77 @@ mod tests {
             zs.push(-1.5);
         }
         (xs, ys, zs)
+    }
+
+    /// Points on z = f(x) for x in `xs_range` (0.1 m apart), y in [0, 2) (0.2 m apart),
+    /// with ±1 cm of deterministic roughness.
+    fn surface(
+        out: &mut (Vec<f64>, Vec<f64>, Vec<f64>),
+        (x0, x1): (f64, f64),
+        f: impl Fn(f64) -> f64,
+    ) {
+        let n = ((x1 - x0) / 0.1).round() as usize;
+        for i in 0..n {
+            for j in 0..10 {
+                let x = x0 + i as f64 * 0.1;
+                out.0.push(x);
+                out.1.push(j as f64 * 0.2);
+                out.2
+                    .push(f(x) + ((i * 7 + j * 3) % 5) as f64 * 0.005 - 0.01);
+            }
+        }
+    }
+
+    fn with_window(w: f64) -> SegmenterConfig {
+        let mut cfg = SegmenterConfig::default();
+        cfg.ground.elevation_window = w;
+        cfg
+    }
+
+    #[test]
+    fn the_elevation_reference_follows_a_slope() {
+        // A segment 20 m long on a 10 % downhill grade: 2 m of fall from its near end.
+        let mut pts = (vec![], vec![], vec![]);
+        surface(&mut pts, (10.0, 30.0), |x| -0.1 * (x - 10.0));
+        let (xs, ys, zs) = &pts;
+        let (follows, _) = fit_ground_segment(xs, ys, zs, &with_window(2.0), None);
+        let (wide, _) = fit_ground_segment(xs, ys, zs, &with_window(0.0), None);
+        assert!(follows.len() > 1 && wide.len() > 1);
+        // Every component of the slope is ground against its own stretch of it...
+        for g in &follows {
+            assert!(g.elevation > 0.9, "{:?} {}", g.gaussian.mean, g.elevation);
+        }
+        // ...while the segment-wide reference, its far end 2 m lower, rejects the near half.
+        let near = wide.iter().filter(|g| g.gaussian.mean[0] < 18.0);
+        assert!(near.clone().count() > 0);
+        for g in near {
+            assert!(g.elevation < 0.5, "{:?} {}", g.gaussian.mean, g.elevation);
+        }
+    }
+
+    #[test]
+    fn an_object_hiding_the_ground_keeps_the_ground_as_its_reference() {
+        // Flat ground at 10–17 m and 27–30 m; between them a box whose face (x = 19 m)
+        // starts 0.3 m up and whose roof is 1.5 m up: no ground within 2 m of the roof.
+        let mut pts = (vec![], vec![], vec![]);
+        surface(&mut pts, (10.0, 17.0), |_| 0.0);
+        surface(&mut pts, (27.0, 30.0), |_| 0.0);
+        surface(&mut pts, (19.0, 25.0), |_| 1.5);
+        for k in 0..12 {
+            for j in 0..10 {
+                pts.0.push(19.0);
+                pts.1.push(j as f64 * 0.2);
+                pts.2.push(0.3 + k as f64 * 0.1);
+            }
+        }
+        let (xs, ys, zs) = &pts;
+        let (c, _) = fit_ground_segment(xs, ys, zs, &with_window(2.0), None);
+        let roof: Vec<_> = c.iter().filter(|g| g.gaussian.mean[2] > 1.2).collect();
+        assert!(!roof.is_empty());
+        // The envelope line through the ground's bands (z = 0), not the box's own 0.3 m.
+        for g in roof {
+            assert!(g.elevation < 0.1, "{:?} {}", g.gaussian.mean, g.elevation);
+        }
     }
 
     #[test]

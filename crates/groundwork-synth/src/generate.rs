@@ -425,7 +425,9 @@ mod tests {
                     );
                     assert!(scan.labels[i] >> 16 > 0, "things carry an instance id");
                     things += 1;
-                } else if class == OUTLIER {
+                } else if class == OUTLIER && scene != SceneKind::Hill {
+                    // (On the hill an echo may land over the embankment, which falls away
+                    // faster than the mirrored beam sinks.)
                     assert!(above < -0.1, "{scene:?}: multipath echo {above} m");
                 }
             }
@@ -501,7 +503,7 @@ mod tests {
         #[test]
         fn every_point_is_finite_in_range_and_labelled(
             seed in 0u64..1000,
-            scene in 0usize..3,
+            scene in 0usize..SceneKind::ALL.len(),
             height in 0.4f64..2.5,
             roll in -0.2f64..0.2,
             pitch in -0.2f64..0.2,

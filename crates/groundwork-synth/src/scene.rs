@@ -26,11 +26,20 @@ pub enum SceneKind {
     /// A parking lot with rows of cars, light poles and people, a ramp up to a raised deck,
     /// a curb and a building.
     Parking,
+    /// A country road over hills: grades up to about 11 %, crests and dips a sensor looks
+    /// over or into, a cut slope rising on the left and an embankment falling on the right,
+    /// a guard rail, traffic, trees and bushes on the slopes.
+    Hill,
 }
 
 impl SceneKind {
     /// Every scene, in the order `groundwork synth` lists them.
-    pub const ALL: [SceneKind; 3] = [SceneKind::Urban, SceneKind::Offroad, SceneKind::Parking];
+    pub const ALL: [SceneKind; 4] = [
+        SceneKind::Urban,
+        SceneKind::Offroad,
+        SceneKind::Parking,
+        SceneKind::Hill,
+    ];
 
     /// The scene's name on the command line.
     pub fn name(self) -> &'static str {
@@ -38,6 +47,7 @@ impl SceneKind {
             SceneKind::Urban => "urban",
             SceneKind::Offroad => "offroad",
             SceneKind::Parking => "parking",
+            SceneKind::Hill => "hill",
         }
     }
 
@@ -54,6 +64,7 @@ impl SceneKind {
             SceneKind::Urban => 80.0,
             SceneKind::Offroad => 60.0,
             SceneKind::Parking => 25.0,
+            SceneKind::Hill => 400.0,
         }
     }
 
@@ -63,6 +74,7 @@ impl SceneKind {
             SceneKind::Urban => (-1.75, 8.0),
             SceneKind::Offroad => (0.0, 5.0),
             SceneKind::Parking => (0.0, 4.0),
+            SceneKind::Hill => (-1.75, 12.0),
         }
     }
 }
@@ -111,6 +123,16 @@ fn offroad_height(x: f64, y: f64) -> f64 {
         // Ruts and clods: 3 cm at about 2 m.
         + 0.03 * (3.1 * x).sin() * (2.7 * y).sin()
 }
+
+/// Hill road: height of the road's centre line at arc length `s`, metres. Grades up to
+/// 0.08 + 0.033 = 11 %; the vehicle starts on a climb toward a crest about 40 m ahead.
+fn hill_profile(s: f64) -> f64 {
+    3.2 * (s / 40.0 + 0.6).sin() + 0.5 * (s / 15.0 + 1.0).sin()
+}
+
+/// Hill road: half width of the asphalt, and where the slopes beside it begin, metres.
+const HILL_ROAD_HALF: f64 = 4.5;
+const HILL_SHOULDER: f64 = 7.0;
 
 /// Parking lot height, and how much of it is the ramp and the sidewalk (their classes).
 fn parking_parts(x: f64, y: f64) -> (f64, f64, f64) {
@@ -165,6 +187,7 @@ impl Scene {
             SceneKind::Urban => layout.urban(s_from - reach, s_to + reach),
             SceneKind::Offroad => layout.offroad(s_from, s_to, reach),
             SceneKind::Parking => layout.parking(),
+            SceneKind::Hill => layout.hill(s_from - reach, s_to + reach),
         }
         scene.objects = layout.objects;
         scene
@@ -201,6 +224,7 @@ impl Scene {
             SceneKind::Urban => 0.12,
             SceneKind::Offroad => 0.42,
             SceneKind::Parking => 0.25,
+            SceneKind::Hill => 0.4,
         }
     }
 
@@ -210,6 +234,7 @@ impl Scene {
             SceneKind::Urban => 1.0 + CURB + 0.5,
             SceneKind::Offroad => 1.4 + 0.9 + 0.35 + 0.03,
             SceneKind::Parking => 0.01 * 100.0 + DECK + CURB,
+            SceneKind::Hill => 3.2 + 0.5 + 3.0,
         }
     }
 
@@ -219,6 +244,7 @@ impl Scene {
             SceneKind::Urban => self.urban_surface(x, y),
             SceneKind::Offroad => self.offroad_surface(x, y),
             SceneKind::Parking => self.parking_surface(x, y),
+            SceneKind::Hill => self.hill_surface(x, y),
         }
     }
 
@@ -230,6 +256,7 @@ impl Scene {
             SceneKind::Urban => self.urban_surface(x, y).height,
             SceneKind::Offroad => offroad_height(x, y),
             SceneKind::Parking => parking_parts(x, y).0,
+            SceneKind::Hill => self.hill_surface(x, y).height,
         }
     }
 
@@ -274,6 +301,34 @@ impl Scene {
         let class = if d.abs() < 1.8 { OTHER_GROUND } else { TERRAIN };
         Surface {
             height: offroad_height(x, y),
+            class,
+        }
+    }
+
+    fn hill_surface(&self, x: f64, y: f64) -> Surface {
+        let (s, d) = self.path_coordinates(DVec2::new(x, y));
+        // As in town, the profile's amplitude shrinks toward the circle's centre so that
+        // grades do not steepen where lines of equal arc length crowd together.
+        let rho = self.radius - d;
+        let road = (rho / self.radius).min(1.0) * hill_profile(s);
+        // Crowned 2 %; the shoulder carries on at the asphalt's edge height.
+        let crown = -0.02 * d.abs().min(HILL_ROAD_HALF);
+        // Left: a cut slope rising at 20 % up to 3 m; right: an embankment falling at 18 %
+        // down to 2.5 m, each easing in over a metre.
+        let beyond = (d.abs() - HILL_SHOULDER).max(0.0);
+        let ease = smoothstep(beyond);
+        let side = if d > 0.0 {
+            (0.2 * beyond * ease).min(3.0)
+        } else {
+            -(0.18 * beyond * ease).min(2.5)
+        };
+        let class = if d.abs() < HILL_ROAD_HALF {
+            ROAD
+        } else {
+            TERRAIN
+        };
+        Surface {
+            height: road + crown + side,
             class,
         }
     }
@@ -608,6 +663,67 @@ impl Layout<'_> {
                 )
                 .0;
             self.person(p);
+        }
+    }
+
+    fn hill(&mut self, s_from: f64, s_to: f64) {
+        let scene = self.scene;
+        // Traffic: parked on the shoulder, and in both lanes.
+        let mut s = s_from;
+        while s < s_to {
+            s += self.rng.random_range(20.0..45.0);
+            let roll: f64 = self.rng.random_range(0.0..1.0);
+            let (d, turn) = if roll < 0.3 {
+                (-5.6, 0.0)
+            } else if roll < 0.65 {
+                (1.9, PI)
+            } else {
+                (-1.9, 0.0)
+            };
+            // Nothing in the ego lane within 15 m of the start.
+            if d < 0.0 && d > -3.0 && s.abs() < 15.0 {
+                continue;
+            }
+            let (p, heading) = scene.place(s, d);
+            let yaw = heading + turn + self.rng.random_range(-0.04..0.04);
+            self.car(p, yaw);
+        }
+        // A guard rail along the embankment, posts every 4 m.
+        let mut s = s_from;
+        while s < s_to {
+            let len = self.rng.random_range(30.0..60.0);
+            self.block((s, s + len), -1.0, HILL_SHOULDER - 0.4, (0.15, 0.75), FENCE);
+            s += len + self.rng.random_range(10.0..40.0);
+        }
+        // Poles now and then on the right, trees and bushes on both slopes.
+        let mut s = s_from;
+        while s < s_to {
+            s += self.rng.random_range(30.0..50.0);
+            let sign = self.rng.random_bool(0.3);
+            self.pole(scene.place(s, -(HILL_SHOULDER - 1.0)).0, sign);
+        }
+        for side in [-1.0, 1.0] {
+            let mut s = s_from;
+            while s < s_to {
+                s += self.rng.random_range(4.0..10.0);
+                let d = side
+                    * self
+                        .rng
+                        .random_range(HILL_SHOULDER + 2.0..HILL_SHOULDER + 35.0);
+                let p = scene.place(s, d).0;
+                if self.rng.random_bool(0.4) {
+                    self.tree(p);
+                } else {
+                    self.mound(p, VEGETATION);
+                }
+            }
+        }
+        // Walkers on the shoulder.
+        let mut s = s_from;
+        while s < s_to {
+            s += self.rng.random_range(25.0..70.0);
+            let d = self.rng.random_range(4.8..6.2);
+            self.person(scene.place(s, d).0);
         }
     }
 
