@@ -149,10 +149,12 @@ fn read_all(sequences: &[Sequence], max_points: usize, jobs: &SyncSender<Job>, p
     let known = sequences.iter().all(|s| s.len_hint().is_some());
     let mut k = 0;
     for (input, seq) in sequences.iter().enumerate() {
-        for item in seq.scans(max_points) {
+        for mut item in seq.scans(max_points) {
             if !known {
                 pb.inc_length(1);
             }
+            // A KITTI folder's times.txt times its scans as a recording's log does.
+            item.log_time_ns = item.log_time_ns.or_else(|| seq.time(item.index));
             let pose = seq.pose(item.index).copied();
             if jobs
                 .send(Job {
@@ -179,7 +181,8 @@ fn write_one(output: &mut OutputTarget, s: &Segmented, threshold: f32) -> Result
         }
         OutputTarget::Recording(w) => {
             let topic = s.item.topic.as_deref().unwrap_or("/points");
-            // Files have no time: 10 Hz from 0, in processing order.
+            // Scans without a time (no recording, no times.txt): 10 Hz from 0, in
+            // processing order (the documentation says so).
             let t = s.item.log_time_ns.unwrap_or(s.k as u64 * 100_000_000);
             w.write(topic, scan, &s.probs, t)?
         }

@@ -38,10 +38,9 @@ fn synth(
         format!("unknown scene {scene:?} (known: {})", known.join(", "))
     })?;
     let cfg = load_config_over(Some(sensor), config)?;
-    let generator = Generator::new(
-        SynthConfig::new(sensor, cfg.sensor.mount, kind, seed)?,
-        frames,
-    )?;
+    let synth = SynthConfig::new(sensor, cfg.sensor.mount, kind, seed)?;
+    let period_ns = (synth.pattern.period * 1e9).round() as u64;
+    let generator = Generator::new(synth, frames)?;
     let (velodyne, labels) = (out.join("velodyne"), out.join("labels"));
     for dir in [&velodyne, &labels] {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -64,6 +63,9 @@ fn synth(
     // The poses are the LiDAR's own: Tr is the identity.
     let identity = std::array::from_fn(|r| std::array::from_fn(|c| f64::from(u8::from(r == c))));
     groundwork_io::write_calib_tr(&out.join("calib.txt"), &identity)?;
+    // Scan times from 0 at the pattern's rate, as KITTI's times.txt.
+    let times: Vec<u64> = (0..frames as u64).map(|i| i * period_ns).collect();
+    groundwork_io::write_times(&out.join("times.txt"), &times)?;
     info!(frames, points, "synthetic sequence written");
     Ok(())
 }

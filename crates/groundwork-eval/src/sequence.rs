@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use groundwork_core::{FrameReport, GroundMethod, Pose};
 use groundwork_io::{
-    FormatError, LabelMap, ScanItem, ScanSource, lidar_poses, read_calib_tr, read_poses,
+    FormatError, LabelMap, ScanItem, ScanSource, lidar_poses, read_calib_tr, read_poses, read_times,
 };
 use serde::Serialize;
 use thiserror::Error;
@@ -56,6 +56,8 @@ pub struct Sequence {
     pub label_map: LabelMap,
     /// LiDAR world pose of each scan (inv(Tr)·P·Tr), where poses and calibration exist.
     pub poses: Option<Vec<Pose>>,
+    /// Each scan's time (ns) from a KITTI `<dir>/times.txt`, where one exists.
+    pub times: Option<Vec<u64>>,
     /// Read at most this many scans.
     pub limit: Option<usize>,
 }
@@ -129,11 +131,25 @@ impl Sequence {
             }
             _ => None,
         };
+        let times = match default("times.txt").filter(|t| t.is_file()) {
+            Some(t) => {
+                let read = read_times(&t)?;
+                if let Some(n) = source.len_hint().filter(|&n| read.len() < n) {
+                    return Err(SequenceError::Layout {
+                        path: t,
+                        message: format!("{} times for {n} scans", read.len()),
+                    });
+                }
+                Some(read)
+            }
+            None => None,
+        };
         Ok(Self {
             source,
             label_dir,
             label_map: LabelMap::semantickitti(),
             poses,
+            times,
             limit: None,
         })
     }
@@ -169,6 +185,11 @@ impl Sequence {
     pub fn len_hint(&self) -> Option<usize> {
         let n = self.source.len_hint()?;
         Some(self.limit.map_or(n, |l| l.min(n)))
+    }
+
+    /// The time (ns) of the index-th scan, if the sequence has a `times.txt`.
+    pub fn time(&self, index: usize) -> Option<u64> {
+        self.times.as_ref()?.get(index).copied()
     }
 
     /// The pose of the index-th scan, if poses are known.

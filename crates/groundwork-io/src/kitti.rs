@@ -94,6 +94,73 @@ pub fn read_poses(path: &Path) -> Result<Vec<Pose>, FormatError> {
     Ok(poses)
 }
 
+/// Reads a KITTI odometry `times.txt`: one time per scan in seconds (`1.036224e-01`),
+/// returned in ns. Times must be finite, ≥ 0 and never decrease.
+pub fn read_times(path: &Path) -> Result<Vec<u64>, FormatError> {
+    let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
+    let mut times: Vec<u64> = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let vals = parse_numbers(path, i + 1, line)?;
+        let [t] = vals[..] else {
+            return Err(FormatError::parse(
+                path,
+                i + 1,
+                format!("{} numbers, a time is one", vals.len()),
+            ));
+        };
+        // 2^64 ns is 584 years: anything near it is not a scan time.
+        if !(0.0..1.0e10).contains(&t) {
+            return Err(FormatError::parse(
+                path,
+                i + 1,
+                format!("{t} s is not a time since the sequence (or 1970) began"),
+            ));
+        }
+        // Plain decimals are read digit by digit: an f64 holds a 1970-based time to only
+        // ~0.2 µs, and a stamp written back must be the stamp read.
+        let ns = exact_ns(line.trim()).unwrap_or_else(|| (t * 1e9).round() as u64);
+        if times.last().is_some_and(|&last| ns < last) {
+            return Err(FormatError::parse(path, i + 1, "time runs back"));
+        }
+        times.push(ns);
+    }
+    if times.is_empty() {
+        return Err(FormatError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(times)
+}
+
+/// `seconds[.fraction]` (at most 9 decimals) in ns exactly; None for other notations.
+fn exact_ns(text: &str) -> Option<u64> {
+    let (int, frac) = text.split_once('.').unwrap_or((text, ""));
+    if int.is_empty()
+        || frac.len() > 9
+        || !(int.bytes().chain(frac.bytes())).all(|b| b.is_ascii_digit())
+    {
+        return None;
+    }
+    let frac_ns: u64 = format!("{frac:0<9}").parse().ok()?;
+    int.parse::<u64>()
+        .ok()?
+        .checked_mul(1_000_000_000)?
+        .checked_add(frac_ns)
+}
+
+/// Writes a `times.txt` in seconds with nine decimals (KITTI's own files use `1.036224e-01`;
+/// both read back, these exactly).
+pub fn write_times(path: &Path, times_ns: &[u64]) -> Result<(), FormatError> {
+    let text: String = times_ns
+        .iter()
+        .map(|&t| format!("{}.{:09}\n", t / 1_000_000_000, t % 1_000_000_000))
+        .collect();
+    fs::write(path, text).map_err(|e| FormatError::io(path, e))
+}
+
 /// Reads `Tr` (velodyne → camera) from a KITTI odometry `calib.txt`.
 pub fn read_calib_tr(path: &Path) -> Result<Pose, FormatError> {
     let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
@@ -149,6 +216,31 @@ pub fn write_calib_tr(path: &Path, tr: &[[f64; 4]; 4]) -> Result<(), FormatError
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn kitti_times_read_in_ns_and_bad_ones_name_their_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("times.txt");
+        // KITTI odometry's own notation.
+        fs::write(&p, "0.000000e+00\n1.036224e-01\n\n2.072538e-01\n").unwrap();
+        assert_eq!(read_times(&p).unwrap(), [0, 103_622_400, 207_253_800]);
+        write_times(&p, &[0, 103_622_400, 1_700_000_000_123_456_768]).unwrap();
+        assert_eq!(
+            read_times(&p).unwrap(),
+            [0, 103_622_400, 1_700_000_000_123_456_768]
+        );
+        for (text, what) in [
+            ("0.1\n0.05\n", ":2: time runs back"),
+            ("0.1 0.2\n", ":1: 2 numbers"),
+            ("nan\n", ":1: not a finite number"),
+            ("-1\n", ":1: -1 s is not a time"),
+            ("", "empty"),
+        ] {
+            fs::write(&p, text).unwrap();
+            let e = read_times(&p).unwrap_err().to_string();
+            assert!(e.contains("times.txt") && e.contains(what), "{text:?}: {e}");
+        }
+    }
 
     #[test]
     fn written_poses_calibration_and_labels_read_back() {

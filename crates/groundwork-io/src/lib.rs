@@ -47,7 +47,8 @@ pub use input::{
     InputKind, ScanFormat, ScanItem, ScanIter, ScanSource, list_scans, read_scan, scan_stem,
 };
 pub use kitti::{
-    lidar_poses, read_calib_tr, read_labels, read_poses, write_calib_tr, write_labels, write_poses,
+    lidar_poses, read_calib_tr, read_labels, read_poses, read_times, write_calib_tr, write_labels,
+    write_poses, write_times,
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{

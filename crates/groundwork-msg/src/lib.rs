@@ -34,7 +34,7 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Bumped on every incompatible change of a header or payload layout.
-pub const SCHEMA_VERSION: u32 = 2;
+pub const SCHEMA_VERSION: u32 = 3;
 
 /// One LiDAR return, 16 bytes, the KITTI `.bin` layout.
 #[repr(C)]
@@ -84,6 +84,42 @@ pub struct StageStamps {
     pub segmenter_published_ns: u64,
 }
 
+/// A coordinate frame name (ROS `header.frame_id`), NUL-padded UTF-8 of at most 63 bytes.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+pub struct FrameId {
+    bytes: [u8; 64],
+}
+
+impl Default for FrameId {
+    fn default() -> Self {
+        Self { bytes: [0; 64] }
+    }
+}
+
+impl FrameId {
+    /// `name`, cut at a character boundary to 63 bytes (frame names are short: `velodyne`,
+    /// `os_sensor`, `livox_frame`); names with a NUL end there.
+    pub fn new(name: &str) -> Self {
+        let name = name.split('\0').next().unwrap_or("");
+        let mut end = name.len().min(63);
+        while !name.is_char_boundary(end) {
+            end -= 1;
+        }
+        let mut bytes = [0; 64];
+        bytes[..end].copy_from_slice(&name.as_bytes()[..end]);
+        Self { bytes }
+    }
+
+    /// The name; `None` if empty (unknown) or not UTF-8 (a corrupted header).
+    pub fn get(&self) -> Option<&str> {
+        let len = self.bytes.iter().position(|&b| b == 0).unwrap_or(64);
+        std::str::from_utf8(&self.bytes[..len])
+            .ok()
+            .filter(|s| !s.is_empty())
+    }
+}
+
 /// Header of a scan message.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
@@ -108,6 +144,8 @@ pub struct ScanHeader {
     pub reserved: u32,
     /// World from sensor, 4×4 row-major.
     pub pose: [f64; 16],
+    /// The scan's coordinate frame, where its source names one.
+    pub frame_id: FrameId,
 }
 
 impl Default for ScanHeader {
@@ -123,6 +161,7 @@ impl Default for ScanHeader {
             has_pose: 0,
             reserved: 0,
             pose: IDENTITY,
+            frame_id: FrameId::default(),
         }
     }
 }
@@ -203,6 +242,8 @@ pub struct MaskHeader {
     /// lost on the way, while a gap in `scan_sequence` may be a scan the segmenter never
     /// received.
     pub mask_sequence: u64,
+    /// The scan's coordinate frame.
+    pub frame_id: FrameId,
 }
 
 impl Default for MaskHeader {
@@ -223,6 +264,7 @@ impl Default for MaskHeader {
             out_of_bounds_points: 0,
             segmenter_epoch: 0,
             mask_sequence: 0,
+            frame_id: FrameId::default(),
         }
     }
 }
@@ -331,12 +373,17 @@ pub fn monotonic_ns() -> u64 {
     t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
 }
 
-/// A run identifier: wall-clock ns at start, distinct across restarts.
-pub fn new_epoch() -> u64 {
+/// The wall clock in ns since 1970 (the monotonic clock if the wall clock is before it).
+pub fn wall_clock_ns() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos() as u64)
         .unwrap_or_else(|_| monotonic_ns())
+}
+
+/// A run identifier: wall-clock ns at start, distinct across restarts.
+pub fn new_epoch() -> u64 {
+    wall_clock_ns()
 }
 
 #[cfg(test)]
@@ -344,15 +391,30 @@ mod tests {
     use super::*;
 
     #[test]
+    fn frame_ids_keep_short_names_and_cut_long_ones_at_a_character() {
+        assert_eq!(FrameId::new("velodyne").get(), Some("velodyne"));
+        assert_eq!(FrameId::new("").get(), None);
+        assert_eq!(FrameId::default().get(), None);
+        assert_eq!(FrameId::new("a\0b").get(), Some("a"));
+        let long = "é".repeat(40); // 80 bytes
+        let cut = FrameId::new(&long);
+        assert_eq!(cut.get(), Some("é".repeat(31).as_str())); // 62 bytes
+        // A corrupted header (bytes that are not UTF-8) is no name, not a panic.
+        let mut bad = FrameId::new("ok");
+        bad.bytes[0] = 0xff;
+        assert_eq!(bad.get(), None);
+    }
+
+    #[test]
     fn layouts_are_stable() {
         assert_eq!(std::mem::size_of::<ScanPoint>(), 16);
         assert_eq!(std::mem::size_of::<StageStamps>(), 32);
         assert_eq!(std::mem::align_of::<ScanHeader>(), 8);
-        // 4 + 4 + 8 × 4 + 32 + 4 + 4 + 128
-        assert_eq!(std::mem::size_of::<ScanHeader>(), 208);
+        // 4 + 4 + 8 × 4 + 32 + 4 + 4 + 128 + 64 (frame id)
+        assert_eq!(std::mem::size_of::<ScanHeader>(), 272);
         assert_eq!(ScanHeader::default().schema_version, SCHEMA_VERSION);
-        // 4 + 4 + 8 × 4 + 32 + 4 × 6 + 8 × 2
-        assert_eq!(std::mem::size_of::<MaskHeader>(), 112);
+        // 4 + 4 + 8 × 4 + 32 + 4 × 6 + 8 × 2 + 64 (frame id)
+        assert_eq!(std::mem::size_of::<MaskHeader>(), 176);
         assert_eq!(std::mem::size_of::<ProposalRecord>(), 56);
         assert_eq!(
             std::mem::size_of::<ProposalsHeader>(),

@@ -270,6 +270,7 @@ impl ConsumerStage {
                 Some(points) if points.len() == probs.len() => {
                     let mut scan = Scan::dense(points);
                     scan.stamp_ns = Some(h.sensor_timestamp_ns);
+                    scan.frame_id = h.frame_id.get().map(str::to_string);
                     writer
                         .write(RECORDING_TOPIC, &scan, probs, h.sensor_timestamp_ns)
                         .map_err(|e| e.to_string())

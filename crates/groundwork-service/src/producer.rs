@@ -12,7 +12,7 @@ use std::time::Duration;
 use anyhow::Context;
 use groundwork_core::{Point, Pose};
 use groundwork_eval::Sequence;
-use groundwork_msg::{SCHEMA_VERSION, ScanHeader, ScanPoint, new_epoch};
+use groundwork_msg::{FrameId, SCHEMA_VERSION, ScanHeader, ScanPoint, new_epoch, wall_clock_ns};
 use serde::Serialize;
 use tracing::{info, warn};
 
@@ -105,6 +105,10 @@ pub struct Frame {
     pub index: u64,
     /// Recorded time (recordings), ns: replays keep the recorded spacing.
     pub log_time_ns: Option<u64>,
+    /// The scan's own time (its header stamp, else its recorded time), ns since 1970.
+    pub stamp_ns: Option<u64>,
+    /// Its coordinate frame, where the source names one.
+    pub frame_id: Option<String>,
 }
 
 /// The frames a producer replays: one generated frame (synthetic), or a folder or
@@ -161,6 +165,11 @@ fn read_ahead(seq: &Sequence, max_points: usize, tx: &SyncSender<Ahead>) {
                         );
                     }
                     tx.send(Ahead::Frame(Frame {
+                        stamp_ns: scan
+                            .stamp_ns
+                            .or(item.log_time_ns)
+                            .or_else(|| seq.time(item.index)),
+                        frame_id: scan.frame_id,
                         points: scan.points,
                         pose: seq.pose(item.index).copied(),
                         index: item.index as u64,
@@ -199,6 +208,8 @@ impl Stream {
                 pose: None,
                 index: 0,
                 log_time_ns: None,
+                stamp_ns: None,
+                frame_id: None,
             },
             next: None,
         };
@@ -248,6 +259,8 @@ impl Frames {
                     pose: None,
                     index: 0,
                     log_time_ns: None,
+                    stamp_ns: None,
+                    frame_id: None,
                 };
                 Ok((Self::Loaded(vec![frame]), skipped))
             }
@@ -297,7 +310,50 @@ pub struct ProducerStage {
     malformed_every: Option<u64>,
     /// How it runs: count, linger, rate.
     pace: Pace,
+    /// The sensor time of each message.
+    clock: SensorClock,
     report: ProducerReport,
+}
+
+/// The sensor time a message carries: a scan's own stamp where its source has one (the
+/// first pass over a recording keeps every stamp exactly; a looped replay shifts later
+/// passes so that time never runs back), else the wall clock at publication, as a live
+/// driver stamps.
+#[derive(Debug, Clone, Default)]
+struct SensorClock {
+    /// Added to recorded stamps (0 on the first pass).
+    offset: u64,
+    /// The last stamp sent and the recorded gap before it.
+    last: Option<(u64, u64)>,
+}
+
+impl SensorClock {
+    /// A gap assumed where a loop restarts and no gap was seen yet: 10 Hz.
+    const DEFAULT_GAP: u64 = 100_000_000;
+
+    fn stamp(&mut self, recorded: Option<u64>, wall_ns: u64) -> u64 {
+        let t = match recorded {
+            None => wall_ns,
+            Some(r) => {
+                let mut t = r.saturating_add(self.offset);
+                if let Some((last, gap)) = self.last
+                    && t <= last
+                {
+                    // Back to the start of the recording: continue one gap later.
+                    self.offset = (last + gap).saturating_sub(r);
+                    t = r.saturating_add(self.offset);
+                }
+                t
+            }
+        };
+        let gap = match self.last {
+            Some((last, _)) if t > last && recorded.is_some() => t - last,
+            Some((_, gap)) => gap,
+            None => Self::DEFAULT_GAP,
+        };
+        self.last = Some((t, gap.min(1_000_000_000)));
+        t
+    }
 }
 
 /// When the producer publishes, and when it stops.
@@ -332,6 +388,7 @@ impl ProducerStage {
             sequence: 0,
             malformed_every,
             pace: Pace::default(),
+            clock: SensorClock::default(),
             report: ProducerReport {
                 skipped_files: skipped,
                 ..Default::default()
@@ -374,11 +431,13 @@ impl ProducerStage {
         Some(Duration::from_nanos(b.saturating_sub(a)).min(Duration::from_secs(1)))
     }
 
-    /// Builds the next message's header; `now_ns` is its production stamp (and, for
-    /// replays, its sensor time).
+    /// Builds the next message's header; `now_ns` is its production stamp (monotonic),
+    /// the sensor time is the scan's own (see `SensorClock`).
     pub fn next_scan(&mut self, now_ns: u64) -> Outgoing {
         self.advance();
         let seq = self.sequence;
+        let recorded = self.frame().stamp_ns;
+        let sensor_time = self.clock.stamp(recorded, wall_clock_ns());
         let frame = self.frame();
         let bad = self
             .malformed_every
@@ -402,8 +461,9 @@ impl ProducerStage {
             },
             sequence: seq,
             producer_epoch: self.epoch,
-            sensor_timestamp_ns: now_ns,
+            sensor_timestamp_ns: sensor_time,
             source_index: frame.index,
+            frame_id: FrameId::new(frame.frame_id.as_deref().unwrap_or("")),
             has_pose: u32::from(frame.pose.is_some()),
             pose: frame
                 .pose
@@ -557,9 +617,14 @@ mod tests {
         assert_eq!(frames.loaded(), 2, "the frame published and the next");
         let mut stage = ProducerStage::new(frames, skipped, None);
         let mut order = Vec::new();
+        let t0 = 1_700_000_000_000_000_000u64;
         for k in 0..7 {
             let out = stage.next_scan(k);
             order.push(out.header.source_index);
+            // The recorded stamps and frame, kept exactly on the first pass; the loop
+            // carries on 100 ms after the last (time never runs back).
+            assert_eq!(out.header.sensor_timestamp_ns, t0 + k * 100_000_000);
+            assert_eq!(out.header.frame_id.get(), Some("os_lidar"));
             assert_eq!(out.len, out.header.point_count as usize);
             if out.header.source_index < 2 {
                 assert_eq!(stage.recorded_gap(), Some(Duration::from_millis(100)));
@@ -609,6 +674,23 @@ mod tests {
             stage.report().skipped_files.len(),
             1,
             "counted on the first pass only"
+        );
+    }
+
+    #[test]
+    fn scans_without_a_time_get_the_wall_clock_and_loops_never_run_back() {
+        let mut c = SensorClock::default();
+        assert_eq!(c.stamp(None, 5), 5);
+        let mut c = SensorClock::default();
+        // A recording at 20 Hz with a pause of 3 s, looped twice.
+        let rec = [1_000, 1_050, 1_100, 4_100].map(|ms| ms * 1_000_000);
+        let got: Vec<u64> = (0..8)
+            .map(|k| c.stamp(Some(rec[k % 4]), 0) / 1_000_000)
+            .collect();
+        // The pause is kept; the loop restarts one (capped, 1 s) gap after the end.
+        assert_eq!(
+            got,
+            [1_000, 1_050, 1_100, 4_100, 5_100, 5_150, 5_200, 8_200]
         );
     }
 

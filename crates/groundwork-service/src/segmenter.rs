@@ -187,6 +187,7 @@ impl SegmenterStage {
             producer_epoch: h.producer_epoch,
             sensor_timestamp_ns: h.sensor_timestamp_ns,
             source_index: h.source_index,
+            frame_id: h.frame_id,
             stamps: h.stamps,
             segmenter_epoch: self.epoch,
             // One mask per scan received, rejected or not.
