@@ -191,6 +191,9 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
         producer.alive() && consumer.alive(),
         "nothing else restarted"
     );
+    // What the killed segmenter left behind is gone while the pipeline runs on.
+    let nodes = groundwork_service::transport::pipeline_nodes(&crate::service(&p));
+    assert!(nodes.iter().all(|n| n.1), "stale nodes left: {nodes:?}");
     producer.term();
     assert!(producer.wait(Duration::from_secs(5)).success());
     let elapsed = started.elapsed().as_secs_f64();
@@ -208,11 +211,13 @@ fn killed_segmenter_is_replaced_without_restarting_anything_else() {
         n as f64 >= 0.75 * 20.0 * (elapsed - 0.5),
         "published {n} in {elapsed:.1} s"
     );
-    // The new segmenter removed what the killed one left behind, at start.
-    let log = seg_b.log();
+    // Removed by the new segmenter at its start, or, if it came first, by the periodic
+    // sweep of a stage that outlived the killed one (on a loaded machine either wins).
+    let (seg_log, others) = (seg_b.log(), producer.log() + &consumer.log());
     assert!(
-        log.contains("removed stale resources") && log.contains("still_stale=0"),
-        "{log}"
+        (seg_log.contains("removed stale resources") && seg_log.contains("still_stale=0"))
+            || others.contains("removed stale resources of dead processes"),
+        "{seg_log}\n{others}"
     );
 }
 
@@ -570,7 +575,13 @@ fn the_consumer_records_the_pipeline_to_mcap() {
         .unwrap();
     assert_eq!(scans.len(), 6);
     let bytes = std::fs::read(&rec).unwrap();
-    let messages = mcap::MessageStream::new(&bytes).unwrap();
+    // The clouds, after the mount's one static transform of their frame.
+    let all: Vec<_> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    assert_eq!(all[0].channel.topic, "/tf_static");
+    let messages = &all[1..];
     let bundled: Vec<_> = groundwork_io::list_scans(&data().join("velodyne"))
         .unwrap()
         .iter()
@@ -587,8 +598,7 @@ fn the_consumer_records_the_pipeline_to_mcap() {
             assert!(s.log_time_ns > scans[i - 1].log_time_ns);
         }
         let probs =
-            groundwork_io::pointcloud2::decode_probabilities(&rec, &m.unwrap().data, 200_000)
-                .unwrap();
+            groundwork_io::pointcloud2::decode_probabilities(&rec, &m.data, 200_000).unwrap();
         assert_eq!(probs.len(), want.points.len());
         assert!(probs.iter().all(|p| (0.0..=1.0).contains(p)));
         let ground = probs.iter().filter(|&&p| p >= 0.5).count();

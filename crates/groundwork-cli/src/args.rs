@@ -212,6 +212,9 @@ pub struct DetectorArgs {
 /// Arguments of `groundwork consumer`.
 #[derive(clap::Args, Debug)]
 pub struct ConsumerArgs {
+    /// The sensor whose mount a recording (`--out X.mcap`) places the scans by.
+    #[command(flatten)]
+    pub sensor: SensorArgs,
     #[command(flatten)]
     pub service: ServiceArgs,
     /// Stop after this many masks.

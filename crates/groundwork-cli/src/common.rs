@@ -142,6 +142,18 @@ pub fn create_output(
     Ok(groundwork_io::OutputTarget::create(out, &files)?)
 }
 
+/// Makes a recording output place every scan frame on the ground frame by `mount` (a
+/// static transform on `/tf_static`); a folder output has nowhere to say it.
+pub fn place_scans_by_mount(
+    output: &mut groundwork_io::OutputTarget,
+    mount: &groundwork_core::config::MountConfig,
+) -> Result<()> {
+    if let groundwork_io::OutputTarget::Recording(w) = output {
+        w.set_mount(groundwork_io::transform::StaticTransform::of_mount(mount)?);
+    }
+    Ok(())
+}
+
 pub fn progress(len: usize, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(len as u64);
     pb.set_style(progress_style(

@@ -201,6 +201,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         common.topic.as_deref(),
     );
     let mut output = crate::common::create_output(out, inputs, &sequences)?;
+    crate::common::place_scans_by_mount(&mut output, &cfg.sensor.mount)?;
     let (mut engines, threshold) = match method {
         MethodArg::Gmm => {
             if cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {

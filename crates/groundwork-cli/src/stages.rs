@@ -100,6 +100,7 @@ pub fn detector(a: DetectorArgs) -> Result<ExitCode> {
 /// `groundwork consumer`.
 pub fn consumer(a: ConsumerArgs) -> Result<ExitCode> {
     let cfg = load_service(&a.service)?;
+    let mount = load(&a.sensor.into(), cfg.sensor.as_deref())?.sensor.mount;
     let secs = |s: f64| Duration::try_from_secs_f64(s).context("seconds must be finite and >= 0");
     let report = consumer::run(
         &cfg,
@@ -112,6 +113,7 @@ pub fn consumer(a: ConsumerArgs) -> Result<ExitCode> {
             stall_after: a.stall_after,
             stall: secs(a.stall_secs)?,
             warmup: a.warmup,
+            mount: Some(mount),
         },
     )?;
     // Asked to write and could not: the run did not do what it was asked.
@@ -202,7 +204,8 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     if let Some(f) = common.frames {
         seg.arg("--frames").arg(f.to_string());
     }
-    let mut con = stage("consumer");
+    // The consumer reads the mount from the same configuration, for recordings.
+    let mut con = configured("consumer");
     if data.is_dir() {
         con.arg("--labels").arg(&data);
     }

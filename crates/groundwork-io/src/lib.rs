@@ -23,6 +23,22 @@
 
 #![warn(missing_docs)]
 
+/// The ros2msg definitions of `std_msgs/Header` and its `builtin_interfaces/Time`, which
+/// every MCAP schema of a stamped message must carry (a schema holds its dependencies).
+macro_rules! header_definitions {
+    () => {
+        "================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"
+    };
+}
+
 pub mod bin;
 pub mod config;
 pub mod error;
@@ -36,6 +52,7 @@ pub mod ply;
 pub mod pointcloud2;
 pub mod recording;
 pub mod scan;
+pub mod transform;
 
 pub use bin::write_kitti_bin;
 pub use config::{

@@ -19,7 +19,8 @@ pub const SCHEMA_NAME: &str = "sensor_msgs/msg/PointCloud2";
 
 /// The schema text (ros2msg, with its dependencies) that viewers use to decode what
 /// [`encode`] writes.
-pub const SCHEMA_TEXT: &str = "std_msgs/Header header
+pub const SCHEMA_TEXT: &str = concat!(
+    "std_msgs/Header header
 uint32 height
 uint32 width
 PointField[] fields
@@ -28,15 +29,9 @@ uint32 point_step
 uint32 row_step
 uint8[] data
 bool is_dense
-================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
-================================================================================
+",
+    header_definitions!(),
+    "================================================================================
 MSG: sensor_msgs/PointField
 uint8 INT8    = 1
 uint8 UINT8   = 2
@@ -50,7 +45,8 @@ string name
 uint32 offset
 uint8  datatype
 uint32 count
-";
+"
+);
 
 /// The name of the field [`encode`] adds.
 pub const PROBABILITY_FIELD: &str = "ground_probability";

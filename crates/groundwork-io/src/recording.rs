@@ -19,6 +19,9 @@ use zstd::zstd_safe::{DStream, InBuffer, OutBuffer, ResetDirective};
 use crate::error::FormatError;
 use crate::pointcloud2::{self, SCHEMA_NAME, SCHEMA_TEXT};
 use crate::scan::Scan;
+use crate::transform::{
+    StaticTransform, TF_SCHEMA_NAME, TF_SCHEMA_TEXT, TF_STATIC_TOPIC, encode_static_transform,
+};
 
 /// A scan read from a recording.
 #[derive(Debug, Clone)]
@@ -431,6 +434,10 @@ pub struct RecordingWriter {
     schema: u16,
     channels: BTreeMap<String, u16>,
     sequence: u32,
+    /// The sensor's mount, written once per scan frame on `/tf_static`.
+    mount: Option<StaticTransform>,
+    /// Frames whose transform is written.
+    placed: BTreeSet<String>,
 }
 
 impl std::fmt::Debug for RecordingWriter {
@@ -464,7 +471,52 @@ impl RecordingWriter {
             schema,
             channels: BTreeMap::new(),
             sequence: 0,
+            mount: None,
+            placed: BTreeSet::new(),
         })
+    }
+
+    /// Places every scan frame in `mount.parent` by the sensor's mount: a static transform
+    /// on `/tf_static` before the first scan of each frame, so that viewers put the cloud
+    /// on the ground frame without being told.
+    pub fn set_mount(&mut self, mount: StaticTransform) {
+        self.mount = Some(mount);
+    }
+
+    /// The channel of `topic` with schema `schema` (registered on first use).
+    fn channel(&mut self, topic: &str, schema: u16) -> Result<u16, FormatError> {
+        if let Some(&c) = self.channels.get(topic) {
+            return Ok(c);
+        }
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
+        };
+        let c = writer
+            .add_channel(schema, topic, "cdr", &BTreeMap::new())
+            .map_err(|e| mcap_error(&self.path, &e))?;
+        self.channels.insert(topic.to_string(), c);
+        Ok(c)
+    }
+
+    fn write_message(
+        &mut self,
+        channel: u16,
+        log_time_ns: u64,
+        data: &[u8],
+    ) -> Result<(), FormatError> {
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
+        };
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: self.sequence,
+            log_time: log_time_ns,
+            publish_time: log_time_ns,
+        };
+        self.sequence = self.sequence.wrapping_add(1);
+        writer
+            .write_to_known_channel(&header, data)
+            .map_err(|e| mcap_error(&self.path, &e))
     }
 
     /// Appends one scan on `topic` at `log_time_ns` (also its header stamp unless the scan
@@ -476,36 +528,29 @@ impl RecordingWriter {
         probabilities: &[f32],
         log_time_ns: u64,
     ) -> Result<(), FormatError> {
-        let err = |e: mcap::McapError| mcap_error(&self.path, &e);
+        let frame = scan.frame_id.as_deref().unwrap_or("lidar");
+        let stamp = scan.stamp_ns.unwrap_or(log_time_ns);
+        if let Some(mount) = &self.mount
+            && !self.placed.contains(frame)
+        {
+            let data = encode_static_transform(mount, frame, stamp);
+            let schema = self.tf_schema()?;
+            let channel = self.channel(TF_STATIC_TOPIC, schema)?;
+            self.write_message(channel, log_time_ns, &data)?;
+            self.placed.insert(frame.to_string());
+        }
+        let channel = self.channel(topic, self.schema)?;
+        let data = pointcloud2::encode(scan, probabilities, stamp, frame);
+        self.write_message(channel, log_time_ns, &data)
+    }
+
+    /// The TFMessage schema's id (registered on first use).
+    fn tf_schema(&mut self) -> Result<u16, FormatError> {
         let Some(writer) = self.writer.as_mut() else {
             return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
         };
-        let channel = match self.channels.get(topic) {
-            Some(&c) => c,
-            None => {
-                let c = writer
-                    .add_channel(self.schema, topic, "cdr", &BTreeMap::new())
-                    .map_err(err)?;
-                self.channels.insert(topic.to_string(), c);
-                c
-            }
-        };
-        let frame = scan.frame_id.as_deref().unwrap_or("lidar");
-        let data = pointcloud2::encode(
-            scan,
-            probabilities,
-            scan.stamp_ns.unwrap_or(log_time_ns),
-            frame,
-        );
-        let header = mcap::records::MessageHeader {
-            channel_id: channel,
-            sequence: self.sequence,
-            log_time: log_time_ns,
-            publish_time: log_time_ns,
-        };
-        self.sequence = self.sequence.wrapping_add(1);
         writer
-            .write_to_known_channel(&header, &data)
+            .add_schema(TF_SCHEMA_NAME, "ros2msg", TF_SCHEMA_TEXT.as_bytes())
             .map_err(|e| mcap_error(&self.path, &e))
     }
 

@@ -459,3 +459,29 @@ def test_recordings_keep_the_input_stamps_and_frames(cli: Path, tmp_path: Path) 
     seg = tmp_path / "synth.mcap"
     run(cli, "segment", "--sensor", "vlp16", "--out", str(seg), str(synth))
     assert read_clouds(seg) == [(t, t, "lidar") for t in times]
+
+
+def test_recordings_place_the_scan_frame_by_the_mount(cli: Path, tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    fixture = ROOT / "crates/groundwork-io/tests/fixtures/kitti_pointcloud2.mcap"
+    segmented, piped = tmp_path / "segment.mcap", tmp_path / "pipeline.mcap"
+    # The hdl32e preset: 1.84 m up, turned −90° about z on its mount.
+    run(cli, "segment", "--sensor", "hdl32e", "--out", str(segmented), str(fixture))
+    run(cli, "pipeline", "--sensor", "hdl32e", "--count", "3", "--no-detector", "--prefix",
+        f"gw-py-tf-{os.getpid()}", "--data", str(fixture), "--out", str(piped))
+    for out in (segmented, piped):
+        with open(out, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            found = [(msg.log_time, tf) for _, ch, msg, tf in reader.iter_decoded_messages()
+                     if ch.topic == "/tf_static"]
+        assert len(found) == 1, f"{out.name}: one transform for the one frame"
+        log_time, tf = found[0]
+        assert log_time == 1_700_000_000_000_000_000, "written with the first scan"
+        (t,) = tf.transforms
+        assert (t.header.frame_id, t.child_frame_id) == ("base_footprint", "os_lidar")
+        v, q = t.transform.translation, t.transform.rotation
+        assert (v.x, v.y, v.z) == pytest.approx((0.0, 0.0, 1.84), abs=1e-12)
+        s = 0.5 ** 0.5
+        assert (q.x, q.y, q.z, q.w) == pytest.approx((0.0, 0.0, -s, s), abs=1e-12)

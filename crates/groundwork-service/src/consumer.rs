@@ -47,6 +47,8 @@ pub struct ConsumerOptions {
     pub stall: Duration,
     /// Segmented masks left out of the latency figures at the start.
     pub warmup: u64,
+    /// The sensor's mount: a recording places the scan frame on the ground frame by it.
+    pub mount: Option<groundwork_core::config::MountConfig>,
 }
 
 /// Where each scan the producer published to this consumer ended: exactly one bucket per
@@ -482,11 +484,14 @@ impl Consumer {
     /// A consumer of `cfg`'s pipeline; its output (if any) is created here, so that a bad
     /// `--out` fails before anything runs.
     pub fn new(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Self> {
-        let output = opts
+        let mut output = opts
             .out
             .as_deref()
             .map(|o| OutputTarget::create(o, &[]))
             .transpose()?;
+        if let (Some(OutputTarget::Recording(w)), Some(mount)) = (&mut output, &opts.mount) {
+            w.set_mount(groundwork_io::transform::StaticTransform::of_mount(mount)?);
+        }
         Ok(Self {
             stage: ConsumerStage::new(opts.labels.clone(), output, opts.warmup),
             opts: opts.clone(),

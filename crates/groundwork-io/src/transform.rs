@@ -1,0 +1,125 @@
+//! `tf2_msgs/msg/TFMessage` in CDR: the sensor's mount as a static transform, so that a
+//! recording opens in Foxglove or RViz with the cloud placed on the ground frame.
+
+/// The message's type name.
+pub const TF_SCHEMA_NAME: &str = "tf2_msgs/msg/TFMessage";
+
+/// Topic of static transforms in ROS 2.
+pub const TF_STATIC_TOPIC: &str = "/tf_static";
+
+/// Its definition with its dependencies (the `ros2msg` schema encoding of an MCAP).
+pub const TF_SCHEMA_TEXT: &str = concat!(
+    "geometry_msgs/TransformStamped[] transforms
+================================================================================
+MSG: geometry_msgs/TransformStamped
+std_msgs/Header header
+string child_frame_id
+geometry_msgs/Transform transform
+",
+    header_definitions!(),
+    "================================================================================
+MSG: geometry_msgs/Transform
+geometry_msgs/Vector3 translation
+geometry_msgs/Quaternion rotation
+================================================================================
+MSG: geometry_msgs/Vector3
+float64 x
+float64 y
+float64 z
+================================================================================
+MSG: geometry_msgs/Quaternion
+float64 x
+float64 y
+float64 z
+float64 w
+"
+);
+
+/// Frame the sensor's mount places scans in: groundwork's ground-aligned frame (on the
+/// ground below the sensor, z up), which ROS calls `base_footprint` (REP 120).
+pub const GROUND_FRAME: &str = "base_footprint";
+
+/// A rigid transform: where `child` sits in `parent` (translation, metres; rotation as a
+/// unit quaternion x, y, z, w).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StaticTransform {
+    /// The parent frame (groundwork's ground-aligned frame).
+    pub parent: String,
+    /// Translation of the child's origin in the parent, metres.
+    pub translation: [f64; 3],
+    /// Rotation, parent from child, unit quaternion (x, y, z, w).
+    pub rotation: [f64; 4],
+}
+
+impl StaticTransform {
+    /// The sensor's mount: the sensor frame in [`GROUND_FRAME`].
+    pub fn of_mount(
+        mount: &groundwork_core::config::MountConfig,
+    ) -> Result<Self, groundwork_core::ConfigError> {
+        let pose = groundwork_core::config::mount_transform(mount)?;
+        let (t, q) = (pose.translation.vector, pose.rotation);
+        Ok(Self {
+            parent: GROUND_FRAME.into(),
+            translation: [t.x, t.y, t.z],
+            rotation: [q.i, q.j, q.k, q.w],
+        })
+    }
+}
+
+/// Pads `out` to `align` bytes after the 4-byte encapsulation header (CDR alignment).
+fn align(out: &mut Vec<u8>, align: usize) {
+    while !(out.len() - 4).is_multiple_of(align) {
+        out.push(0);
+    }
+}
+
+fn put_u32(out: &mut Vec<u8>, v: u32) {
+    align(out, 4);
+    out.extend_from_slice(&v.to_le_bytes());
+}
+
+fn put_f64(out: &mut Vec<u8>, v: f64) {
+    align(out, 8);
+    out.extend_from_slice(&v.to_le_bytes());
+}
+
+fn put_string(out: &mut Vec<u8>, s: &str) {
+    put_u32(out, s.len() as u32 + 1);
+    out.extend_from_slice(s.as_bytes());
+    out.push(0);
+}
+
+/// One transform, `child` in `t.parent`, stamped `stamp_ns`, as a little-endian CDR
+/// `TFMessage`.
+pub fn encode_static_transform(t: &StaticTransform, child: &str, stamp_ns: u64) -> Vec<u8> {
+    let mut out = vec![0, 1, 0, 0];
+    put_u32(&mut out, 1);
+    put_u32(&mut out, (stamp_ns / 1_000_000_000) as u32);
+    put_u32(&mut out, (stamp_ns % 1_000_000_000) as u32);
+    put_string(&mut out, &t.parent);
+    put_string(&mut out, child);
+    for v in t.translation.iter().chain(&t.rotation) {
+        put_f64(&mut out, *v);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn doubles_are_aligned_to_eight_after_the_encapsulation_header() {
+        let t = StaticTransform {
+            parent: "ground".into(),
+            translation: [0.0, 0.0, 1.73],
+            rotation: [0.0, 0.0, 0.0, 1.0],
+        };
+        let m = encode_static_transform(&t, "lidar", 1_500_000_000);
+        // 4 (encapsulation) + 4 (count) + 8 (stamp) + 4+7 ("ground") + 1 (pad) + 4+6
+        // ("lidar") = 38 bytes, 34 after the header: padded to 40 after it, then 7 doubles.
+        assert_eq!(m.len(), 4 + 40 + 56);
+        assert_eq!(&m[44 + 16..44 + 24], &1.73f64.to_le_bytes());
+        assert_eq!(&m[m.len() - 8..], &1.0f64.to_le_bytes());
+    }
+}
