@@ -149,12 +149,10 @@ fn read_all(sequences: &[Sequence], max_points: usize, jobs: &SyncSender<Job>, p
     let known = sequences.iter().all(|s| s.len_hint().is_some());
     let mut k = 0;
     for (input, seq) in sequences.iter().enumerate() {
-        for mut item in seq.scans(max_points) {
+        for item in seq.scans(max_points) {
             if !known {
                 pb.inc_length(1);
             }
-            // A KITTI folder's times.txt times its scans as a recording's log does.
-            item.log_time_ns = item.log_time_ns.or_else(|| seq.time(item.index));
             let pose = seq.pose(item.index).copied();
             if jobs
                 .send(Job {

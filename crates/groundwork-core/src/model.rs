@@ -136,10 +136,16 @@ impl RangeProfile {
     const BAND: f64 = 0.25;
 
     fn new(xs: &[f64], ys: &[f64], zs: &[f64], cut: f64) -> Self {
-        let ranges = || xs.iter().zip(ys).map(|(&x, &y)| range(x, y));
-        let (lo, hi) = ranges().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r| {
-            (a.min(r), b.max(r))
-        });
+        // The extremes on squared ranges: one square root per point (in the binning pass),
+        // and the same bits, a correctly rounded root being monotonic.
+        let (lo2, hi2) = xs
+            .iter()
+            .zip(ys)
+            .map(|(&x, &y)| x * x + y * y)
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r2| {
+                (a.min(r2), b.max(r2))
+            });
+        let (lo, hi) = (lo2.sqrt(), hi2.sqrt());
         if !(lo.is_finite() && hi.is_finite()) {
             return Self {
                 r0: 0.0,
@@ -151,7 +157,8 @@ impl RangeProfile {
         // against an absurd configuration.
         let bands = (((hi - lo) / Self::BAND) as usize + 1).min(1 << 16);
         let mut lows = vec![f64::INFINITY; bands];
-        for (r, &z) in ranges().zip(zs) {
+        let ranges = xs.iter().zip(ys).map(|(&x, &y)| range(x, y));
+        for (r, &z) in ranges.zip(zs) {
             if z >= cut {
                 let b = (((r - lo) / Self::BAND) as usize).min(bands - 1);
                 lows[b] = lows[b].min(z);

@@ -176,20 +176,23 @@ impl Sequence {
 
     /// The scans in order (at most `limit`), each at most `max_points` points.
     pub fn scans(&self, max_points: usize) -> impl Iterator<Item = ScanItem> + use<> {
+        // A KITTI folder's times.txt times its scans as a recording's log does.
+        let times = self.times.clone();
         self.source
             .scans(max_points)
             .take(self.limit.unwrap_or(usize::MAX))
+            .map(move |mut item| {
+                if item.log_time_ns.is_none() {
+                    item.log_time_ns = times.as_ref().and_then(|t| t.get(item.index).copied());
+                }
+                item
+            })
     }
 
     /// Scans to expect, where known before reading.
     pub fn len_hint(&self) -> Option<usize> {
         let n = self.source.len_hint()?;
         Some(self.limit.map_or(n, |l| l.min(n)))
-    }
-
-    /// The time (ns) of the index-th scan, if the sequence has a `times.txt`.
-    pub fn time(&self, index: usize) -> Option<u64> {
-        self.times.as_ref()?.get(index).copied()
     }
 
     /// The pose of the index-th scan, if poses are known.

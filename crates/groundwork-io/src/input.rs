@@ -197,7 +197,8 @@ pub struct ScanItem {
     pub name: String,
     /// The scan.
     pub scan: Result<Scan, FormatError>,
-    /// Recorded time (recordings only), ns.
+    /// Recorded time, ns: a recording's log time (or, through a `Sequence`, the time its
+    /// folder's `times.txt` gives the scan).
     pub log_time_ns: Option<u64>,
     /// Topic (recordings only).
     pub topic: Option<String>,

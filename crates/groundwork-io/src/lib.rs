@@ -40,6 +40,7 @@ uint32 nanosec
 }
 
 pub mod bin;
+mod cdr;
 pub mod config;
 pub mod error;
 pub mod file;

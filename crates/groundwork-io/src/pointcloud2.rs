@@ -11,6 +11,7 @@ use std::path::Path;
 
 use groundwork_core::Point;
 
+use crate::cdr::{self, put_header, put_string, put_u32};
 use crate::error::FormatError;
 use crate::scan::{NonFinite, Scan, checked_count};
 
@@ -299,19 +300,6 @@ fn decode_with(
     Ok((scan, intensity.is_some()))
 }
 
-fn put_u32(out: &mut Vec<u8>, v: u32) {
-    while !(out.len() - 4).is_multiple_of(4) {
-        out.push(0);
-    }
-    out.extend_from_slice(&v.to_le_bytes());
-}
-
-fn put_string(out: &mut Vec<u8>, s: &str) {
-    put_u32(out, s.len() as u32 + 1);
-    out.extend_from_slice(s.as_bytes());
-    out.push(0);
-}
-
 /// Encodes a scan and one probability per point as a little-endian CDR PointCloud2 with
 /// fields x, y, z, intensity and `ground_probability` (FLOAT32 each, point_step 20), one
 /// point per input record: records the reader left out come back as NaN placeholders with
@@ -322,10 +310,8 @@ pub fn encode(scan: &Scan, probabilities: &[f32], stamp_ns: u64, frame_id: &str)
         Some((h, w)) if h as usize * w as usize == records => (h, w),
         _ => (1, records as u32),
     };
-    let mut out = vec![0, 1, 0, 0];
-    put_u32(&mut out, (stamp_ns / 1_000_000_000) as u32);
-    put_u32(&mut out, (stamp_ns % 1_000_000_000) as u32);
-    put_string(&mut out, frame_id);
+    let mut out = cdr::message();
+    put_header(&mut out, stamp_ns, frame_id);
     put_u32(&mut out, height);
     put_u32(&mut out, width);
     let names = ["x", "y", "z", "intensity", PROBABILITY_FIELD];

@@ -1,6 +1,8 @@
 //! `tf2_msgs/msg/TFMessage` in CDR: the sensor's mount as a static transform, so that a
 //! recording opens in Foxglove or RViz with the cloud placed on the ground frame.
 
+use crate::cdr::{self, put_f64, put_header, put_string, put_u32};
+
 /// The message's type name.
 pub const TF_SCHEMA_NAME: &str = "tf2_msgs/msg/TFMessage";
 
@@ -66,37 +68,12 @@ impl StaticTransform {
     }
 }
 
-/// Pads `out` to `align` bytes after the 4-byte encapsulation header (CDR alignment).
-fn align(out: &mut Vec<u8>, align: usize) {
-    while !(out.len() - 4).is_multiple_of(align) {
-        out.push(0);
-    }
-}
-
-fn put_u32(out: &mut Vec<u8>, v: u32) {
-    align(out, 4);
-    out.extend_from_slice(&v.to_le_bytes());
-}
-
-fn put_f64(out: &mut Vec<u8>, v: f64) {
-    align(out, 8);
-    out.extend_from_slice(&v.to_le_bytes());
-}
-
-fn put_string(out: &mut Vec<u8>, s: &str) {
-    put_u32(out, s.len() as u32 + 1);
-    out.extend_from_slice(s.as_bytes());
-    out.push(0);
-}
-
 /// One transform, `child` in `t.parent`, stamped `stamp_ns`, as a little-endian CDR
 /// `TFMessage`.
 pub fn encode_static_transform(t: &StaticTransform, child: &str, stamp_ns: u64) -> Vec<u8> {
-    let mut out = vec![0, 1, 0, 0];
+    let mut out = cdr::message();
     put_u32(&mut out, 1);
-    put_u32(&mut out, (stamp_ns / 1_000_000_000) as u32);
-    put_u32(&mut out, (stamp_ns % 1_000_000_000) as u32);
-    put_string(&mut out, &t.parent);
+    put_header(&mut out, stamp_ns, &t.parent);
     put_string(&mut out, child);
     for v in t.translation.iter().chain(&t.rotation) {
         put_f64(&mut out, *v);

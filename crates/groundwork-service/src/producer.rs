@@ -103,9 +103,10 @@ pub struct Frame {
     pub pose: Option<Pose>,
     /// Index in its source (file or message index), for label lookup.
     pub index: u64,
-    /// Recorded time (recordings), ns: replays keep the recorded spacing.
+    /// Recorded time (a recording's log, a folder's times.txt), ns: replays of recordings
+    /// keep the recorded spacing.
     pub log_time_ns: Option<u64>,
-    /// The scan's own time (its header stamp, else its recorded time), ns since 1970.
+    /// The scan's own time (its header stamp, else its recorded time), ns.
     pub stamp_ns: Option<u64>,
     /// Its coordinate frame, where the source names one.
     pub frame_id: Option<String>,
@@ -165,10 +166,7 @@ fn read_ahead(seq: &Sequence, max_points: usize, tx: &SyncSender<Ahead>) {
                         );
                     }
                     tx.send(Ahead::Frame(Frame {
-                        stamp_ns: scan
-                            .stamp_ns
-                            .or(item.log_time_ns)
-                            .or_else(|| seq.time(item.index)),
+                        stamp_ns: scan.stamp_ns.or(item.log_time_ns),
                         frame_id: scan.frame_id,
                         points: scan.points,
                         pose: seq.pose(item.index).copied(),
