@@ -8,7 +8,11 @@
 //!   without computing) → consumer, three processes; transport = scan hop + mask hop, per
 //!   message, and scan publication → mask receipt (the path the relay measures);
 //! - `pipeline-full`: the same with real segmentation, and the detector stage beside it
-//!   (its detect time, and scan production to proposals published).
+//!   (its detect time, and scan production to proposals published);
+//! - `pipeline-ros2` (with `--ros2`): a DDS driver process (RustDDS, reliable) publishes
+//!   PointCloud2 clouds, the ROS 2 bridge is the pipeline's source, the segmenter echoes:
+//!   the bridge's time from DDS's receipt of a cloud to its scan in shared memory, and the
+//!   pipeline's end to end from that receipt.
 //!
 //! The machine is shared and noisy, so every method runs `--rounds` times, interleaved, and
 //! each percentile is the median over the rounds. Prints p50/p90/p99/p99.9/max per method
@@ -59,6 +63,9 @@ struct Args {
     /// Skip the full pipeline (transport only).
     #[arg(long)]
     no_full: bool,
+    /// Also the ROS 2 bridge as the pipeline's source (`pipeline-ros2`).
+    #[arg(long)]
+    ros2: bool,
     /// Internal: run as the answering side of a ping-pong.
     #[arg(long, hide = true)]
     role: Option<String>,
@@ -70,6 +77,10 @@ struct Args {
     n: Option<usize>,
     #[arg(long, hide = true)]
     count: Option<u64>,
+    #[arg(long, hide = true)]
+    domain: Option<u16>,
+    #[arg(long, hide = true)]
+    rate: Option<f64>,
 }
 
 /// Same-run ratios of one payload size, [p50, p99].
@@ -339,6 +350,79 @@ fn ping_uds(exe: &Path, n: usize, iterations: u64, rate: f64) -> Result<Histogra
     Ok(h)
 }
 
+/// Where the pipeline's scans come from.
+#[derive(Debug, Clone, Copy)]
+enum Source<'a> {
+    /// `groundwork producer --synthetic`.
+    Producer,
+    /// The ROS 2 bridge, fed by this tool's DDS driver role (`exe`).
+    Ros2 { exe: &'a Path },
+}
+
+/// The DDS driver: publishes `count` synthetic clouds of `n` points (x, y, z, intensity
+/// float32, as drivers do) at `rate` Hz on `topic`, reliably, after a moment for discovery.
+fn ros2_driver(topic: &str, domain: u16, n: usize, count: u64, rate: f64) -> Result<()> {
+    use groundwork_io::pointcloud2::PointField;
+    use groundwork_ros2::msg::{Header, PointCloud2, Time};
+    use ros2_client::{Context, NodeName, NodeOptions};
+    let context = Context::from_domain_participant(
+        ros2_client::dds::rustdds::DomainParticipant::new(domain)?,
+    )?;
+    let mut node = context.new_node(
+        NodeName::new("/", "latency_driver").map_err(|e| anyhow::anyhow!("{e:?}"))?,
+        NodeOptions::new().enable_rosout(false),
+    )?;
+    let qos = groundwork_ros2::profile(groundwork_ros2::Qos::Reliable);
+    let t = node.create_topic(
+        &groundwork_ros2::ros_name(topic)?,
+        groundwork_ros2::cloud_type(),
+        &qos,
+    )?;
+    let publisher = node.create_publisher::<PointCloud2>(&t, Some(qos))?;
+    let mut data = Vec::with_capacity(16 * n);
+    for p in groundwork_service::synthetic::scan(n) {
+        for v in [p.x, p.y, p.z, p.intensity] {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    let fields = ["x", "y", "z", "intensity"]
+        .iter()
+        .enumerate()
+        .map(|(i, name)| PointField {
+            name: (*name).into(),
+            offset: 4 * i as u32,
+            datatype: 7,
+            count: 1,
+        })
+        .collect();
+    let mut cloud = PointCloud2 {
+        header: Header {
+            stamp: Time::default(),
+            frame_id: "lidar".into(),
+        },
+        height: 1,
+        width: n as u32,
+        fields,
+        is_bigendian: false,
+        point_step: 16,
+        row_step: 16 * n as u32,
+        data,
+        is_dense: true,
+    };
+    std::thread::sleep(Duration::from_secs(2));
+    let t0 = Instant::now();
+    for i in 0..count {
+        pace(t0, i, rate);
+        cloud.header.stamp.sec = i as i32;
+        publisher
+            .publish(cloud.clone())
+            .map_err(|e| anyhow::anyhow!("publish: {e}"))?;
+    }
+    // A leaving reliable writer may take unacknowledged samples with it.
+    std::thread::sleep(Duration::from_secs(2));
+    Ok(())
+}
+
 /// Runs the real pipeline (three processes; four with the detector) on synthetic scans
 /// and returns the consumer's report (per-stage percentiles, µs).
 fn pipeline(
@@ -347,6 +431,7 @@ fn pipeline(
     scans: u64,
     rate: f64,
     echo: bool,
+    source: Source<'_>,
 ) -> Result<serde_json::Value> {
     let dir = tempfile::tempdir()?;
     let prefix = format!("latency-pipe-{}-{n}-{echo}", std::process::id());
@@ -395,19 +480,46 @@ fn pipeline(
         .arg(&json)
         .spawn()?;
     std::thread::sleep(Duration::from_millis(500));
-    let mut prod = stage("producer")
-        .args([
-            "--synthetic",
-            &n.to_string(),
-            "--count",
-            &scans.to_string(),
-            "--rate",
-            &rate.to_string(),
-        ])
-        .spawn()?;
-    prod.wait()?;
+    let (mut bridge, mut prod) = match source {
+        Source::Producer => {
+            let prod = stage("producer")
+                .args([
+                    "--synthetic",
+                    &n.to_string(),
+                    "--count",
+                    &scans.to_string(),
+                    "--rate",
+                    &rate.to_string(),
+                ])
+                .spawn()?;
+            (None, prod)
+        }
+        Source::Ros2 { exe } => {
+            // A domain and topic of this run's own: side-by-side runs do not meet.
+            let domain = 100 + (std::process::id() % 100) as u16;
+            let topic = format!("/latency_{}_{n}", std::process::id());
+            let bridge = stage("ros2")
+                .args([
+                    "--reliable",
+                    "--domain-id",
+                    &domain.to_string(),
+                    "--input-topic",
+                ])
+                .arg(&topic)
+                .spawn()?;
+            let driver = role(exe, "ros2-driver", &topic, n)
+                .args(["--count", &scans.to_string(), "--rate", &rate.to_string()])
+                .args(["--domain", &domain.to_string()])
+                .spawn()?;
+            (Some(bridge), driver)
+        }
+    };
     con.wait()?;
-    for child in std::iter::once(&mut seg).chain(det.as_mut()) {
+    prod.wait()?;
+    for child in std::iter::once(&mut seg)
+        .chain(det.as_mut())
+        .chain(bridge.as_mut())
+    {
         let _ = rustix::process::kill_process(
             rustix::process::Pid::from_child(child),
             rustix::process::Signal::TERM,
@@ -462,7 +574,14 @@ fn round(args: &Args, exe: &Path, groundwork: &Path, n: usize) -> Result<Vec<Row
         relay_iox(exe, n, iters, rate)?,
         row("uds-copy", bytes, &ping_uds(exe, n, iters, rate)?),
     ];
-    let echo = pipeline(groundwork, n, args.pipeline_scans, rate, true)?;
+    let echo = pipeline(
+        groundwork,
+        n,
+        args.pipeline_scans,
+        rate,
+        true,
+        Source::Producer,
+    )?;
     rows.extend([
         stage_row("pipeline-echo transport", bytes, &echo, "transport"),
         stage_row(
@@ -474,7 +593,14 @@ fn round(args: &Args, exe: &Path, groundwork: &Path, n: usize) -> Result<Vec<Row
         stage_row("pipeline-echo end-to-end", bytes, &echo, "end to end"),
     ]);
     if !args.no_full {
-        let full = pipeline(groundwork, n, args.full_scans, 15.0, false)?;
+        let full = pipeline(
+            groundwork,
+            n,
+            args.full_scans,
+            15.0,
+            false,
+            Source::Producer,
+        )?;
         rows.extend([
             stage_row("pipeline-full transport", bytes, &full, "transport"),
             stage_row("pipeline-full segment", bytes, &full, "segment"),
@@ -486,6 +612,26 @@ fn round(args: &Args, exe: &Path, groundwork: &Path, n: usize) -> Result<Vec<Row
                 &full,
                 "produced to proposals published",
             ),
+        ]);
+    }
+    if args.ros2 {
+        let ros2 = pipeline(
+            groundwork,
+            n,
+            args.full_scans,
+            15.0,
+            true,
+            Source::Ros2 { exe },
+        )?;
+        rows.extend([
+            stage_row(
+                "pipeline-ros2 bridge",
+                bytes,
+                &ros2,
+                "ros2 receipt to scan published",
+            ),
+            stage_row("pipeline-ros2 transport", bytes, &ros2, "transport"),
+            stage_row("pipeline-ros2 end-to-end", bytes, &ros2, "end to end"),
         ]);
     }
     Ok(rows)
@@ -513,6 +659,15 @@ fn main() -> Result<()> {
             return pong_uds(
                 args.socket.as_deref().context("--socket")?,
                 args.n.unwrap_or(1),
+            );
+        }
+        Some("ros2-driver") => {
+            return ros2_driver(
+                args.prefix.as_deref().unwrap_or("/points"),
+                args.domain.unwrap_or(0),
+                args.n.unwrap_or(1),
+                args.count.unwrap_or(1),
+                args.rate.unwrap_or(10.0),
             );
         }
         Some(r) => anyhow::bail!("unknown role {r}"),

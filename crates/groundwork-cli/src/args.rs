@@ -87,6 +87,11 @@ pub enum Command {
     Detector(DetectorArgs),
     /// Stage: read scans and masks, report latency, accuracy and counters.
     Consumer(ConsumerArgs),
+    /// Stage: the ROS 2 bridge. Subscribes to a sensor_msgs/PointCloud2 topic over DDS
+    /// (no ROS installation needed), publishes each cloud as a scan, and answers on
+    /// /<node>/points (the cloud with a ground_probability field), /<node>/nonground and
+    /// optionally /<node>/ground, stamped with the input's stamp and frame.
+    Ros2(Ros2CmdArgs),
     /// List the sensor presets (`--sensor NAME`): mount, ranges, limits.
     Sensors,
     /// Generate a labeled synthetic sequence in the KITTI layout (velodyne/*.bin,
@@ -150,6 +155,51 @@ pub struct PipelineArgs {
     /// Leave out the detector stage (object proposals on <prefix>/proposals).
     #[arg(long)]
     pub no_detector: bool,
+    /// Take scans from ROS 2 instead of files: the ROS 2 bridge replaces the producer
+    /// (the options below say where it listens and answers).
+    #[arg(long, conflicts_with_all = ["data", "rate"])]
+    pub ros2: bool,
+    #[command(flatten)]
+    pub ros2_args: Ros2Args,
+}
+
+/// Where the ROS 2 bridge listens and answers.
+#[derive(clap::Args, Debug, Clone)]
+pub struct Ros2Args {
+    /// The sensor_msgs/PointCloud2 topic to subscribe to.
+    #[arg(long, default_value = "/points")]
+    pub input_topic: String,
+    /// DDS domain. Default: $ROS_DOMAIN_ID, else 0.
+    #[arg(long)]
+    pub domain_id: Option<u16>,
+    /// Subscribe with reliable QoS (default: ROS 2's sensor-data profile, best effort,
+    /// which matches both best-effort and reliable drivers).
+    #[arg(long)]
+    pub reliable: bool,
+    /// The bridge's node name: it answers on /<namespace>/<node>/points etc.
+    #[arg(long, default_value = "groundwork")]
+    pub node: String,
+    /// The node's namespace.
+    #[arg(long, default_value = "/")]
+    pub namespace: String,
+    /// Also publish the ground points on /<namespace>/<node>/ground.
+    #[arg(long)]
+    pub publish_ground: bool,
+}
+
+/// Arguments of `groundwork ros2`.
+#[derive(clap::Args, Debug)]
+pub struct Ros2CmdArgs {
+    /// The sensor and configuration the segmenter runs with (its ground threshold).
+    #[command(flatten)]
+    pub sensor: SensorArgs,
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    #[command(flatten)]
+    pub ros2: Ros2Args,
+    /// Stop after answering this many clouds (default: run until stopped).
+    #[arg(long)]
+    pub count: Option<u64>,
 }
 
 /// Arguments of `groundwork producer`.

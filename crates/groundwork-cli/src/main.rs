@@ -33,7 +33,10 @@ fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+                // The DDS stack's own info is its internals (sockets, discovery).
+                .unwrap_or_else(|_| {
+                    tracing_subscriber::EnvFilter::new("info,rustdds=warn,ros2_client=error")
+                }),
         )
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
@@ -63,6 +66,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Segmenter(a) => stages::segmenter(a),
         Command::Detector(a) => stages::detector(a),
         Command::Consumer(a) => stages::consumer(a),
+        Command::Ros2(a) => stages::ros2(a),
         Command::ShmSize(a) => stages::shm_size(a),
     }
 }

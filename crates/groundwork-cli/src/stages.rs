@@ -10,8 +10,8 @@ use groundwork_service::{check_shared_memory, consumer, launcher, producer, segm
 use tracing::{error, info};
 
 use crate::args::{
-    Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, SegmenterArgs, ServiceArgs,
-    ShmSizeArgs,
+    Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, Ros2Args, Ros2CmdArgs,
+    SegmenterArgs, ServiceArgs, ShmSizeArgs,
 };
 use crate::common::{load, load_methods, load_service, sample_data};
 
@@ -27,8 +27,71 @@ pub fn pipeline_command(a: PipelineArgs) -> Result<ExitCode> {
             out: a.out,
             restart: a.restart,
             detector: !a.no_detector,
+            ros2: a.ros2.then_some(a.ros2_args),
         },
     )
+}
+
+/// `groundwork ros2`.
+pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    let seg = load(&a.sensor.into(), cfg.sensor.as_deref())?;
+    let r = &a.ros2;
+    let domain_id = match r.domain_id {
+        Some(d) => d,
+        None => match std::env::var("ROS_DOMAIN_ID") {
+            Ok(v) if !v.trim().is_empty() => v
+                .trim()
+                .parse()
+                .with_context(|| format!("ROS_DOMAIN_ID={v:?}: not a domain id"))?,
+            _ => 0,
+        },
+    };
+    let report = groundwork_ros2::run(
+        &cfg,
+        &groundwork_ros2::BridgeOptions {
+            domain_id,
+            input_topic: r.input_topic.clone(),
+            qos: if r.reliable {
+                groundwork_ros2::Qos::Reliable
+            } else {
+                groundwork_ros2::Qos::SensorData
+            },
+            namespace: r.namespace.clone(),
+            node: r.node.clone(),
+            publish_ground: r.publish_ground,
+            ground_threshold: seg.ground.ground_threshold,
+            count: a.count,
+            mount: Some(groundwork_io::transform::StaticTransform::of_mount(
+                &seg.sensor.mount,
+            )?),
+        },
+    )?;
+    // Bad clouds were skipped and counted: done, but not all input was good.
+    Ok(if report.rejected == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// The bridge's command line, as `pipeline` starts it.
+fn ros2_stage_args(c: &mut std::process::Command, r: &Ros2Args) {
+    c.arg("--input-topic")
+        .arg(&r.input_topic)
+        .arg("--node")
+        .arg(&r.node)
+        .arg("--namespace")
+        .arg(&r.namespace);
+    if let Some(d) = r.domain_id {
+        c.arg("--domain-id").arg(d.to_string());
+    }
+    if r.reliable {
+        c.arg("--reliable");
+    }
+    if r.publish_ground {
+        c.arg("--publish-ground");
+    }
 }
 
 /// `groundwork producer`.
@@ -142,6 +205,8 @@ pub struct PipelineRun {
     restart: u32,
     /// Start the detector stage too.
     detector: bool,
+    /// Scans from ROS 2: the bridge instead of the producer.
+    ros2: Option<Ros2Args>,
 }
 
 pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result<ExitCode> {
@@ -152,6 +217,7 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         out,
         restart,
         detector,
+        ros2,
     } = run;
     let (count, rate, restart) = (*count, *rate, *restart);
     // Validate everything here, before any process starts.
@@ -168,17 +234,21 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     if let Some(r) = rate {
         groundwork_service::config::check_rate("--rate", r)?;
     }
-    let data = match data {
-        Some(d) => d.clone(),
-        None => sample_data()?,
+    // The scans' source: files (a folder or a recording) or the ROS 2 bridge.
+    let data = match (ros2, data) {
+        (Some(_), _) => None,
+        (None, Some(d)) => Some(d.clone()),
+        (None, None) => Some(sample_data()?),
     };
-    anyhow::ensure!(
-        data.exists(),
-        "{}: no such folder or recording",
-        data.display()
-    );
-    if let Some(o) = &out {
-        groundwork_io::check_not_an_input(o, std::slice::from_ref(&data))?;
+    if let Some(data) = &data {
+        anyhow::ensure!(
+            data.exists(),
+            "{}: no such folder or recording",
+            data.display()
+        );
+        if let Some(o) = &out {
+            groundwork_io::check_not_an_input(o, std::slice::from_ref(data))?;
+        }
     }
     let exe = std::env::current_exe().context("cannot find this executable")?;
     let stage = |name: &'static str| {
@@ -206,34 +276,55 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     }
     // The consumer reads the mount from the same configuration, for recordings.
     let mut con = configured("consumer");
-    if data.is_dir() {
-        con.arg("--labels").arg(&data);
+    if let Some(d) = data.as_ref().filter(|d| d.is_dir()) {
+        con.arg("--labels").arg(d);
     }
     if let Some(n) = count {
-        con.arg("--count")
-            .arg(n.to_string())
-            .arg("--idle-timeout")
-            .arg("5");
+        con.arg("--count").arg(n.to_string());
+        // Replayed files that stop coming mean a stage is stuck; a ROS 2 driver may pause
+        // for as long as it likes.
+        if ros2.is_none() {
+            con.arg("--idle-timeout").arg("5");
+        }
     }
     if let Some(o) = &out {
         con.arg("--out").arg(o);
     }
-    let mut prod = stage("producer");
-    if let Some(n) = count {
-        // The producer stays until the pipeline stops: the consumer reads the last scans
-        // (and counts them) after the producer has published them all.
-        prod.arg("--count")
-            .arg(n.to_string())
-            .arg("--linger")
-            .arg("inf");
-    }
-    if let Some(r) = rate {
-        prod.arg("--rate").arg(r.to_string());
-    }
-    if let Some(t) = &common.topic {
-        prod.arg("--topic").arg(t);
-    }
-    prod.arg(&data);
+    let source = match (&data, ros2) {
+        (Some(data), _) => {
+            let mut prod = stage("producer");
+            if let Some(n) = count {
+                // The producer stays until the pipeline stops: the consumer reads the last
+                // scans (and counts them) after the producer has published them all.
+                prod.arg("--count")
+                    .arg(n.to_string())
+                    .arg("--linger")
+                    .arg("inf");
+            }
+            if let Some(r) = rate {
+                prod.arg("--rate").arg(r.to_string());
+            }
+            if let Some(t) = &common.topic {
+                prod.arg("--topic").arg(t);
+            }
+            prod.arg(data);
+            launcher::Stage {
+                name: "producer",
+                command: prod,
+            }
+        }
+        (None, Some(r)) => {
+            // No --count: the bridge answers until the consumer has counted the masks
+            // and the pipeline stops it.
+            let mut bridge = configured("ros2");
+            ros2_stage_args(&mut bridge, r);
+            launcher::Stage {
+                name: "ros2",
+                command: bridge,
+            }
+        }
+        (None, None) => anyhow::bail!("no source of scans"),
+    };
     let mut stages = vec![launcher::Stage {
         name: "segmenter",
         command: seg,
@@ -248,10 +339,7 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         name: "consumer",
         command: con,
     });
-    stages.push(launcher::Stage {
-        name: "producer",
-        command: prod,
-    });
+    stages.push(source);
     let outcome = launcher::run(&cfg, stages, "consumer", restart)?;
     for s in &outcome.stages {
         match &s.failure {

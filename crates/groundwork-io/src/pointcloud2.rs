@@ -13,7 +13,7 @@ use groundwork_core::Point;
 
 use crate::cdr::{self, put_header, put_string, put_u32};
 use crate::error::FormatError;
-use crate::scan::{NonFinite, Scan, checked_count};
+use crate::scan::{Scan, checked_count};
 
 /// The schema name rosbag2 records.
 pub const SCHEMA_NAME: &str = "sensor_msgs/msg/PointCloud2";
@@ -55,7 +55,7 @@ pub const PROBABILITY_FIELD: &str = "ground_probability";
 const FLOAT32: u8 = 7;
 
 /// One entry of `fields`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct PointField {
     /// Field name (`x`, `intensity`, ...).
     pub name: String,
@@ -156,26 +156,60 @@ impl<'a> Cdr<'a> {
     }
 }
 
-/// Decodes one CDR-encoded PointCloud2 into a scan. `label` names the message in errors
-/// (the file and the message's place in it). Points with a non-finite coordinate are
-/// placeholders in a cloud that says `is_dense = false` (left out, mapped back), and an
-/// error in one that says it is dense.
-pub fn decode(label: &Path, msg: &[u8], max_points: usize) -> Result<Scan, FormatError> {
-    decode_with(label, msg, max_points, "intensity").map(|(scan, _)| scan)
+/// A PointCloud2 message with its point data borrowed: what [`parse`] reads from CDR, and
+/// what a DDS subscriber hands over after its own deserialization. Every reading of the
+/// layout goes through [`decode_cloud`], whichever way the message came.
+#[derive(Debug, Clone, Copy)]
+pub struct CloudRef<'a> {
+    /// `header.stamp.sec`.
+    pub stamp_sec: i32,
+    /// `header.stamp.nanosec`.
+    pub stamp_nanosec: u32,
+    /// `header.frame_id`.
+    pub frame_id: &'a str,
+    /// Rows (1: unorganized).
+    pub height: u32,
+    /// Points per row.
+    pub width: u32,
+    /// The point layout.
+    pub fields: &'a [PointField],
+    /// Multi-byte values are big-endian.
+    pub is_bigendian: bool,
+    /// Bytes per point.
+    pub point_step: u32,
+    /// Bytes per row.
+    pub row_step: u32,
+    /// The points.
+    pub data: &'a [u8],
+    /// No point has a non-finite coordinate.
+    pub is_dense: bool,
 }
 
-/// [`decode`], with the named field read into `Point::intensity`; also says whether the
-/// message has that field.
-fn decode_with(
-    label: &Path,
-    msg: &[u8],
-    max_points: usize,
-    value_field: &str,
-) -> Result<(Scan, bool), FormatError> {
+/// A PointCloud2 parsed from CDR: the owned parts of a [`CloudRef`].
+#[derive(Debug)]
+pub struct Parsed<'a> {
+    frame_id: String,
+    fields: Vec<PointField>,
+    cloud: CloudRef<'a>,
+}
+
+impl<'a> Parsed<'a> {
+    /// The message, its data borrowed from the CDR buffer.
+    pub fn cloud(&self) -> CloudRef<'_> {
+        CloudRef {
+            frame_id: &self.frame_id,
+            fields: &self.fields,
+            ..self.cloud
+        }
+    }
+}
+
+/// Parses a CDR-encoded PointCloud2 (every length checked against what remains).
+pub fn parse<'a>(label: &Path, msg: &'a [u8]) -> Result<Parsed<'a>, FormatError> {
     let bad = |m: String| FormatError::malformed(label, m);
     let mut c = Cdr::new(msg).map_err(bad)?;
-    let sec = c.u32("header.stamp.sec").map_err(bad)? as i32;
-    let nanosec = c.u32("header.stamp.nanosec").map_err(bad)?;
+    let stamp_sec = c.u32("header.stamp.sec").map_err(bad)? as i32;
+    let stamp_nanosec = c.u32("header.stamp.nanosec").map_err(bad)?;
     let frame_id = c.string("header.frame_id").map_err(bad)?;
     let height = c.u32("height").map_err(bad)?;
     let width = c.u32("width").map_err(bad)?;
@@ -200,104 +234,516 @@ fn decode_with(
             count,
         });
     }
-    let big_endian = c.u8("is_bigendian").map_err(bad)? != 0;
-    let point_step = c.u32("point_step").map_err(bad)? as usize;
-    let row_step = c.u32("row_step").map_err(bad)? as usize;
+    let is_bigendian = c.u8("is_bigendian").map_err(bad)? != 0;
+    let point_step = c.u32("point_step").map_err(bad)?;
+    let row_step = c.u32("row_step").map_err(bad)?;
     let data = c.bytes("data").map_err(bad)?;
-    let dense = c.u8("is_dense").map_err(bad)? != 0;
+    let is_dense = c.u8("is_dense").map_err(bad)? != 0;
+    Ok(Parsed {
+        frame_id,
+        fields,
+        cloud: CloudRef {
+            stamp_sec,
+            stamp_nanosec,
+            frame_id: "",
+            height,
+            width,
+            fields: &[],
+            is_bigendian,
+            point_step,
+            row_step,
+            data,
+            is_dense,
+        },
+    })
+}
 
-    let n = checked_count(label, u64::from(height) * u64::from(width), max_points)?;
-    if n == 0 {
-        return Err(FormatError::Empty {
-            path: label.to_path_buf(),
-        });
-    }
-    let (w, h) = (width as usize, height as usize);
-    if row_step < w * point_step {
-        return Err(bad(format!(
-            "row_step {row_step} is shorter than width {w} × point_step {point_step}"
-        )));
-    }
-    let need = (h - 1) * row_step + w * point_step;
-    if data.len() < need {
-        return Err(bad(format!(
-            "data has {} bytes, {h} rows of {w} points (row_step {row_step}, point_step {point_step}) need {need}",
-            data.len()
-        )));
-    }
-    let field = |name: &str| -> Result<Option<(usize, u8)>, FormatError> {
-        let Some(f) = fields.iter().find(|f| f.name == name) else {
-            return Ok(None);
-        };
-        let size = datatype_size(f.datatype).ok_or_else(|| {
-            bad(format!(
-                "field {name:?} has unknown datatype {}",
-                f.datatype
-            ))
-        })?;
-        if f.offset as usize + size > point_step {
-            return Err(bad(format!(
-                "field {name:?} at offset {} does not fit in point_step {point_step}",
-                f.offset
-            )));
-        }
-        Ok(Some((f.offset as usize, f.datatype)))
-    };
-    let [x, y, z] = ["x", "y", "z"].map(field);
-    let (Some(x), Some(y), Some(z)) = (x?, y?, z?) else {
-        return Err(bad("PointCloud2 has no x, y and z fields".into()));
-    };
-    let intensity = field(value_field)?;
-    let read = |p: &[u8], (off, t): (usize, u8)| -> f32 {
-        let b = &p[off..];
-        macro_rules! get {
-            ($ty:ty, $n:expr) => {{
-                let a: [u8; $n] = std::array::from_fn(|i| b[i]);
-                if big_endian {
-                    <$ty>::from_be_bytes(a)
-                } else {
-                    <$ty>::from_le_bytes(a)
-                }
-            }};
-        }
-        match t {
-            1 => get!(i8, 1) as f32,
-            2 => get!(u8, 1) as f32,
-            3 => get!(i16, 2) as f32,
-            4 => get!(u16, 2) as f32,
-            5 => get!(i32, 4) as f32,
-            6 => get!(u32, 4) as f32,
-            7 => get!(f32, 4),
-            _ => get!(f64, 8) as f32,
-        }
-    };
-    let mut records = Vec::with_capacity(n);
-    for r in 0..h {
-        let row = &data[r * row_step..];
-        for k in 0..w {
-            let p = &row[k * point_step..(k + 1) * point_step];
-            records.push(Point {
-                x: read(p, x),
-                y: read(p, y),
-                z: read(p, z),
-                intensity: intensity.map_or(0.0, |i| read(p, i)),
+/// Decodes one CDR-encoded PointCloud2 into a scan. `label` names the message in errors
+/// (the file and the message's place in it). Points with a non-finite coordinate are
+/// placeholders in a cloud that says `is_dense = false` (left out, mapped back), and an
+/// error in one that says it is dense.
+pub fn decode(label: &Path, msg: &[u8], max_points: usize) -> Result<Scan, FormatError> {
+    decode_cloud(label, &parse(label, msg)?.cloud(), max_points)
+}
+
+/// [`decode`] for a message already parsed (by [`parse`] or a DDS subscriber).
+pub fn decode_cloud(
+    label: &Path,
+    cloud: &CloudRef<'_>,
+    max_points: usize,
+) -> Result<Scan, FormatError> {
+    decode_with(label, cloud, max_points, "intensity").map(|(scan, _)| scan)
+}
+
+/// The checked geometry of a cloud's records.
+#[derive(Debug)]
+struct Layout {
+    records: usize,
+    height: usize,
+    width: usize,
+    point_step: usize,
+    row_step: usize,
+}
+
+impl Layout {
+    fn of(label: &Path, cloud: &CloudRef<'_>, max_points: usize) -> Result<Self, FormatError> {
+        let bad = |m: String| FormatError::malformed(label, m);
+        let (height, width) = (cloud.height, cloud.width);
+        let n = checked_count(label, u64::from(height) * u64::from(width), max_points)?;
+        if n == 0 {
+            return Err(FormatError::Empty {
+                path: label.to_path_buf(),
             });
         }
+        let (w, h) = (width as usize, height as usize);
+        let (point_step, row_step) = (cloud.point_step as usize, cloud.row_step as usize);
+        if point_step == 0 {
+            return Err(bad("point_step is 0".into()));
+        }
+        if row_step < w * point_step {
+            return Err(bad(format!(
+                "row_step {row_step} is shorter than width {w} × point_step {point_step}"
+            )));
+        }
+        let need = (h - 1) * row_step + w * point_step;
+        if cloud.data.len() < need {
+            return Err(bad(format!(
+                "data has {} bytes, {h} rows of {w} points (row_step {row_step}, point_step {point_step}) need {need}",
+                cloud.data.len()
+            )));
+        }
+        Ok(Self {
+            records: n,
+            height: h,
+            width: w,
+            point_step,
+            row_step,
+        })
     }
-    let rule = if dense {
-        NonFinite::Reject
-    } else {
-        NonFinite::Skip
+
+    /// Where record `r` starts, bytes.
+    #[inline]
+    fn record_offset(&self, r: usize) -> usize {
+        if self.height == 1 {
+            r * self.point_step
+        } else {
+            (r / self.width) * self.row_step + (r % self.width) * self.point_step
+        }
+    }
+
+    /// The bytes of record `r`.
+    #[inline]
+    fn record<'d>(&self, data: &'d [u8], r: usize) -> &'d [u8] {
+        let o = self.record_offset(r);
+        &data[o..o + self.point_step]
+    }
+
+    /// The bytes of every record, in order (rows, then points within a row).
+    fn records<'d>(&self, data: &'d [u8]) -> impl Iterator<Item = &'d [u8]> {
+        self.records_in(data, 1)
+    }
+
+    /// Every record of `data` seen as units of `unit` bytes (which divides the steps).
+    fn records_in<'d, T>(&self, data: &'d [T], unit: usize) -> impl Iterator<Item = &'d [T]> {
+        let (step, row_step) = (self.point_step / unit, self.row_step / unit);
+        let row_len = self.width * step;
+        // `of` checked that `data` holds every row (the last without its padding).
+        data.chunks(row_step.max(1))
+            .take(self.height)
+            .flat_map(move |row| row[..row_len].chunks_exact(step))
+    }
+}
+
+/// The points of a cloud, read in place: its layout checked, x, y and z located, its
+/// no-return placeholders found. [`decode_cloud`] collects them into a [`Scan`]; the ROS 2
+/// bridge copies them straight into shared memory.
+#[derive(Debug)]
+pub struct CloudPoints<'a> {
+    data: &'a [u8],
+    layout: Layout,
+    xyz: [(usize, u8); 3],
+    /// The field read into `Point::intensity`.
+    value: Option<(usize, u8)>,
+    big_endian: bool,
+    /// Every field read is a little-endian FLOAT32 (most drivers): no per-value dispatch.
+    plain: bool,
+    /// Moreover 4-byte aligned, in data this machine can read as f32: the records as
+    /// runs of floats, the fields' offsets in floats.
+    floats: Option<&'a [f32]>,
+    /// The record of each point, where placeholders were left out.
+    source_index: Option<Vec<u32>>,
+}
+
+impl<'a> CloudPoints<'a> {
+    /// The points of `cloud`, intensity from its `intensity` field (0 without one).
+    /// Errors as [`decode`]'s.
+    pub fn new(label: &Path, cloud: &CloudRef<'a>, max_points: usize) -> Result<Self, FormatError> {
+        Self::with_value(label, cloud, max_points, "intensity")
+    }
+
+    /// [`CloudPoints::new`], the named field read into `Point::intensity`.
+    fn with_value(
+        label: &Path,
+        cloud: &CloudRef<'a>,
+        max_points: usize,
+        value_field: &str,
+    ) -> Result<Self, FormatError> {
+        let bad = |m: String| FormatError::malformed(label, m);
+        let layout = Layout::of(label, cloud, max_points)?;
+        let point_step = layout.point_step;
+        let field = |name: &str| -> Result<Option<(usize, u8)>, FormatError> {
+            let Some(f) = cloud.fields.iter().find(|f| f.name == name) else {
+                return Ok(None);
+            };
+            let size = datatype_size(f.datatype).ok_or_else(|| {
+                bad(format!(
+                    "field {name:?} has unknown datatype {}",
+                    f.datatype
+                ))
+            })?;
+            if f.offset as usize + size > point_step {
+                return Err(bad(format!(
+                    "field {name:?} at offset {} does not fit in point_step {point_step}",
+                    f.offset
+                )));
+            }
+            Ok(Some((f.offset as usize, f.datatype)))
+        };
+        let [x, y, z] = ["x", "y", "z"].map(field);
+        let (Some(x), Some(y), Some(z)) = (x?, y?, z?) else {
+            return Err(bad("PointCloud2 has no x, y and z fields".into()));
+        };
+        let value = field(value_field)?;
+        let big_endian = cloud.is_bigendian;
+        let f32_le = |f: (usize, u8)| f.1 == FLOAT32 && !big_endian;
+        let plain = [x, y, z].into_iter().all(f32_le) && value.is_none_or(f32_le);
+        let aligned = |f: (usize, u8)| f.0.is_multiple_of(4);
+        let floats = (plain
+            && cfg!(target_endian = "little")
+            && layout.point_step.is_multiple_of(4)
+            && layout.row_step.is_multiple_of(4)
+            && [x, y, z].into_iter().all(aligned)
+            && value.is_none_or(aligned))
+        .then(|| {
+            let need = (layout.height - 1) * layout.row_step + layout.width * layout.point_step;
+            bytemuck::try_cast_slice::<u8, f32>(&cloud.data[..need]).ok()
+        })
+        .flatten();
+        let mut points = Self {
+            data: cloud.data,
+            layout,
+            xyz: [x, y, z],
+            value,
+            big_endian,
+            plain,
+            floats,
+            source_index: None,
+        };
+        points.find_placeholders(label, cloud.is_dense)?;
+        Ok(points)
+    }
+
+    /// Records with a non-finite coordinate: an error in a cloud that says it is dense,
+    /// else placeholders, left out and mapped back.
+    fn find_placeholders(&mut self, label: &Path, dense: bool) -> Result<(), FormatError> {
+        let first = match self.floats {
+            Some(f) => {
+                let [x, y, z] = self.xyz.map(|(off, _)| off / 4);
+                first_placeholder(self.layout.records_in(f, 4).map(|c| [c[x], c[y], c[z]]))
+            }
+            None => first_placeholder(self.layout.records(self.data).map(|p| self.xyz_of(p))),
+        };
+        let Some(first) = first else {
+            return Ok(());
+        };
+        if dense {
+            let p = self.read(first);
+            return Err(FormatError::NonFinite {
+                path: label.to_path_buf(),
+                index: first,
+                x: p.x,
+                y: p.y,
+                z: p.z,
+            });
+        }
+        let n = self.layout.records;
+        let finite = |p: Point| p.x.is_finite() && p.y.is_finite() && p.z.is_finite();
+        let mut index = Vec::with_capacity(n);
+        index.extend(0..first as u32);
+        index.extend(
+            ((first + 1)..n)
+                .filter(|&r| finite(self.read(r)))
+                .map(|r| r as u32),
+        );
+        if index.is_empty() {
+            return Err(FormatError::malformed(
+                label,
+                format!("none of its {n} points has finite coordinates"),
+            ));
+        }
+        self.source_index = Some(index);
+        Ok(())
+    }
+
+    /// x, y and z of one record.
+    #[inline]
+    fn xyz_of(&self, p: &[u8]) -> [f32; 3] {
+        if self.plain {
+            self.xyz.map(|(off, _)| le_f32(p, off))
+        } else {
+            self.xyz.map(|f| read_value(p, f, self.big_endian))
+        }
+    }
+
+    /// Points (records with finite coordinates).
+    pub fn len(&self) -> usize {
+        self.source_index
+            .as_ref()
+            .map_or(self.layout.records, Vec::len)
+    }
+
+    /// Whether there is no point (never: such a cloud is an error).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Point `i`.
+    #[inline]
+    pub fn point(&self, i: usize) -> Point {
+        let r = self.source_index.as_ref().map_or(i, |s| s[i] as usize);
+        self.read(r)
+    }
+
+    /// Record `r` as a point.
+    #[inline]
+    fn read(&self, r: usize) -> Point {
+        if let Some(f) = self.floats {
+            let o = self.layout.record_offset(r) / 4;
+            let c = &f[o..o + self.layout.point_step / 4];
+            let [x, y, z] = self.xyz.map(|(off, _)| c[off / 4]);
+            let intensity = self.value.map_or(0.0, |(off, _)| c[off / 4]);
+            return Point { x, y, z, intensity };
+        }
+        let p = self.layout.record(self.data, r);
+        let [x, y, z] = self.xyz_of(p);
+        let intensity = match self.value {
+            None => 0.0,
+            Some((off, _)) if self.plain => le_f32(p, off),
+            Some(f) => read_value(p, f, self.big_endian),
+        };
+        Point { x, y, z, intensity }
+    }
+
+    /// The scan's records and their map, without its points (to map one value per point
+    /// back onto the records).
+    pub fn records_map(&self) -> Scan {
+        Scan {
+            points: Vec::new(),
+            source_index: self.source_index.clone(),
+            records: self.layout.records,
+            ..Scan::default()
+        }
+    }
+}
+
+/// The first record with a non-finite coordinate.
+fn first_placeholder(mut xyz: impl Iterator<Item = [f32; 3]>) -> Option<usize> {
+    xyz.position(|p| !p.iter().all(|v| v.is_finite()))
+}
+
+/// A little-endian FLOAT32 at `off` (whose place in the record was checked).
+#[inline]
+fn le_f32(p: &[u8], off: usize) -> f32 {
+    p.get(off..off + 4)
+        .and_then(|b| b.try_into().ok())
+        .map_or(f32::NAN, f32::from_le_bytes)
+}
+
+/// One value of `datatype` at `off` in record `p` (checked to fit), as f32.
+fn read_value(p: &[u8], (off, t): (usize, u8), big_endian: bool) -> f32 {
+    macro_rules! get {
+        ($ty:ty, $n:expr) => {{
+            let a: [u8; $n] = p
+                .get(off..off + $n)
+                .and_then(|b| b.try_into().ok())
+                .unwrap_or([0; $n]);
+            if big_endian {
+                <$ty>::from_be_bytes(a)
+            } else {
+                <$ty>::from_le_bytes(a)
+            }
+        }};
+    }
+    match t {
+        1 => get!(i8, 1) as f32,
+        2 => get!(u8, 1) as f32,
+        3 => get!(i16, 2) as f32,
+        4 => get!(u16, 2) as f32,
+        5 => get!(i32, 4) as f32,
+        6 => get!(u32, 4) as f32,
+        7 => get!(f32, 4),
+        _ => get!(f64, 8) as f32,
+    }
+}
+
+/// [`decode`], with the named field read into `Point::intensity`; also says whether the
+/// message has that field.
+fn decode_with(
+    label: &Path,
+    cloud: &CloudRef<'_>,
+    max_points: usize,
+    value_field: &str,
+) -> Result<(Scan, bool), FormatError> {
+    let points = CloudPoints::with_value(label, cloud, max_points, value_field)?;
+    let found = points.value.is_some();
+    let mut scan = Scan {
+        points: (0..points.len()).map(|i| points.point(i)).collect(),
+        source_index: points.source_index,
+        records: points.layout.records,
+        ..Scan::default()
     };
-    let mut scan = Scan::from_records(label, records, rule)?;
-    if h > 1 {
-        scan.organized = Some((height, width));
+    if cloud.height > 1 {
+        scan.organized = Some((cloud.height, cloud.width));
     }
-    scan.stamp_ns = u64::try_from(sec)
+    scan.stamp_ns = u64::try_from(cloud.stamp_sec)
         .ok()
-        .map(|s| s * 1_000_000_000 + u64::from(nanosec));
-    scan.frame_id = Some(frame_id);
-    Ok((scan, intensity.is_some()))
+        .map(|s| s * 1_000_000_000 + u64::from(cloud.stamp_nanosec));
+    scan.frame_id = Some(cloud.frame_id.to_string());
+    Ok((scan, found))
+}
+
+/// The point data and layout of an output cloud built from an input one.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CloudData {
+    /// Rows.
+    pub height: u32,
+    /// Points per row.
+    pub width: u32,
+    /// The point layout.
+    pub fields: Vec<PointField>,
+    /// Bytes per point.
+    pub point_step: u32,
+    /// Bytes per row.
+    pub row_step: u32,
+    /// The points.
+    pub data: Vec<u8>,
+    /// No point has a non-finite coordinate.
+    pub is_dense: bool,
+}
+
+impl CloudData {
+    /// The cloud as a message with this stamp and frame.
+    pub fn cloud<'a>(
+        &'a self,
+        stamp_sec: i32,
+        stamp_nanosec: u32,
+        frame_id: &'a str,
+    ) -> CloudRef<'a> {
+        CloudRef {
+            stamp_sec,
+            stamp_nanosec,
+            frame_id,
+            height: self.height,
+            width: self.width,
+            fields: &self.fields,
+            is_bigendian: false,
+            point_step: self.point_step,
+            row_step: self.row_step,
+            data: &self.data,
+            is_dense: self.is_dense,
+        }
+    }
+}
+
+/// The input cloud, every record and field as it was, with a FLOAT32 `ground_probability`
+/// field appended (in the cloud's byte order, 4-byte aligned): one value per record,
+/// `per_record[i]` for record `i`. An organized cloud keeps its rows; rows are packed.
+/// A field of that name already in the input is dropped from the layout.
+pub fn with_probability(
+    label: &Path,
+    cloud: &CloudRef<'_>,
+    per_record: &[f32],
+    max_points: usize,
+) -> Result<CloudData, FormatError> {
+    let layout = Layout::of(label, cloud, max_points)?;
+    if per_record.len() != layout.records {
+        return Err(FormatError::malformed(
+            label,
+            format!(
+                "{} probabilities for {} records",
+                per_record.len(),
+                layout.records
+            ),
+        ));
+    }
+    let offset = layout.point_step.next_multiple_of(4);
+    let step = offset + 4;
+    let mut data = vec![0u8; step * layout.records];
+    for ((out, &p), record) in data
+        .chunks_exact_mut(step)
+        .zip(per_record)
+        .zip(layout.records(cloud.data))
+    {
+        out[..layout.point_step].copy_from_slice(record);
+        let bytes = if cloud.is_bigendian {
+            p.to_be_bytes()
+        } else {
+            p.to_le_bytes()
+        };
+        out[offset..].copy_from_slice(&bytes);
+    }
+    let mut fields: Vec<PointField> = cloud
+        .fields
+        .iter()
+        .filter(|f| f.name != PROBABILITY_FIELD)
+        .cloned()
+        .collect();
+    fields.push(PointField {
+        name: PROBABILITY_FIELD.into(),
+        offset: offset as u32,
+        datatype: FLOAT32,
+        count: 1,
+    });
+    Ok(CloudData {
+        height: cloud.height,
+        width: cloud.width,
+        fields,
+        point_step: step as u32,
+        row_step: (step * layout.width) as u32,
+        data,
+        is_dense: cloud.is_dense,
+    })
+}
+
+/// The records `keep` selects (one flag per record), every field as it was, as an
+/// unorganized cloud (height 1).
+pub fn select_records(
+    label: &Path,
+    cloud: &CloudRef<'_>,
+    keep: &[bool],
+    max_points: usize,
+) -> Result<CloudData, FormatError> {
+    let layout = Layout::of(label, cloud, max_points)?;
+    if keep.len() != layout.records {
+        return Err(FormatError::malformed(
+            label,
+            format!("{} flags for {} records", keep.len(), layout.records),
+        ));
+    }
+    let kept = keep.iter().filter(|&&k| k).count();
+    let mut data = Vec::with_capacity(kept * layout.point_step);
+    for (record, _) in layout.records(cloud.data).zip(keep).filter(|(_, k)| **k) {
+        data.extend_from_slice(record);
+    }
+    Ok(CloudData {
+        height: 1,
+        width: kept as u32,
+        fields: cloud.fields.to_vec(),
+        point_step: layout.point_step as u32,
+        row_step: (kept * layout.point_step) as u32,
+        data,
+        is_dense: cloud.is_dense,
+    })
 }
 
 /// Encodes a scan and one probability per point as a little-endian CDR PointCloud2 with
@@ -356,7 +802,16 @@ pub fn decode_probabilities(
     msg: &[u8],
     max_points: usize,
 ) -> Result<Vec<f32>, FormatError> {
-    let (scan, found) = decode_with(label, msg, max_points, PROBABILITY_FIELD)?;
+    probabilities(label, &parse(label, msg)?.cloud(), max_points)
+}
+
+/// [`decode_probabilities`] for a message already parsed.
+pub fn probabilities(
+    label: &Path,
+    cloud: &CloudRef<'_>,
+    max_points: usize,
+) -> Result<Vec<f32>, FormatError> {
+    let (scan, found) = decode_with(label, cloud, max_points, PROBABILITY_FIELD)?;
     if !found {
         return Err(FormatError::malformed(
             label,
@@ -370,6 +825,7 @@ pub fn decode_probabilities(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scan::NonFinite;
 
     #[test]
     fn encode_then_decode_keeps_points_probabilities_and_placeholders() {
@@ -422,5 +878,108 @@ mod tests {
         nan[data_start..data_start + 4].copy_from_slice(&f32::NAN.to_le_bytes());
         let e = decode(label, &nan, 10).unwrap_err().to_string();
         assert!(e.contains("non-finite"), "{e}");
+    }
+
+    /// A 2 × 2 organized cloud with a padded row and an extra `ring` field.
+    fn organized() -> (Vec<PointField>, Vec<u8>) {
+        let fields = vec![
+            PointField {
+                name: "x".into(),
+                offset: 0,
+                datatype: FLOAT32,
+                count: 1,
+            },
+            PointField {
+                name: "y".into(),
+                offset: 4,
+                datatype: FLOAT32,
+                count: 1,
+            },
+            PointField {
+                name: "z".into(),
+                offset: 8,
+                datatype: FLOAT32,
+                count: 1,
+            },
+            PointField {
+                name: "ring".into(),
+                offset: 12,
+                datatype: 4,
+                count: 1,
+            },
+        ];
+        // point_step 14, row_step 30 (2 bytes of padding per row).
+        let mut data = Vec::new();
+        for row in 0..2u16 {
+            for col in 0..2u16 {
+                let k = f32::from(2 * row + col);
+                let x = if (row, col) == (1, 0) { f32::NAN } else { k };
+                for v in [x, -k, 0.5 * k] {
+                    data.extend_from_slice(&v.to_le_bytes());
+                }
+                data.extend_from_slice(&(10 + row).to_le_bytes());
+            }
+            data.extend_from_slice(&[0xee, 0xee]);
+        }
+        (fields, data)
+    }
+
+    fn view<'a>(fields: &'a [PointField], data: &'a [u8]) -> CloudRef<'a> {
+        CloudRef {
+            stamp_sec: 5,
+            stamp_nanosec: 6,
+            frame_id: "os_lidar",
+            height: 2,
+            width: 2,
+            fields,
+            is_bigendian: false,
+            point_step: 14,
+            row_step: 30,
+            data,
+            is_dense: false,
+        }
+    }
+
+    #[test]
+    fn the_probability_field_is_appended_to_every_record_keeping_the_others() {
+        let (fields, data) = organized();
+        let input = view(&fields, &data);
+        let out = with_probability(Path::new("c"), &input, &[0.1, 0.2, 0.0, 0.9], 10).unwrap();
+        assert_eq!(
+            (out.height, out.width, out.point_step, out.row_step),
+            (2, 2, 20, 40)
+        );
+        assert_eq!(out.fields.len(), 5);
+        assert_eq!(out.fields[4].offset, 16);
+        let back = out.cloud(5, 6, "os_lidar");
+        assert_eq!(
+            probabilities(Path::new("c"), &back, 10).unwrap(),
+            vec![0.1, 0.2, 0.0, 0.9]
+        );
+        // Every input byte of every record is where it was; the ring field survives.
+        for i in 0..4 {
+            let src = &data[(i / 2) * 30 + (i % 2) * 14..][..14];
+            assert_eq!(&out.data[i * 20..i * 20 + 14], src, "record {i}");
+        }
+        let scan = decode_cloud(Path::new("c"), &back, 10).unwrap();
+        assert_eq!(scan.source_index, Some(vec![0, 1, 3]));
+        // A count that does not match the records is an error, not a short cloud.
+        assert!(with_probability(Path::new("c"), &input, &[0.5; 3], 10).is_err());
+    }
+
+    #[test]
+    fn selected_records_keep_their_bytes_in_order() {
+        let (fields, data) = organized();
+        let input = view(&fields, &data);
+        let out = select_records(Path::new("c"), &input, &[true, false, false, true], 10).unwrap();
+        assert_eq!(
+            (out.height, out.width, out.point_step, out.row_step),
+            (1, 2, 14, 28)
+        );
+        assert_eq!(&out.data[..14], &data[..14]);
+        assert_eq!(&out.data[14..], &data[30 + 14..30 + 28]);
+        let none = select_records(Path::new("c"), &input, &[false; 4], 10).unwrap();
+        assert_eq!((none.width, none.data.len()), (0, 0));
+        assert!(select_records(Path::new("c"), &input, &[true; 5], 10).is_err());
     }
 }

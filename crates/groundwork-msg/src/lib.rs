@@ -140,8 +140,8 @@ pub struct ScanHeader {
     pub stamps: StageStamps,
     /// 1 if `pose` holds the sensor's world pose, 0 for "no pose".
     pub has_pose: u32,
-    /// Reserved, keeps `pose` 8-byte aligned.
-    pub reserved: u32,
+    /// Where the scan came from (also keeps `pose` 8-byte aligned).
+    pub source: ScanSource,
     /// World from sensor, 4×4 row-major.
     pub pose: [f64; 16],
     /// The scan's coordinate frame, where its source names one.
@@ -159,7 +159,7 @@ impl Default for ScanHeader {
             source_index: 0,
             stamps: StageStamps::default(),
             has_pose: 0,
-            reserved: 0,
+            source: ScanSource::PRODUCER,
             pose: IDENTITY,
             frame_id: FrameId::default(),
         }
@@ -169,6 +169,18 @@ impl Default for ScanHeader {
 const IDENTITY: [f64; 16] = [
     1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
 ];
+
+/// The stage that published a scan.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, ZeroCopySend)]
+pub struct ScanSource(pub u32);
+
+impl ScanSource {
+    /// The producer (files, recordings, synthetic scans).
+    pub const PRODUCER: Self = Self(0);
+    /// The ROS 2 bridge (a PointCloud2 from DDS).
+    pub const ROS2: Self = Self(1);
+}
 
 /// Outcome of segmenting a scan: 0 = segmented, anything else names why the scan was
 /// rejected (the mask then has no payload).

@@ -19,13 +19,6 @@ SCANS = sorted((SEQ / "velodyne").glob("*.bin"))
 LABELED = [0, 1, 2]
 
 
-@pytest.fixture(scope="session")
-def cli() -> Path:
-    exe = os.environ.get("GROUNDWORK_CLI")
-    assert exe, "GROUNDWORK_CLI names the groundwork binary (test.sh sets it)"
-    return Path(exe)
-
-
 def run(cli: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [str(cli), *args], check=True, capture_output=True, text=True

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use groundwork_eval::{Confusion, Metrics, Protocol};
 use groundwork_io::{LabelClass, LabelMap, OutputTarget, Scan};
-use groundwork_msg::{MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint};
+use groundwork_msg::{MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint, ScanSource};
 use serde::Serialize;
 use tracing::{info, warn};
 
@@ -150,7 +150,7 @@ pub struct ConsumerStage {
     held: ScanWindow,
     warmup: u64,
     /// Scans seen and not yet answered: (producer epoch, sequence) → source index.
-    pending: BTreeMap<(u64, u64), u64>,
+    pending: BTreeMap<(u64, u64), (u64, ScanSource)>,
     last_scan: Option<(u64, u64)>,
     /// (segmenter epoch, mask sequence) of the last mask.
     last_mask: Option<(u64, u64)>,
@@ -204,7 +204,11 @@ impl ConsumerStage {
         }
         self.last_scan = Some((h.producer_epoch, h.sequence));
         let key = (h.producer_epoch, h.sequence);
-        if self.pending.insert(key, h.source_index).is_some() {
+        if self
+            .pending
+            .insert(key, (h.source_index, h.source))
+            .is_some()
+        {
             // The same scan twice (a misbehaving producer): the earlier copy is unanswered.
             r.scan_fate.unanswered += 1;
         }
@@ -229,7 +233,8 @@ impl ConsumerStage {
         }
         let ok = h.status == MaskStatus::OK;
         let held = self.held.take(h.producer_epoch, h.scan_sequence);
-        match self.pending.remove(&(h.producer_epoch, h.scan_sequence)) {
+        let paired = self.pending.remove(&(h.producer_epoch, h.scan_sequence));
+        match paired {
             Some(_) if ok => r.scan_fate.masked += 1,
             Some(_) => r.scan_fate.rejected += 1,
             None => r.unmatched_masks += 1,
@@ -242,7 +247,9 @@ impl ConsumerStage {
         r.out_of_bounds_points += u64::from(h.out_of_bounds_points);
         if r.segmented > self.warmup {
             let s = h.stamps;
+            let bridged = paired.is_some_and(|(_, source)| source == ScanSource::ROS2);
             self.stats.record(
+                bridged,
                 s.produced_ns,
                 s.published_ns,
                 s.segmenter_received_ns,

@@ -7,8 +7,11 @@ use serde::Serialize;
 
 /// Stages a message passes, in order; the last three are the detector's, from the stamps of
 /// its proposals (rows without samples are left out of the table).
-pub const STAGES: [&str; 10] = [
+pub const STAGES: [&str; 11] = [
     "producer fill",
+    // A scan from the ROS 2 bridge: from DDS's receipt of the cloud's last fragment to the
+    // scan published in shared memory (DDS queue, deserialization, checks, one copy).
+    "ros2 receipt to scan published",
     "scan transport",
     "segment",
     "mask transport",
@@ -22,7 +25,10 @@ pub const STAGES: [&str; 10] = [
 ];
 
 /// Index of the first detector row of [`STAGES`].
-const DETECTOR_ROWS: usize = 7;
+const DETECTOR_ROWS: usize = 8;
+
+/// Index of the "segment" row, which every segmented message has.
+const SEGMENT_ROW: usize = 3;
 
 /// Percentiles of one stage, µs.
 #[derive(Debug, Clone, Serialize)]
@@ -64,9 +70,11 @@ impl Default for LatencyStats {
 }
 
 impl LatencyStats {
-    /// Records one message from its stamps (ns) and the consumer's receive time.
+    /// Records one message from its stamps (ns) and the consumer's receive time; `bridged`:
+    /// the scan came from the ROS 2 bridge (its fill is the bridge's row).
     pub fn record(
         &mut self,
+        bridged: bool,
         produced: u64,
         published: u64,
         seg_in: u64,
@@ -75,17 +83,21 @@ impl LatencyStats {
     ) {
         let scan_hop = seg_in.saturating_sub(published);
         let mask_hop = consumed.saturating_sub(seg_out);
+        let fill = published.saturating_sub(produced);
         let d = [
-            published.saturating_sub(produced),
-            scan_hop,
-            seg_out.saturating_sub(seg_in),
-            mask_hop,
-            scan_hop + mask_hop,
-            consumed.saturating_sub(published),
-            consumed.saturating_sub(produced),
+            if bridged { None } else { Some(fill) },
+            bridged.then_some(fill),
+            Some(scan_hop),
+            Some(seg_out.saturating_sub(seg_in)),
+            Some(mask_hop),
+            Some(scan_hop + mask_hop),
+            Some(consumed.saturating_sub(published)),
+            Some(consumed.saturating_sub(produced)),
         ];
         for (h, v) in self.hist.iter_mut().zip(d) {
-            h.saturating_record(v.max(1));
+            if let Some(v) = v {
+                h.saturating_record(v.max(1));
+            }
         }
     }
 
@@ -129,7 +141,7 @@ impl LatencyStats {
 
     /// Samples recorded.
     pub fn len(&self) -> u64 {
-        self.hist[0].len()
+        self.hist[SEGMENT_ROW].len()
     }
 
     /// Whether nothing was recorded.
@@ -164,16 +176,24 @@ mod tests {
     fn stages_are_differences_of_stamps() {
         let mut s = LatencyStats::default();
         for i in 0..100u64 {
-            s.record(1000, 2000, 3000 + i, 10_000 + i, 11_000 + i);
+            s.record(false, 1000, 2000, 3000 + i, 10_000 + i, 11_000 + i);
         }
         let p = s.percentiles();
         assert_eq!(p[0].count, 100);
         assert!((p[0].p50 - 1.0).abs() < 0.01, "{:?}", p[0]);
-        assert!((p[2].p50 - 7.0).abs() < 0.01, "{:?}", p[2]);
+        assert_eq!(p[1].count, 0, "no bridged scan");
+        assert!((p[3].p50 - 7.0).abs() < 0.01, "{:?}", p[3]);
         // Transport: 1.0 + i ns scan hop + 1.0 µs mask hop, per message.
-        assert!((p[4].p50 - 2.05).abs() < 0.01, "{:?}", p[4]);
-        assert!((p[5].max - 9.099).abs() < 0.02, "{:?}", p[5]);
-        assert!((p[6].max - 10.099).abs() < 0.02, "{:?}", p[6]);
+        assert!((p[5].p50 - 2.05).abs() < 0.01, "{:?}", p[5]);
+        assert!((p[6].max - 9.099).abs() < 0.02, "{:?}", p[6]);
+        assert!((p[7].max - 10.099).abs() < 0.02, "{:?}", p[7]);
+        assert!(!s.table().contains("ros2"));
+        // A bridged scan's fill is the bridge's row, not the producer's.
+        s.record(true, 1000, 3000, 3500, 10_000, 11_000);
+        assert_eq!(s.stage("producer fill").unwrap().count, 100);
+        let b = s.stage("ros2 receipt to scan published").unwrap();
+        assert!(b.count == 1 && (b.p50 - 2.0).abs() < 0.01, "{b:?}");
+        assert_eq!(s.len(), 101);
         assert!(s.table().contains("end to end"));
         assert!(
             !s.table().contains("detect"),

@@ -1,0 +1,388 @@
+"""The ROS 2 bridge against an independent DDS implementation: Cyclone DDS's Python binding
+publishes sensor_msgs/PointCloud2 the way a ROS 2 driver does (topic rt/<name>, type
+sensor_msgs::msg::dds_::PointCloud2_, CDR) and subscribes to the answers. The answers must
+equal `groundwork segment` on the same points, keep the input's stamps and frames, and bad
+clouds and a restarting driver must not stop the bridge."""
+
+import gc
+import json
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.idl.types import array, float32, float64, int32, sequence, uint8, uint32
+from cyclonedds.pub import DataWriter
+from cyclonedds.qos import Policy, Qos
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+SCANS = sorted((Path(__file__).resolve().parents[3] / "tests/data/semantickitti-00/velodyne").glob("*.bin"))
+FLOAT32, UINT16 = 7, 4
+
+
+# ROS 2's message definitions as DDS types (what rosidl generates for sensor_msgs).
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: int32
+    nanosec: uint32
+
+
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+
+
+@dataclass
+class PointField(IdlStruct, typename="sensor_msgs::msg::dds_::PointField_"):
+    name: str
+    offset: uint32
+    datatype: uint8
+    count: uint32
+
+
+@dataclass
+class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
+    header: Header
+    height: uint32
+    width: uint32
+    fields: sequence[PointField]
+    is_bigendian: bool
+    point_step: uint32
+    row_step: uint32
+    data: sequence[uint8]
+    is_dense: bool
+
+
+# The answers' other types: boxes (vision_msgs 4), markers, static transforms.
+@dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: float64
+    y: float64
+    z: float64
+
+
+@dataclass
+class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
+    x: float64
+    y: float64
+    z: float64
+
+
+@dataclass
+class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
+    x: float64
+    y: float64
+    z: float64
+    w: float64
+
+
+@dataclass
+class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
+    position: Point
+    orientation: Quaternion
+
+
+@dataclass
+class PoseWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovariance_"):
+    pose: Pose
+    covariance: array[float64, 36]
+
+
+@dataclass
+class ObjectHypothesis(IdlStruct, typename="vision_msgs::msg::dds_::ObjectHypothesis_"):
+    class_id: str
+    score: float64
+
+
+@dataclass
+class ObjectHypothesisWithPose(IdlStruct, typename="vision_msgs::msg::dds_::ObjectHypothesisWithPose_"):
+    hypothesis: ObjectHypothesis
+    pose: PoseWithCovariance
+
+
+@dataclass
+class BoundingBox3D(IdlStruct, typename="vision_msgs::msg::dds_::BoundingBox3D_"):
+    center: Pose
+    size: Vector3
+
+
+@dataclass
+class Detection3D(IdlStruct, typename="vision_msgs::msg::dds_::Detection3D_"):
+    header: Header
+    results: sequence[ObjectHypothesisWithPose]
+    bbox: BoundingBox3D
+    id: str
+
+
+@dataclass
+class Detection3DArray(IdlStruct, typename="vision_msgs::msg::dds_::Detection3DArray_"):
+    header: Header
+    detections: sequence[Detection3D]
+
+
+@dataclass
+class Duration(IdlStruct, typename="builtin_interfaces::msg::dds_::Duration_"):
+    sec: int32
+    nanosec: uint32
+
+
+@dataclass
+class ColorRGBA(IdlStruct, typename="std_msgs::msg::dds_::ColorRGBA_"):
+    r: float32
+    g: float32
+    b: float32
+    a: float32
+
+
+@dataclass
+class CompressedImage(IdlStruct, typename="sensor_msgs::msg::dds_::CompressedImage_"):
+    header: Header
+    format: str
+    data: sequence[uint8]
+
+
+@dataclass
+class UVCoordinate(IdlStruct, typename="visualization_msgs::msg::dds_::UVCoordinate_"):
+    u: float32
+    v: float32
+
+
+@dataclass
+class MeshFile(IdlStruct, typename="visualization_msgs::msg::dds_::MeshFile_"):
+    filename: str
+    data: sequence[uint8]
+
+
+@dataclass
+class Marker(IdlStruct, typename="visualization_msgs::msg::dds_::Marker_"):
+    header: Header
+    ns: str
+    id: int32
+    type: int32
+    action: int32
+    pose: Pose
+    scale: Vector3
+    color: ColorRGBA
+    lifetime: Duration
+    frame_locked: bool
+    points: sequence[Point]
+    colors: sequence[ColorRGBA]
+    texture_resource: str
+    texture: CompressedImage
+    uv_coordinates: sequence[UVCoordinate]
+    text: str
+    mesh_resource: str
+    mesh_file: MeshFile
+    mesh_use_embedded_materials: bool
+
+
+@dataclass
+class MarkerArray(IdlStruct, typename="visualization_msgs::msg::dds_::MarkerArray_"):
+    markers: sequence[Marker]
+
+
+@dataclass
+class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
+    translation: Vector3
+    rotation: Quaternion
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
+    header: Header
+    child_frame_id: str
+    transform: Transform
+
+
+@dataclass
+class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
+    transforms: sequence[TransformStamped]
+
+
+def xyzi_cloud(points: np.ndarray, sec: int, frame: str, height: int = 1) -> PointCloud2:
+    """A cloud as most drivers publish it: x, y, z, intensity as float32."""
+    fields = [PointField(n, 4 * i, FLOAT32, 1) for i, n in enumerate(["x", "y", "z", "intensity"])]
+    width = len(points) // height
+    return PointCloud2(Header(Time(sec, 250_000_000), frame), height, width, fields, False, 16,
+                       16 * width, points.astype(np.float32).tobytes(), not np.isnan(points).any())
+
+
+def as_array(cloud: PointCloud2, name: str) -> np.ndarray:
+    """One float32 field of every record of a received cloud."""
+    f = next(f for f in cloud.fields if f.name == name)
+    assert f.datatype == FLOAT32
+    raw = np.frombuffer(bytes(cloud.data), dtype=np.uint8).reshape(-1, cloud.point_step)
+    return raw[:, f.offset:f.offset + 4].copy().view(np.float32).ravel()
+
+
+def test_the_bridge_answers_every_cloud_as_segment_would(cli: Path, tmp_path: Path) -> None:
+    pid = os.getpid()
+    domain = 100 + pid % 100
+    ns = f"/gw_test_{pid}"
+    reliable = Qos(Policy.Reliability.Reliable(duration(seconds=2)), Policy.History.KeepLast(10))
+
+    # The clouds a driver publishes (good ones numbered, bad ones in between).
+    # 30,000 points of each frame: whole 2 MB clouds over UDP need socket buffers larger
+    # than a default Linux allows (net.core.rmem_max), which a test should not change.
+    frame0 = np.fromfile(SCANS[0], np.float32).reshape(-1, 4)[:30_000]
+    frame1 = np.fromfile(SCANS[1], np.float32).reshape(-1, 4)[:30_000]  # 2 rows of 15,000
+    frame2 = np.fromfile(SCANS[2], np.float32).reshape(-1, 4)[:30_000]
+    # Frame 2 as a non-dense cloud with 50 no-return placeholders, fields in another order
+    # and a ring field: intensity, x, y, z (float32), ring (uint16), 2 bytes of padding.
+    holes = np.arange(50) * 500 + 7
+    with_holes = np.insert(frame2, holes - np.arange(50), np.nan, axis=0)
+    finite2 = ~np.isnan(with_holes[:, 0])
+    rec = np.zeros(len(with_holes), dtype=[("i", "<f4"), ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                            ("ring", "<u2"), ("pad", "V2")])
+    rec["i"], rec["x"], rec["y"], rec["z"] = with_holes[:, 3], with_holes[:, 0], with_holes[:, 1], with_holes[:, 2]
+    rec["ring"] = np.arange(len(rec)) % 64
+    odd = PointCloud2(Header(Time(1_700_000_002, 0), "os_lidar"), 1, len(rec),
+                      [PointField("intensity", 0, FLOAT32, 1), PointField("x", 4, FLOAT32, 1),
+                       PointField("y", 8, FLOAT32, 1), PointField("z", 12, FLOAT32, 1),
+                       PointField("ring", 16, UINT16, 1)],
+                      False, 20, 20 * len(rec), rec.tobytes(), False)
+    good = [xyzi_cloud(frame0, 1_700_000_000, "velodyne"),
+            xyzi_cloud(frame1, 1_700_000_001, "velodyne", height=2), odd]
+    no_z = xyzi_cloud(frame1[:1000], 1_700_000_010, "velodyne")
+    no_z.fields = no_z.fields[:2] + no_z.fields[3:]
+    nan_in_dense = xyzi_cloud(frame0[:1000], 1_700_000_011, "velodyne")
+    nan_in_dense.data = bytes(nan_in_dense.data[:40]) + np.float32(np.nan).tobytes() + bytes(nan_in_dense.data[44:])
+
+    # What `groundwork segment` makes of the same points (a folder of .bin, no poses).
+    bins = tmp_path / "bins"
+    bins.mkdir()
+    for k, pts in enumerate([frame0, frame1, frame2]):
+        pts.astype(np.float32).tofile(bins / f"{k:06d}.bin")
+    subprocess.run([str(cli), "segment", "--out", str(tmp_path / "seg"), str(bins)], check=True,
+                   capture_output=True)
+    expected = [np.fromfile(tmp_path / "seg" / f"{k:06d}.prob", np.float32) for k in range(3)]
+    subprocess.run([str(cli), "detect", "--out", str(tmp_path / "det"), str(bins)], check=True,
+                   capture_output=True)
+    proposals = [json.loads((tmp_path / "det" / f"{k:06d}.proposals.json").read_text())["proposals"]
+                 for k in range(3)]
+
+    pipeline = subprocess.Popen(
+        [str(cli), "pipeline", "--ros2", "--prefix", f"gw-py-ros2-{pid}",
+         "--domain-id", str(domain), "--input-topic", f"{ns}/points_in", "--namespace", ns, "--publish-ground"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        dp = DomainParticipant(domain)
+        kinds = {"points": PointCloud2, "nonground": PointCloud2, "ground": PointCloud2,
+                 "detections": Detection3DArray, "markers": MarkerArray}
+        readers = {n: DataReader(dp, Topic(dp, f"rt{ns}/groundwork/{n}", t, qos=reliable), qos=reliable)
+                   for n, t in kinds.items()}
+        static = Qos(Policy.Reliability.Reliable(duration(seconds=2)), Policy.History.KeepLast(1),
+                     Policy.Durability.TransientLocal)
+        readers["tf"] = DataReader(dp, Topic(dp, "rt/tf_static", TFMessage, qos=static), qos=static)
+        kinds["tf"] = TFMessage
+        got = {n: [] for n in readers}
+
+        def collect(n_points: int, timeout: float = 60) -> None:
+            end = time.time() + timeout
+            def take() -> None:
+                # Data samples only: a writer that leaves sends invalid (state-only) samples.
+                for n, r in readers.items():
+                    got[n].extend(m for m in r.take(N=10) if isinstance(m, kinds[n]))
+
+            while (min(len(got[n]) for n in kinds if n != "tf") < n_points and time.time() < end
+                   and pipeline.poll() is None):
+                take()
+                time.sleep(0.05)
+            take()
+
+        def driver() -> tuple:
+            p = DomainParticipant(domain)
+            w = DataWriter(p, Topic(p, f"rt{ns}/points_in", PointCloud2, qos=reliable), qos=reliable)
+            end = time.time() + 60
+            while not (w.get_matched_subscriptions() and all(r.get_matched_publications() for r in readers.values())):
+                if pipeline.poll() is not None:
+                    raise AssertionError("the pipeline stopped: " + pipeline.stderr.read()[-4000:])
+                assert time.time() < end, "the bridge did not appear"
+                time.sleep(0.05)
+            # Our writer knows the bridge's reader; the bridge's best-effort reader drops
+            # what a writer it has not yet discovered sends. Give discovery its other half.
+            time.sleep(1.0)
+            return p, w
+
+        drv, w = driver()
+        w.write(good[0])
+        collect(1)
+        # The driver stops and starts again (a new participant and writer).
+        del w, drv
+        gc.collect()
+        time.sleep(0.5)
+        drv, w = driver()
+        for cloud in [no_z, good[1], nan_in_dense, good[2]]:
+            w.write(cloud)
+            time.sleep(0.3)
+        collect(3)
+        # Every answer is in: stop the pipeline as a user does (Ctrl-C).
+        pipeline.send_signal(signal.SIGINT)
+        out, err = pipeline.communicate(timeout=60)
+    finally:
+        if pipeline.poll() is None:
+            pipeline.kill()
+            pipeline.communicate()
+
+    assert len(got["points"]) == 3, (len(got["points"]), err[-3000:])
+    assert [len(got[n]) for n in ["nonground", "ground", "detections", "markers"]] == [3, 3, 3, 3]
+    # Bad clouds were skipped and counted: done, with bad input (exit code 1).
+    assert pipeline.returncode == 1, err[-3000:]
+    assert err.count("skipped a cloud") == 2, [line for line in err.splitlines() if "skipped" in line]
+    assert "no x, y and z fields" in err and "non-finite" in err
+    assert "ros2 receipt to scan published" in out, out
+
+    finite = [np.ones(len(frame0), bool), np.ones(len(frame1), bool), finite2]
+    for k, (sent, answer) in enumerate(zip(good, got["points"])):
+        assert answer.header == sent.header, k
+        assert (answer.height, answer.width) == (sent.height, sent.width)
+        assert [f.name for f in answer.fields] == [f.name for f in sent.fields] + ["ground_probability"]
+        probs = as_array(answer, "ground_probability")
+        # One probability per record: the segment CLI's, bit for bit; placeholders 0.
+        assert np.array_equal(probs[finite[k]].view(np.uint32), expected[k].view(np.uint32)), k
+        assert (probs[~finite[k]] == 0).all()
+        # Every input field survives (the ring field, the placeholders' NaN).
+        raw = np.frombuffer(bytes(answer.data), np.uint8).reshape(-1, answer.point_step)
+        assert raw[:, :sent.point_step].tobytes() == bytes(sent.data)
+        # Non-ground and ground: the classified records split at 0.5, in input order.
+        for name, pick in [("nonground", probs < 0.5), ("ground", probs >= 0.5)]:
+            part = got[name][k]
+            assert part.header == sent.header and part.height == 1 and part.is_dense
+            keep = pick & finite[k]
+            src = np.frombuffer(bytes(sent.data), np.uint8).reshape(-1, sent.point_step)
+            assert part.width == keep.sum()
+            assert bytes(part.data) == src[keep].tobytes(), (k, name)
+
+    # Proposals: `groundwork detect`'s on the same points, as boxes in the mount's
+    # ground-aligned frame (base_footprint), stamped with the cloud's stamp.
+    f32 = np.float32
+    for k, (sent, boxes, markers) in enumerate(zip(good, got["detections"], got["markers"])):
+        want = proposals[k]
+        assert boxes.header == Header(sent.header.stamp, "base_footprint")
+        assert [d.id for d in boxes.detections] == [str(p["id"]) for p in want]
+        for d, p in zip(boxes.detections, want):
+            c, size = d.bbox.center.position, d.bbox.size
+            assert (f32(c.x), f32(c.y)) == (f32(p["center"][0]), f32(p["center"][1]))
+            assert f32(c.z) == f32(f32(p["ground_z"]) + 0.5 * (f32(p["bottom"]) + f32(p["height"])))
+            assert (f32(size.x), f32(size.y)) == (f32(p["length"]), f32(p["width"]))
+            q = d.bbox.center.orientation
+            assert abs(2 * np.arctan2(q.z, q.w) - p["yaw"]) < 1e-6
+            assert d.results[0].hypothesis.class_id == ("+".join(p["flags"]) or "object")
+        # The markers: clear the last scan's, then one cube per proposal.
+        assert markers.markers[0].action == 3
+        assert [m.id for m in markers.markers[1:]] == [p["id"] for p in want]
+        assert all(m.type == 1 and m.header == boxes.header for m in markers.markers[1:])
+    # The mount (hdl64e: 1.73 m up, level) for both frames the clouds named, in one message.
+    tf = got["tf"][-1].transforms
+    assert sorted(t.child_frame_id for t in tf) == ["os_lidar", "velodyne"]
+    for t in tf:
+        assert t.header.frame_id == "base_footprint"
+        assert abs(t.transform.translation.z - 1.73) < 1e-9 and t.transform.rotation.w == 1.0

@@ -1,0 +1,808 @@
+//! The bridge: three stages in one process (one thread each), sharing the DDS participant
+//! and the clouds in flight. `CloudsIn` is a source: it waits on the DDS subscription and
+//! publishes each cloud as a scan. `AnswersOut` wakes on masks and publishes the answering
+//! clouds (and the mount on `/tf_static`). `DetectionsOut` wakes on proposals and publishes
+//! their boxes.
+
+use std::collections::VecDeque;
+use std::path::Path;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+
+use anyhow::Context as _;
+use ros2_client::dds::rustdds::mio1::{Events, Interest, Poll, Token};
+use ros2_client::{
+    Context, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher, QosProfile,
+    Subscription, qos,
+};
+use serde::Serialize;
+use tracing::{info, warn};
+
+use groundwork_detect::ProposalFlags;
+use groundwork_io::Scan;
+use groundwork_io::pointcloud2::{CloudPoints, select_records, with_probability};
+use groundwork_io::transform::{GROUND_FRAME, StaticTransform};
+use groundwork_msg::{
+    FrameId, MaskHeader, MaskStatus, ProposalRecord, ProposalsHeader, SCHEMA_VERSION, ScanHeader,
+    ScanPoint, ScanSource, monotonic_ns, new_epoch, wall_clock_ns,
+};
+use groundwork_service::ServiceConfig;
+use groundwork_service::stage::{self, Input, Inputs, Outbox, Stage, Topic, Wiring};
+
+use crate::msg::{
+    BoundingBox3D, ColorRGBA, Covariance, Detection3D, Detection3DArray, Header, Marker,
+    MarkerArray, ObjectHypothesis, ObjectHypothesisWithPose, PointCloud2, Pose, PoseWithCovariance,
+    Quaternion, TFMessage, Time, Transform, TransformStamped, Vector3,
+};
+
+/// Reliability of the input subscription.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Qos {
+    /// ROS 2's sensor-data profile: best effort, keep last 5 (drivers publish so).
+    #[default]
+    SensorData,
+    /// Reliable, keep last 5 (for publishers that are reliable only).
+    Reliable,
+}
+
+/// What the bridge subscribes to and publishes.
+#[derive(Debug, Clone)]
+pub struct BridgeOptions {
+    /// DDS domain (`ROS_DOMAIN_ID`).
+    pub domain_id: u16,
+    /// The PointCloud2 topic, a ROS name (`/points`).
+    pub input_topic: String,
+    /// The input subscription's QoS.
+    pub qos: Qos,
+    /// The node's namespace (`/`).
+    pub namespace: String,
+    /// The node's name: outputs are `<namespace>/<node>/points`, `.../nonground`,
+    /// `.../ground` (ROS's `~/points`).
+    pub node: String,
+    /// Also publish the ground points.
+    pub publish_ground: bool,
+    /// Points whose probability is at least this are ground (the segmenter's threshold).
+    pub ground_threshold: f32,
+    /// Stop after answering this many clouds.
+    pub count: Option<u64>,
+    /// The sensor's mount, published on `/tf_static` for each cloud frame seen (the
+    /// detections' frame, `base_footprint`, to the cloud's).
+    pub mount: Option<StaticTransform>,
+}
+
+impl Default for BridgeOptions {
+    fn default() -> Self {
+        Self {
+            domain_id: 0,
+            input_topic: "/points".into(),
+            qos: Qos::SensorData,
+            namespace: "/".into(),
+            node: "groundwork".into(),
+            publish_ground: false,
+            ground_threshold: 0.5,
+            count: None,
+            mount: None,
+        }
+    }
+}
+
+/// What the bridge did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct BridgeReport {
+    /// Clouds received from DDS.
+    pub received: u64,
+    /// Clouds published as scans.
+    pub published: u64,
+    /// Clouds skipped as malformed (missing fields, non-finite in a dense cloud, too many
+    /// points, lying sizes), with the last reason.
+    pub rejected: u64,
+    /// The last rejection's reason.
+    pub last_rejection: Option<String>,
+    /// Clouds answered on `~/points`.
+    pub answered: u64,
+    /// Proposal messages answered on `~/detections` and `~/markers`.
+    pub detections: u64,
+    /// Masks the segmenter marked bad (no answer published for their cloud).
+    pub bad_masks: u64,
+    /// Masks whose cloud was no longer held (answered too late).
+    pub unmatched_masks: u64,
+    /// Clouds published and never answered (the segmenter skipped them, or more were in
+    /// flight than the bridge holds).
+    pub dropped: u64,
+    /// DDS reads or writes that failed.
+    pub dds_errors: u64,
+}
+
+/// Clouds published and not yet answered, oldest first. Bounded: a segmenter that stops
+/// answering does not grow the bridge.
+#[derive(Debug, Default)]
+struct InFlight {
+    clouds: VecDeque<Held>,
+    report: BridgeReport,
+    /// The answering stage has stopped (done, signalled or failed): so does the input.
+    answers_stopped: bool,
+}
+
+#[derive(Debug)]
+struct Held {
+    epoch: u64,
+    sequence: u64,
+    cloud: Arc<PointCloud2>,
+    /// The scan's map from points back to records (without its points).
+    scan: Scan,
+    /// Points published.
+    points: usize,
+}
+
+/// Clouds held for their answers.
+const MAX_IN_FLIGHT: usize = 16;
+
+type Shared = Arc<Mutex<InFlight>>;
+
+fn lock(s: &Shared) -> std::sync::MutexGuard<'_, InFlight> {
+    // A panic in the other stage ends the process anyway; the counters stay readable.
+    s.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// A ROS topic name (`/a/b/points`) as ros2-client takes it.
+pub fn ros_name(full: &str) -> anyhow::Result<Name> {
+    let full = if full.starts_with('/') {
+        full.to_string()
+    } else {
+        format!("/{full}")
+    };
+    let (ns, base) = full.rsplit_once('/').unwrap_or(("", &full));
+    let ns = if ns.is_empty() { "/" } else { ns };
+    Name::new(ns, base).map_err(|e| anyhow::anyhow!("{full:?} is not a ROS topic name: {e:?}"))
+}
+
+/// The cloud type's DDS name, as ROS 2 registers it.
+pub fn cloud_type() -> MessageTypeName {
+    MessageTypeName::new("sensor_msgs", "PointCloud2")
+}
+
+/// The source stage: DDS clouds into scans.
+struct CloudsIn {
+    subscription: Subscription<PointCloud2>,
+    /// The input topic's name, for messages.
+    topic: String,
+    poll: Poll,
+    events: Events,
+    shared: Shared,
+    epoch: u64,
+    sequence: u64,
+    max_points: usize,
+    answers_wanted: Option<u64>,
+    /// Polled this long for a cloud before the runner looks at signals again.
+    wait: Duration,
+}
+
+impl CloudsIn {
+    /// Publishes one received cloud; a bad one is counted and skipped.
+    fn publish(
+        &mut self,
+        cloud: PointCloud2,
+        received_wall_ns: Option<u64>,
+        out: &mut Outbox,
+    ) -> anyhow::Result<()> {
+        let taken = monotonic_ns();
+        // The DDS receipt (the last fragment in), on the monotonic clock: the latency
+        // tool's bridge row covers DDS's queue, deserialization and the copy.
+        let produced = received_wall_ns.map_or(taken, |r| {
+            taken.saturating_sub(wall_clock_ns().saturating_sub(r))
+        });
+        lock(&self.shared).report.received += 1;
+        let label = format!(
+            "{} (stamp {}.{:09})",
+            self.topic, cloud.header.stamp.sec, cloud.header.stamp.nanosec
+        );
+        // Shared with the answering stage, which appends the probabilities to it.
+        let cloud = Arc::new(cloud);
+        let view = cloud.view();
+        let points = match CloudPoints::new(Path::new(&label), &view, self.max_points) {
+            Ok(p) => p,
+            Err(e) => {
+                let reason = e.to_string();
+                warn!("skipped a cloud: {reason}");
+                let mut s = lock(&self.shared);
+                s.report.rejected += 1;
+                s.report.last_rejection = Some(reason);
+                return Ok(());
+            }
+        };
+        let mut header = ScanHeader {
+            schema_version: SCHEMA_VERSION,
+            point_count: points.len() as u32,
+            sequence: self.sequence,
+            producer_epoch: self.epoch,
+            // A driver's stamp before 1970 is not a time: the wall clock stands in.
+            sensor_timestamp_ns: cloud.header.stamp.ns().unwrap_or_else(wall_clock_ns),
+            source_index: self.sequence,
+            source: ScanSource::ROS2,
+            frame_id: FrameId::new(&cloud.header.frame_id),
+            ..ScanHeader::default()
+        };
+        header.stamps.produced_ns = produced;
+        {
+            // Held before it is published: the answer may come back at once.
+            let mut s = lock(&self.shared);
+            if s.clouds.len() == MAX_IN_FLIGHT {
+                s.clouds.pop_front();
+                s.report.dropped += 1;
+            }
+            s.clouds.push_back(Held {
+                epoch: self.epoch,
+                sequence: self.sequence,
+                cloud: Arc::clone(&cloud),
+                scan: points.records_map(),
+                points: points.len(),
+            });
+        }
+        // The one copy: from the DDS sample's bytes straight into shared memory.
+        let point = |i: usize| {
+            let p = points.point(i);
+            ScanPoint {
+                x: p.x,
+                y: p.y,
+                z: p.z,
+                intensity: p.intensity,
+            }
+        };
+        out.send_scan(points.len(), point, header)?;
+        self.sequence += 1;
+        lock(&self.shared).report.published += 1;
+        Ok(())
+    }
+}
+
+impl Stage for CloudsIn {
+    const NAME: &'static str = "ros2";
+    const WIRING: Wiring = Wiring {
+        wakes_on: None,
+        reads: &[],
+        publishes: Some(Topic::Scans),
+        parallel: false,
+        unique: true,
+    };
+    type Report = ();
+
+    fn process(&mut self, _: Input<'_>, _: u64, out: &mut Outbox) -> anyhow::Result<()> {
+        // Edge-triggered: after a wake-up, take everything that has arrived. A signal that
+        // interrupts the wait (SIGCONT, SIGCHLD) only ends it early; a stop request is
+        // seen by the runner when this returns.
+        match self.poll.poll(&mut self.events, Some(self.wait)) {
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            r => r.context("poll the DDS subscription")?,
+        }
+        loop {
+            match self.subscription.take() {
+                Ok(Some((cloud, info))) => {
+                    let received = info
+                        .received_timestamp()
+                        .and_then(|t| u64::try_from(t.to_nanos()).ok());
+                    self.publish(cloud, received, out)?;
+                }
+                Ok(None) => return Ok(()),
+                Err(e) => {
+                    // A sample that does not deserialize as a PointCloud2 (another type
+                    // under the same name, a truncated message): counted, skipped. RustDDS
+                    // moves past it; the rest is taken at the next turn.
+                    warn!("skipped a cloud: DDS read failed: {e:?}");
+                    let mut s = lock(&self.shared);
+                    s.report.dds_errors += 1;
+                    s.report.rejected += 1;
+                    s.report.last_rejection = Some(format!("DDS read failed: {e:?}"));
+                    return Ok(());
+                }
+            }
+        }
+    }
+
+    fn done(&self) -> bool {
+        let s = lock(&self.shared);
+        s.answers_stopped || self.answers_wanted.is_some_and(|n| s.report.answered >= n)
+    }
+
+    fn log_state(&self) {
+        let s = lock(&self.shared);
+        info!(
+            received = s.report.received,
+            published = s.report.published,
+            rejected = s.report.rejected,
+            "ros2 input state"
+        );
+    }
+
+    fn stop(self, _: &Inputs) -> anyhow::Result<()> {
+        Ok(())
+    }
+}
+
+/// The answering stage: masks into ROS 2 clouds.
+struct AnswersOut {
+    /// `/tf_static`, and the frames published on it so far.
+    tf: Option<(Publisher<TFMessage>, StaticTransform, Vec<String>)>,
+    points: Publisher<PointCloud2>,
+    nonground: Publisher<PointCloud2>,
+    ground: Option<Publisher<PointCloud2>>,
+    shared: Shared,
+    threshold: f32,
+    max_points: usize,
+    count: Option<u64>,
+}
+
+impl AnswersOut {
+    fn answer(&mut self, h: &MaskHeader, probs: &[f32]) -> anyhow::Result<()> {
+        let held = {
+            let mut s = lock(&self.shared);
+            let at = s
+                .clouds
+                .iter()
+                .position(|c| c.epoch == h.producer_epoch && c.sequence == h.scan_sequence);
+            match at {
+                // Older clouds will never be answered: the segmenter skipped them.
+                Some(i) => {
+                    s.report.dropped += i as u64;
+                    s.clouds.drain(..=i).next_back()
+                }
+                None => {
+                    s.report.unmatched_masks += 1;
+                    None
+                }
+            }
+        };
+        let Some(held) = held else { return Ok(()) };
+        if h.status != MaskStatus::OK || probs.len() != held.points {
+            lock(&self.shared).report.bad_masks += 1;
+            return Ok(());
+        }
+        self.place(&held.cloud.header);
+        let label = Path::new("ros2 answer");
+        let per_record = held.scan.expand(probs, 0.0);
+        let classified = held.scan.expand(&vec![true; probs.len()], false);
+        let cloud = held.cloud.view();
+        let header = held.cloud.header.clone();
+        let big = held.cloud.is_bigendian;
+        let with = with_probability(label, &cloud, &per_record, self.max_points)?;
+        self.send(
+            &self.points,
+            PointCloud2::from_data(header.clone(), big, with),
+        );
+        let pick = |ground: bool| -> Vec<bool> {
+            per_record
+                .iter()
+                .zip(&classified)
+                .map(|(&p, &c)| c && ((p >= self.threshold) == ground))
+                .collect()
+        };
+        let mut non = select_records(label, &cloud, &pick(false), self.max_points)?;
+        non.is_dense = true;
+        self.send(
+            &self.nonground,
+            PointCloud2::from_data(header.clone(), big, non),
+        );
+        if let Some(g) = &self.ground {
+            let mut gr = select_records(label, &cloud, &pick(true), self.max_points)?;
+            gr.is_dense = true;
+            self.send(g, PointCloud2::from_data(header, big, gr));
+        }
+        lock(&self.shared).report.answered += 1;
+        Ok(())
+    }
+
+    fn send<M: Serialize>(&self, p: &Publisher<M>, m: M) {
+        send(&self.shared, p, m);
+    }
+
+    /// Publishes the mount on `/tf_static` when a cloud names a frame not seen before: as
+    /// a static broadcaster does, one message with every frame's transform.
+    fn place(&mut self, header: &Header) {
+        let Some((publisher, mount, frames)) = &mut self.tf else {
+            return;
+        };
+        if frames.contains(&header.frame_id) {
+            return;
+        }
+        frames.push(header.frame_id.clone());
+        let [x, y, z] = mount.translation;
+        let [qx, qy, qz, qw] = mount.rotation;
+        let transforms = frames
+            .iter()
+            .map(|child| TransformStamped {
+                header: Header {
+                    stamp: header.stamp,
+                    frame_id: mount.parent.clone(),
+                },
+                child_frame_id: child.clone(),
+                transform: Transform {
+                    translation: Vector3 { x, y, z },
+                    rotation: Quaternion {
+                        x: qx,
+                        y: qy,
+                        z: qz,
+                        w: qw,
+                    },
+                },
+            })
+            .collect();
+        send(&self.shared, publisher, TFMessage { transforms });
+    }
+}
+
+/// A leaving DDS writer takes its unacknowledged samples with it: the last answers get
+/// this long to reach (and be repaired for) reliable subscribers.
+fn linger() {
+    std::thread::sleep(Duration::from_millis(500));
+}
+
+fn send<M: Serialize>(shared: &Shared, p: &Publisher<M>, m: M) {
+    if let Err(e) = p.publish(m) {
+        warn!("DDS publish failed: {e}");
+        lock(shared).report.dds_errors += 1;
+    }
+}
+
+/// The answering stage for proposals: boxes as `vision_msgs/Detection3DArray` and as
+/// `visualization_msgs/MarkerArray` cubes, in the ground-aligned frame of the mount.
+struct DetectionsOut {
+    detections: Publisher<Detection3DArray>,
+    markers: Publisher<MarkerArray>,
+    shared: Shared,
+}
+
+/// The markers' namespace.
+const MARKER_NS: &str = "groundwork_proposals";
+
+impl DetectionsOut {
+    fn answer(&self, h: &ProposalsHeader) {
+        let ns = h.sensor_timestamp_ns;
+        let header = Header {
+            stamp: Time {
+                sec: i32::try_from(ns / 1_000_000_000).unwrap_or(i32::MAX),
+                nanosec: (ns % 1_000_000_000) as u32,
+            },
+            frame_id: GROUND_FRAME.into(),
+        };
+        let n = (h.proposal_count as usize).min(h.records.len());
+        let boxes: Vec<(&ProposalRecord, Pose, Vector3)> = h.records[..n]
+            .iter()
+            .map(|r| {
+                let pose = Pose {
+                    position: Vector3 {
+                        x: f64::from(r.center[0]),
+                        y: f64::from(r.center[1]),
+                        z: f64::from(r.ground_z) + 0.5 * f64::from(r.bottom + r.height),
+                    },
+                    orientation: Quaternion::yaw(f64::from(r.yaw)),
+                };
+                let size = Vector3 {
+                    x: f64::from(r.length),
+                    y: f64::from(r.width),
+                    z: f64::from(r.height - r.bottom),
+                };
+                (r, pose, size)
+            })
+            .collect();
+        let detections = boxes
+            .iter()
+            .map(|&(r, pose, size)| Detection3D {
+                header: header.clone(),
+                results: vec![ObjectHypothesisWithPose {
+                    hypothesis: ObjectHypothesis {
+                        class_id: class_of(r.flags),
+                        score: 1.0,
+                    },
+                    pose: PoseWithCovariance {
+                        pose,
+                        covariance: Covariance([0.0; 36]),
+                    },
+                }],
+                bbox: BoundingBox3D { center: pose, size },
+                id: r.id.to_string(),
+            })
+            .collect();
+        send(
+            &self.shared,
+            &self.detections,
+            Detection3DArray {
+                header: header.clone(),
+                detections,
+            },
+        );
+        // The last scan's boxes go, this scan's come.
+        let mut markers = vec![Marker::new(
+            header.clone(),
+            MARKER_NS,
+            0,
+            Marker::CUBE,
+            Marker::DELETE_ALL,
+        )];
+        markers.extend(boxes.iter().map(|&(r, pose, size)| {
+            let mut m = Marker::new(
+                header.clone(),
+                MARKER_NS,
+                r.id as i32,
+                Marker::CUBE,
+                Marker::ADD,
+            );
+            m.pose = pose;
+            m.scale = size;
+            // Object-like boxes green, flagged ones (walls, trees, ...) faint grey.
+            m.color = if r.flags == 0 {
+                ColorRGBA {
+                    r: 0.2,
+                    g: 0.85,
+                    b: 0.3,
+                    a: 0.5,
+                }
+            } else {
+                ColorRGBA {
+                    r: 0.6,
+                    g: 0.6,
+                    b: 0.6,
+                    a: 0.25,
+                }
+            };
+            m
+        }));
+        send(&self.shared, &self.markers, MarkerArray { markers });
+        lock(&self.shared).report.detections += 1;
+    }
+}
+
+/// A proposal's class: `object`, or the names of its flags (`wall`, `tall+floating`):
+/// clusters that are plainly not objects are labelled, not dropped, as `detect` does.
+fn class_of(flags: u32) -> String {
+    let f = ProposalFlags(flags);
+    if f.is_object_like() {
+        "object".into()
+    } else {
+        f.names().collect::<Vec<_>>().join("+")
+    }
+}
+
+impl Stage for DetectionsOut {
+    const NAME: &'static str = "ros2-detections";
+    const WIRING: Wiring = Wiring {
+        wakes_on: Some(Topic::Proposals),
+        reads: &[],
+        publishes: None,
+        parallel: false,
+        unique: true,
+    };
+    type Report = ();
+
+    fn process(&mut self, input: Input<'_>, _: u64, _: &mut Outbox) -> anyhow::Result<()> {
+        if let Input::Proposals(h, _) = input {
+            self.answer(h);
+        }
+        Ok(())
+    }
+
+    fn done(&self) -> bool {
+        lock(&self.shared).answers_stopped
+    }
+
+    fn log_state(&self) {}
+
+    fn stop(self, rest: &Inputs) -> anyhow::Result<()> {
+        rest.read(Topic::Proposals, |input, _| {
+            if let Input::Proposals(h, _) = input {
+                self.answer(h);
+            }
+            Ok(())
+        })?;
+        linger();
+        Ok(())
+    }
+}
+
+impl Stage for AnswersOut {
+    const NAME: &'static str = "ros2-answers";
+    const WIRING: Wiring = Wiring {
+        wakes_on: Some(Topic::Masks),
+        reads: &[],
+        publishes: None,
+        parallel: false,
+        unique: true,
+    };
+    type Report = ();
+
+    fn process(&mut self, input: Input<'_>, _: u64, _: &mut Outbox) -> anyhow::Result<()> {
+        if let Input::Mask(h, probs) = input {
+            self.answer(h, probs)?;
+        }
+        Ok(())
+    }
+
+    fn done(&self) -> bool {
+        self.count
+            .is_some_and(|n| lock(&self.shared).report.answered >= n)
+    }
+
+    fn log_state(&self) {
+        let s = lock(&self.shared);
+        info!(
+            answered = s.report.answered,
+            bad_masks = s.report.bad_masks,
+            unmatched = s.report.unmatched_masks,
+            "ros2 output state"
+        );
+    }
+
+    fn stop(mut self, rest: &Inputs) -> anyhow::Result<()> {
+        // Masks already queued when the stop came are answered, not lost.
+        rest.read(Topic::Masks, |input, _| match input {
+            Input::Mask(h, probs) => self.answer(h, probs),
+            _ => Ok(()),
+        })?;
+        linger();
+        Ok(())
+    }
+}
+
+/// A publisher of `M` on the ROS topic `name`.
+fn publisher<M: Serialize>(
+    node: &mut Node,
+    name: &str,
+    ty: MessageTypeName,
+    qos: &QosProfile,
+) -> anyhow::Result<Publisher<M>> {
+    let topic = node
+        .create_topic(&ros_name(name)?, ty, qos)
+        .with_context(|| format!("topic {name}"))?;
+    node.create_publisher(&topic, Some(qos.clone()))
+        .with_context(|| format!("publisher on {name}"))
+}
+
+/// The QoS profile of a subscription or publication.
+pub fn profile(q: Qos) -> QosProfile {
+    let base = QosProfile::subscription_default().history(qos::History::KeepLast { depth: 5 });
+    match q {
+        Qos::SensorData => base.reliability_best_effort(),
+        Qos::Reliable => base.reliability_reliable(qos::WhenFull::DEFAULT),
+    }
+}
+
+/// Runs the bridge until `count` clouds are answered or a termination signal arrives.
+pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeReport> {
+    let context = Context::from_domain_participant(
+        ros2_client::dds::rustdds::DomainParticipant::new(opts.domain_id)
+            .with_context(|| format!("cannot join DDS domain {}", opts.domain_id))?,
+    )
+    .context("ROS 2 context")?;
+    let mut node: Node = context
+        .new_node(
+            NodeName::new(&opts.namespace, &opts.node)
+                .map_err(|e| anyhow::anyhow!("node {:?}: {e:?}", opts.node))?,
+            NodeOptions::new().enable_rosout(false),
+        )
+        .context("ROS 2 node")?;
+    let input = ros_name(&opts.input_topic)?;
+    let in_qos = profile(opts.qos);
+    let topic = node
+        .create_topic(&input, cloud_type(), &in_qos)
+        .context("input topic")?;
+    let mut subscription = node
+        .create_subscription::<PointCloud2>(&topic, Some(in_qos))
+        .context("input subscription")?;
+    // Outputs are reliable (which best-effort subscribers match too), keep last 5.
+    let out_qos = profile(Qos::Reliable);
+    let base = format!("{}/{}", opts.namespace.trim_end_matches('/'), opts.node);
+    let cloud = |node: &mut Node, leaf: &str| {
+        publisher::<PointCloud2>(node, &format!("{base}/{leaf}"), cloud_type(), &out_qos)
+    };
+    let points = cloud(&mut node, "points")?;
+    let nonground = cloud(&mut node, "nonground")?;
+    let ground = opts
+        .publish_ground
+        .then(|| cloud(&mut node, "ground"))
+        .transpose()?;
+    let detections = publisher::<Detection3DArray>(
+        &mut node,
+        &format!("{base}/detections"),
+        MessageTypeName::new("vision_msgs", "Detection3DArray"),
+        &out_qos,
+    )?;
+    let markers = publisher::<MarkerArray>(
+        &mut node,
+        &format!("{base}/markers"),
+        MessageTypeName::new("visualization_msgs", "MarkerArray"),
+        &out_qos,
+    )?;
+    // tf2's static broadcaster QoS: reliable, transient local, the last message.
+    let tf_qos = profile(Qos::Reliable)
+        .durability(qos::Durability::TransientLocal)
+        .history(qos::History::KeepLast { depth: 1 });
+    let tf = match &opts.mount {
+        Some(m) => Some((
+            publisher::<TFMessage>(
+                &mut node,
+                "/tf_static",
+                MessageTypeName::new("tf2_msgs", "TFMessage"),
+                &tf_qos,
+            )?,
+            m.clone(),
+            Vec::new(),
+        )),
+        None => None,
+    };
+    let poll = Poll::new().context("poll")?;
+    poll.registry()
+        .register(&mut subscription, Token(0), Interest::READABLE)
+        .context("register the DDS subscription")?;
+    info!(
+        domain = opts.domain_id,
+        input = %opts.input_topic,
+        qos = ?opts.qos,
+        outputs = %format!("{base}/{{points,nonground{}}}", if opts.publish_ground { ",ground" } else { "" }),
+        "ROS 2 bridge ready"
+    );
+    let shared: Shared = Arc::default();
+    let answers = AnswersOut {
+        tf,
+        points,
+        nonground,
+        ground,
+        shared: Arc::clone(&shared),
+        threshold: opts.ground_threshold,
+        max_points: cfg.max_points,
+        count: opts.count,
+    };
+    let boxes = DetectionsOut {
+        detections,
+        markers,
+        shared: Arc::clone(&shared),
+    };
+    let boxes_cfg = cfg.clone();
+    let boxing = std::thread::Builder::new()
+        .name("ros2-detections".into())
+        .spawn(move || stage::run(&boxes_cfg, || Ok(boxes)))
+        .context("start the detections thread")?;
+    let out_cfg = cfg.clone();
+    let answering = std::thread::Builder::new()
+        .name("ros2-answers".into())
+        .spawn(move || {
+            let shared = Arc::clone(&answers.shared);
+            let r = stage::run(&out_cfg, || Ok(answers));
+            lock(&shared).answers_stopped = true;
+            r
+        })
+        .context("start the answering thread")?;
+    let clouds = CloudsIn {
+        subscription,
+        poll,
+        events: Events::with_capacity(8),
+        shared: Arc::clone(&shared),
+        topic: opts.input_topic.clone(),
+        epoch: new_epoch(),
+        sequence: 0,
+        max_points: cfg.max_points,
+        answers_wanted: opts.count,
+        wait: Duration::from_millis(50),
+    };
+    let input_result = stage::run(cfg, || Ok(clouds));
+    let output_result = answering
+        .join()
+        .map_err(|_| anyhow::anyhow!("the answering thread panicked"))?;
+    let boxes_result = boxing
+        .join()
+        .map_err(|_| anyhow::anyhow!("the detections thread panicked"))?;
+    input_result?;
+    output_result?;
+    boxes_result?;
+    let report = lock(&shared).report.clone();
+    info!(
+        received = report.received,
+        published = report.published,
+        rejected = report.rejected,
+        answered = report.answered,
+        detections = report.detections,
+        bad_masks = report.bad_masks,
+        unmatched = report.unmatched_masks,
+        dropped = report.dropped,
+        dds_errors = report.dds_errors,
+        "ROS 2 bridge stopped"
+    );
+    Ok(report)
+}
