@@ -185,6 +185,15 @@ pub struct CloudRef<'a> {
     pub is_dense: bool,
 }
 
+impl CloudRef<'_> {
+    /// The header stamp, ns since 1970; `None` before it.
+    pub fn stamp_ns(&self) -> Option<u64> {
+        u64::try_from(self.stamp_sec)
+            .ok()
+            .map(|s| s * 1_000_000_000 + u64::from(self.stamp_nanosec))
+    }
+}
+
 /// A PointCloud2 parsed from CDR: the owned parts of a [`CloudRef`].
 #[derive(Debug)]
 pub struct Parsed<'a> {
@@ -319,6 +328,25 @@ impl Layout {
             point_step,
             row_step,
         })
+    }
+
+    /// [`Layout::of`] for an output that takes one value per record: `values` of `what`
+    /// must be as many.
+    fn per_record(
+        label: &Path,
+        cloud: &CloudRef<'_>,
+        max_points: usize,
+        values: usize,
+        what: &str,
+    ) -> Result<Self, FormatError> {
+        let layout = Self::of(label, cloud, max_points)?;
+        if values != layout.records {
+            return Err(FormatError::malformed(
+                label,
+                format!("{values} {what} for {} records", layout.records),
+            ));
+        }
+        Ok(layout)
     }
 
     /// Where record `r` starts, bytes.
@@ -605,9 +633,7 @@ fn decode_with(
     if cloud.height > 1 {
         scan.organized = Some((cloud.height, cloud.width));
     }
-    scan.stamp_ns = u64::try_from(cloud.stamp_sec)
-        .ok()
-        .map(|s| s * 1_000_000_000 + u64::from(cloud.stamp_nanosec));
+    scan.stamp_ns = cloud.stamp_ns();
     scan.frame_id = Some(cloud.frame_id.to_string());
     Ok((scan, found))
 }
@@ -631,30 +657,6 @@ pub struct CloudData {
     pub is_dense: bool,
 }
 
-impl CloudData {
-    /// The cloud as a message with this stamp and frame.
-    pub fn cloud<'a>(
-        &'a self,
-        stamp_sec: i32,
-        stamp_nanosec: u32,
-        frame_id: &'a str,
-    ) -> CloudRef<'a> {
-        CloudRef {
-            stamp_sec,
-            stamp_nanosec,
-            frame_id,
-            height: self.height,
-            width: self.width,
-            fields: &self.fields,
-            is_bigendian: false,
-            point_step: self.point_step,
-            row_step: self.row_step,
-            data: &self.data,
-            is_dense: self.is_dense,
-        }
-    }
-}
-
 /// The input cloud, every record and field as it was, with a FLOAT32 `ground_probability`
 /// field appended (in the cloud's byte order, 4-byte aligned): one value per record,
 /// `per_record[i]` for record `i`. An organized cloud keeps its rows; rows are packed.
@@ -665,17 +667,7 @@ pub fn with_probability(
     per_record: &[f32],
     max_points: usize,
 ) -> Result<CloudData, FormatError> {
-    let layout = Layout::of(label, cloud, max_points)?;
-    if per_record.len() != layout.records {
-        return Err(FormatError::malformed(
-            label,
-            format!(
-                "{} probabilities for {} records",
-                per_record.len(),
-                layout.records
-            ),
-        ));
-    }
+    let layout = Layout::per_record(label, cloud, max_points, per_record.len(), "probabilities")?;
     let offset = layout.point_step.next_multiple_of(4);
     let step = offset + 4;
     let mut data = vec![0u8; step * layout.records];
@@ -723,13 +715,7 @@ pub fn select_records(
     keep: &[bool],
     max_points: usize,
 ) -> Result<CloudData, FormatError> {
-    let layout = Layout::of(label, cloud, max_points)?;
-    if keep.len() != layout.records {
-        return Err(FormatError::malformed(
-            label,
-            format!("{} flags for {} records", keep.len(), layout.records),
-        ));
-    }
+    let layout = Layout::per_record(label, cloud, max_points, keep.len(), "flags")?;
     let kept = keep.iter().filter(|&&k| k).count();
     let mut data = Vec::with_capacity(kept * layout.point_step);
     for (record, _) in layout.records(cloud.data).zip(keep).filter(|(_, k)| **k) {
@@ -951,7 +937,13 @@ mod tests {
         );
         assert_eq!(out.fields.len(), 5);
         assert_eq!(out.fields[4].offset, 16);
-        let back = out.cloud(5, 6, "os_lidar");
+        let back = CloudRef {
+            fields: &out.fields,
+            point_step: out.point_step,
+            row_step: out.row_step,
+            data: &out.data,
+            ..input
+        };
         assert_eq!(
             probabilities(Path::new("c"), &back, 10).unwrap(),
             vec![0.1, 0.2, 0.0, 0.9]

@@ -216,7 +216,7 @@ impl CloudsIn {
             sequence: self.sequence,
             producer_epoch: self.epoch,
             // A driver's stamp before 1970 is not a time: the wall clock stands in.
-            sensor_timestamp_ns: cloud.header.stamp.ns().unwrap_or_else(wall_clock_ns),
+            sensor_timestamp_ns: view.stamp_ns().unwrap_or_else(wall_clock_ns),
             source_index: self.sequence,
             source: ScanSource::ROS2,
             frame_id: FrameId::new(&cloud.header.frame_id),
@@ -359,7 +359,10 @@ impl AnswersOut {
         self.place(&held.cloud.header);
         let label = Path::new("ros2 answer");
         let per_record = held.scan.expand(probs, 0.0);
-        let classified = held.scan.expand(&vec![true; probs.len()], false);
+        // Each record's decision; none for a placeholder, which is neither ground nor not.
+        let decisions: Vec<Option<bool>> =
+            probs.iter().map(|&p| Some(p >= self.threshold)).collect();
+        let decisions = held.scan.expand(&decisions, None);
         let cloud = held.cloud.view();
         let header = held.cloud.header.clone();
         let big = held.cloud.is_bigendian;
@@ -368,13 +371,8 @@ impl AnswersOut {
             &self.points,
             PointCloud2::from_data(header.clone(), big, with),
         );
-        let pick = |ground: bool| -> Vec<bool> {
-            per_record
-                .iter()
-                .zip(&classified)
-                .map(|(&p, &c)| c && ((p >= self.threshold) == ground))
-                .collect()
-        };
+        let pick =
+            |ground: bool| -> Vec<bool> { decisions.iter().map(|&d| d == Some(ground)).collect() };
         let mut non = select_records(label, &cloud, &pick(false), self.max_points)?;
         non.is_dense = true;
         self.send(
@@ -455,12 +453,8 @@ const MARKER_NS: &str = "groundwork_proposals";
 
 impl DetectionsOut {
     fn answer(&self, h: &ProposalsHeader) {
-        let ns = h.sensor_timestamp_ns;
         let header = Header {
-            stamp: Time {
-                sec: i32::try_from(ns / 1_000_000_000).unwrap_or(i32::MAX),
-                nanosec: (ns % 1_000_000_000) as u32,
-            },
+            stamp: Time::from_ns(h.sensor_timestamp_ns),
             frame_id: GROUND_FRAME.into(),
         };
         let n = (h.proposal_count as usize).min(h.records.len());

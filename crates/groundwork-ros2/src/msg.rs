@@ -15,11 +15,12 @@ pub struct Time {
 }
 
 impl Time {
-    /// ns since 1970; `None` before it.
-    pub fn ns(self) -> Option<u64> {
-        u64::try_from(self.sec)
-            .ok()
-            .map(|s| s * 1_000_000_000 + u64::from(self.nanosec))
+    /// A stamp in ns since 1970 (seconds saturate at `i32::MAX`, in 2038).
+    pub fn from_ns(ns: u64) -> Self {
+        Self {
+            sec: i32::try_from(ns / 1_000_000_000).unwrap_or(i32::MAX),
+            nanosec: (ns % 1_000_000_000) as u32,
+        }
     }
 }
 
@@ -424,7 +425,8 @@ mod tests {
         let (msg, _): (PointCloud2, usize) =
             cdr_encoding::from_bytes::<PointCloud2, byteorder::LittleEndian>(&bytes[4..]).unwrap();
         assert_eq!(msg.header.frame_id, "velodyne");
-        assert_eq!(msg.header.stamp.ns(), Some(1_700_000_001_000_000_002));
+        assert_eq!(msg.view().stamp_ns(), Some(1_700_000_001_000_000_002));
+        assert_eq!(Time::from_ns(1_700_000_001_000_000_002), msg.header.stamp);
         let label = Path::new("m");
         assert_eq!(
             decode_cloud(label, &msg.view(), 100).unwrap(),
