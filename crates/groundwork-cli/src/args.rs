@@ -92,6 +92,10 @@ pub enum Command {
     /// /<node>/points (the cloud with a ground_probability field), /<node>/nonground and
     /// optionally /<node>/ground, stamped with the input's stamp and frame.
     Ros2(Ros2CmdArgs),
+    /// Stage: the live view. A Foxglove WebSocket server (ws://127.0.0.1:8765 by default)
+    /// that streams each scan with its ground probability, the proposals as boxes, the
+    /// mount as a transform and the counters; `pipeline --view` starts it.
+    View(ViewCmdArgs),
     /// List the sensor presets (`--sensor NAME`): mount, ranges, limits.
     Sensors,
     /// Generate a labeled synthetic sequence in the KITTI layout (velodyne/*.bin,
@@ -161,6 +165,36 @@ pub struct PipelineArgs {
     pub ros2: bool,
     #[command(flatten)]
     pub ros2_args: Ros2Args,
+    #[command(flatten)]
+    pub view: ViewArg,
+}
+
+/// Where a live view listens unless told.
+pub const DEFAULT_VIEW_ADDR: &str = "127.0.0.1:8765";
+
+/// The live view, as an option of a command that runs stages.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ViewArg {
+    /// Serve a live view for Foxglove (WebSocket) on ADDR, default 127.0.0.1:8765; give
+    /// 0.0.0.0:8765 to let other machines connect.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = DEFAULT_VIEW_ADDR)]
+    pub view: Option<String>,
+}
+
+/// Arguments of `groundwork view`.
+#[derive(clap::Args, Debug)]
+pub struct ViewCmdArgs {
+    /// The sensor and configuration the segmenter runs with (its mount and threshold).
+    #[command(flatten)]
+    pub sensor: SensorArgs,
+    #[command(flatten)]
+    pub service: ServiceArgs,
+    /// Where the server listens, host:port (0.0.0.0 for other machines; port 0: any).
+    #[arg(long, default_value = DEFAULT_VIEW_ADDR)]
+    pub addr: String,
+    /// Messages queued per viewer before its oldest are dropped (a scan is a few MB).
+    #[arg(long, default_value_t = 8)]
+    pub backlog: usize,
 }
 
 /// Where the ROS 2 bridge listens and answers.
@@ -197,6 +231,8 @@ pub struct Ros2CmdArgs {
     pub service: ServiceArgs,
     #[command(flatten)]
     pub ros2: Ros2Args,
+    #[command(flatten)]
+    pub view: ViewArg,
     /// Stop after answering this many clouds (default: run until stopped).
     #[arg(long)]
     pub count: Option<u64>,

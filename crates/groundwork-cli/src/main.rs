@@ -67,6 +67,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Detector(a) => stages::detector(a),
         Command::Consumer(a) => stages::consumer(a),
         Command::Ros2(a) => stages::ros2(a),
+        Command::View(a) => stages::view(a),
         Command::ShmSize(a) => stages::shm_size(a),
     }
 }

@@ -3,6 +3,8 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
@@ -11,7 +13,7 @@ use tracing::{error, info};
 
 use crate::args::{
     Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, Ros2Args, Ros2CmdArgs,
-    SegmenterArgs, ServiceArgs, ShmSizeArgs,
+    SegmenterArgs, ServiceArgs, ShmSizeArgs, ViewCmdArgs,
 };
 use crate::common::{load, load_methods, load_service, sample_data};
 
@@ -28,6 +30,7 @@ pub fn pipeline_command(a: PipelineArgs) -> Result<ExitCode> {
             restart: a.restart,
             detector: !a.no_detector,
             ros2: a.ros2.then_some(a.ros2_args),
+            view: a.view.view,
         },
     )
 }
@@ -47,7 +50,28 @@ pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
             _ => 0,
         },
     };
-    let report = groundwork_ros2::run(
+    let mount = groundwork_io::transform::StaticTransform::of_mount(&seg.sensor.mount)?;
+    // The live view, as a thread of this process: it stops when the bridge has.
+    let stop_view = Arc::new(AtomicBool::new(false));
+    let view = a
+        .view
+        .view
+        .map(|addr| {
+            let opts = groundwork_view::ViewOptions {
+                addr,
+                mount: Some(mount.clone()),
+                ground_threshold: seg.ground.ground_threshold,
+                backlog: DEFAULT_VIEW_BACKLOG,
+                stop: Some(Arc::clone(&stop_view)),
+            };
+            let cfg = cfg.clone();
+            std::thread::Builder::new()
+                .name("view".into())
+                .spawn(move || groundwork_view::run(&cfg, opts))
+                .context("start the view thread")
+        })
+        .transpose()?;
+    let bridged = groundwork_ros2::run(
         &cfg,
         &groundwork_ros2::BridgeOptions {
             domain_id,
@@ -62,11 +86,15 @@ pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
             publish_ground: r.publish_ground,
             ground_threshold: seg.ground.ground_threshold,
             count: a.count,
-            mount: Some(groundwork_io::transform::StaticTransform::of_mount(
-                &seg.sensor.mount,
-            )?),
+            mount: Some(mount),
         },
-    )?;
+    );
+    stop_view.store(true, Ordering::Relaxed);
+    if let Some(v) = view {
+        v.join()
+            .map_err(|_| anyhow::anyhow!("the view thread panicked"))??;
+    }
+    let report = bridged?;
     // Bad clouds were skipped and counted: done, but not all input was good.
     Ok(if report.rejected == 0 {
         ExitCode::SUCCESS
@@ -92,6 +120,28 @@ fn ros2_stage_args(c: &mut std::process::Command, r: &Ros2Args) {
     if r.publish_ground {
         c.arg("--publish-ground");
     }
+}
+
+/// Messages a viewer may have queued before its oldest are dropped: a few scans.
+const DEFAULT_VIEW_BACKLOG: usize = 8;
+
+/// `groundwork view`.
+pub fn view(a: ViewCmdArgs) -> Result<ExitCode> {
+    let cfg = load_service(&a.service)?;
+    let seg = load(&a.sensor.into(), cfg.sensor.as_deref())?;
+    groundwork_view::run(
+        &cfg,
+        groundwork_view::ViewOptions {
+            addr: a.addr,
+            mount: Some(groundwork_io::transform::StaticTransform::of_mount(
+                &seg.sensor.mount,
+            )?),
+            ground_threshold: seg.ground.ground_threshold,
+            backlog: a.backlog,
+            stop: None,
+        },
+    )?;
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `groundwork producer`.
@@ -207,6 +257,8 @@ pub struct PipelineRun {
     detector: bool,
     /// Scans from ROS 2: the bridge instead of the producer.
     ros2: Option<Ros2Args>,
+    /// Serve a live view on this address.
+    view: Option<String>,
 }
 
 pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Result<ExitCode> {
@@ -218,6 +270,7 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         restart,
         detector,
         ros2,
+        view,
     } = run;
     let (count, rate, restart) = (*count, *rate, *restart);
     // Validate everything here, before any process starts.
@@ -233,6 +286,9 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     check_shared_memory(&cfg)?;
     if let Some(r) = rate {
         groundwork_service::config::check_rate("--rate", r)?;
+    }
+    if let Some(addr) = view {
+        groundwork_view::parse_addr(addr)?;
     }
     // The scans' source: files (a folder or a recording) or the ROS 2 bridge.
     let data = match (ros2, data) {
@@ -339,6 +395,14 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         name: "consumer",
         command: con,
     });
+    if let Some(addr) = view {
+        let mut v = configured("view");
+        v.arg("--addr").arg(addr);
+        stages.push(launcher::Stage {
+            name: "view",
+            command: v,
+        });
+    }
     stages.push(source);
     let outcome = launcher::run(&cfg, stages, "consumer", restart)?;
     for s in &outcome.stages {

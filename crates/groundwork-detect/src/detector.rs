@@ -83,6 +83,17 @@ impl ProposalFlags {
             .filter(move |(f, _)| self.contains(*f))
             .map(|(_, n)| n)
     }
+
+    /// A proposal's class for viewers and ROS messages: `object`, or the names of its
+    /// flags (`wall`, `tall+floating`). Clusters that are plainly not objects are
+    /// labelled, not dropped.
+    pub fn class_name(self) -> String {
+        if self.is_object_like() {
+            "object".into()
+        } else {
+            self.names().collect::<Vec<_>>().join("+")
+        }
+    }
 }
 
 impl std::ops::BitOrAssign for ProposalFlags {

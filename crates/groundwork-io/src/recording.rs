@@ -485,17 +485,54 @@ impl RecordingWriter {
 
     /// The channel of `topic` with schema `schema` (registered on first use).
     fn channel(&mut self, topic: &str, schema: u16) -> Result<u16, FormatError> {
+        self.channel_encoded(topic, "cdr", |_| Ok(schema))
+    }
+
+    /// The channel of `topic` whose messages are in `encoding`, with the schema `schema`
+    /// registers (asked only on first use).
+    fn channel_encoded(
+        &mut self,
+        topic: &str,
+        encoding: &str,
+        schema: impl FnOnce(&mut mcap::Writer<BufWriter<fs::File>>) -> Result<u16, FormatError>,
+    ) -> Result<u16, FormatError> {
         if let Some(&c) = self.channels.get(topic) {
             return Ok(c);
         }
         let Some(writer) = self.writer.as_mut() else {
             return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
         };
+        let schema = schema(writer)?;
         let c = writer
-            .add_channel(schema, topic, "cdr", &BTreeMap::new())
+            .add_channel(schema, topic, encoding, &BTreeMap::new())
             .map_err(|e| mcap_error(&self.path, &e))?;
         self.channels.insert(topic.to_string(), c);
         Ok(c)
+    }
+
+    /// Appends one message of Foxglove's own schemas (`foxglove.SceneUpdate`, ...: protobuf)
+    /// on `topic` at `log_time_ns`.
+    pub fn write_foxglove<M: foxglove::Encode>(
+        &mut self,
+        topic: &str,
+        message: &M,
+        log_time_ns: u64,
+    ) -> Result<(), FormatError> {
+        let path = self.path.clone();
+        let encoding = M::get_message_encoding();
+        let channel = self.channel_encoded(topic, &encoding, |writer| {
+            let schema = M::get_schema().ok_or_else(|| {
+                FormatError::malformed(&path, format!("MCAP: {topic}: a message without a schema"))
+            })?;
+            writer
+                .add_schema(&schema.name, &schema.encoding, &schema.data)
+                .map_err(|e| mcap_error(&path, &e))
+        })?;
+        let mut data = Vec::with_capacity(message.encoded_len().unwrap_or(256));
+        message.encode(&mut data).map_err(|e| {
+            FormatError::malformed(&self.path, format!("MCAP: {topic}: cannot encode: {e}"))
+        })?;
+        self.write_message(channel, log_time_ns, &data)
     }
 
     fn write_message(
@@ -528,7 +565,10 @@ impl RecordingWriter {
         probabilities: &[f32],
         log_time_ns: u64,
     ) -> Result<(), FormatError> {
-        let frame = scan.frame_id.as_deref().unwrap_or("lidar");
+        let frame = scan
+            .frame_id
+            .as_deref()
+            .unwrap_or(crate::transform::SENSOR_FRAME);
         let stamp = scan.stamp_ns.unwrap_or(log_time_ns);
         if let Some(mount) = &self.mount
             && !self.placed.contains(frame)

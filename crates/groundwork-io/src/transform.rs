@@ -41,6 +41,9 @@ float64 w
 /// ground below the sensor, z up), which ROS calls `base_footprint` (REP 120).
 pub const GROUND_FRAME: &str = "base_footprint";
 
+/// The frame of a scan that names none (a scan file, a recording without one).
+pub const SENSOR_FRAME: &str = "lidar";
+
 /// A rigid transform: where `child` sits in `parent` (translation, metres; rotation as a
 /// unit quaternion x, y, z, w).
 #[derive(Debug, Clone, PartialEq)]

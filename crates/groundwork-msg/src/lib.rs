@@ -314,6 +314,34 @@ pub struct ProposalRecord {
     pub height: f32,
 }
 
+impl ProposalRecord {
+    /// The box's centre in the ground-aligned frame (`base_footprint`): over its ground
+    /// point, midway between its lowest and highest point.
+    pub fn box_center(&self) -> [f64; 3] {
+        [
+            f64::from(self.center[0]),
+            f64::from(self.center[1]),
+            f64::from(self.ground_z) + 0.5 * f64::from(self.bottom + self.height),
+        ]
+    }
+
+    /// The box's extent: along its heading (`yaw`), across it, and up.
+    pub fn box_size(&self) -> [f64; 3] {
+        [
+            f64::from(self.length),
+            f64::from(self.width),
+            f64::from(self.height - self.bottom),
+        ]
+    }
+
+    /// The box's rotation, a turn by `yaw` about the vertical, as a unit quaternion
+    /// (x, y, z, w).
+    pub fn box_rotation(&self) -> [f64; 4] {
+        let half = 0.5 * f64::from(self.yaw);
+        [0.0, 0.0, half.sin(), half.cos()]
+    }
+}
+
 /// Header of a proposals message.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]

@@ -461,19 +461,18 @@ impl DetectionsOut {
         let boxes: Vec<(&ProposalRecord, Pose, Vector3)> = h.records[..n]
             .iter()
             .map(|r| {
+                let ([x, y, z], [qx, qy, qz, qw]) = (r.box_center(), r.box_rotation());
                 let pose = Pose {
-                    position: Vector3 {
-                        x: f64::from(r.center[0]),
-                        y: f64::from(r.center[1]),
-                        z: f64::from(r.ground_z) + 0.5 * f64::from(r.bottom + r.height),
+                    position: Vector3 { x, y, z },
+                    orientation: Quaternion {
+                        x: qx,
+                        y: qy,
+                        z: qz,
+                        w: qw,
                     },
-                    orientation: Quaternion::yaw(f64::from(r.yaw)),
                 };
-                let size = Vector3 {
-                    x: f64::from(r.length),
-                    y: f64::from(r.width),
-                    z: f64::from(r.height - r.bottom),
-                };
+                let [x, y, z] = r.box_size();
+                let size = Vector3 { x, y, z };
                 (r, pose, size)
             })
             .collect();
@@ -483,7 +482,7 @@ impl DetectionsOut {
                 header: header.clone(),
                 results: vec![ObjectHypothesisWithPose {
                     hypothesis: ObjectHypothesis {
-                        class_id: class_of(r.flags),
+                        class_id: ProposalFlags(r.flags).class_name(),
                         score: 1.0,
                     },
                     pose: PoseWithCovariance {
@@ -541,17 +540,6 @@ impl DetectionsOut {
         }));
         send(&self.shared, &self.markers, MarkerArray { markers });
         lock(&self.shared).report.detections += 1;
-    }
-}
-
-/// A proposal's class: `object`, or the names of its flags (`wall`, `tall+floating`):
-/// clusters that are plainly not objects are labelled, not dropped, as `detect` does.
-fn class_of(flags: u32) -> String {
-    let f = ProposalFlags(flags);
-    if f.is_object_like() {
-        "object".into()
-    } else {
-        f.names().collect::<Vec<_>>().join("+")
     }
 }
 

@@ -115,19 +115,6 @@ pub struct Quaternion {
     pub w: f64,
 }
 
-impl Quaternion {
-    /// A rotation by `yaw` radians about z.
-    pub fn yaw(yaw: f64) -> Self {
-        let (s, c) = (0.5 * yaw).sin_cos();
-        Self {
-            x: 0.0,
-            y: 0.0,
-            z: s,
-            w: c,
-        }
-    }
-}
-
 /// `geometry_msgs/msg/Pose`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Pose {
@@ -351,7 +338,12 @@ impl Marker {
             action,
             pose: Pose {
                 position: Vector3::default(),
-                orientation: Quaternion::yaw(0.0),
+                orientation: Quaternion {
+                    x: 0.0,
+                    y: 0.0,
+                    z: 0.0,
+                    w: 1.0,
+                },
             },
             scale: Vector3::default(),
             color: ColorRGBA::default(),

@@ -139,6 +139,8 @@ const LABEL_CACHE: usize = 32;
 pub const RECORDING_WINDOW: usize = crate::window::SCAN_WINDOW;
 /// The topic of the consumer's recording.
 pub const RECORDING_TOPIC: &str = "/points";
+/// The topic of the proposals' boxes in the consumer's recording (`foxglove.SceneUpdate`).
+pub const PROPOSALS_RECORDING_TOPIC: &str = "/proposals";
 
 /// The consumer stage: pairing, accounting, latency, accuracy, outputs. No IPC.
 #[derive(Debug, Default)]
@@ -307,8 +309,17 @@ impl ConsumerStage {
         }
     }
 
-    /// A proposals message was read: counted, and its stamps give the detector's latency.
+    /// A proposals message was read: counted, its stamps give the detector's latency, and
+    /// a recording gets its boxes beside the scan's points, at the scan's stamp.
     pub fn on_proposals(&mut self, h: &ProposalsHeader) {
+        if let Some(OutputTarget::Recording(writer)) = &mut self.out {
+            let stamp = h.sensor_timestamp_ns;
+            let boxes = crate::scene::proposals(h, stamp);
+            if let Err(e) = writer.write_foxglove(PROPOSALS_RECORDING_TOPIC, &boxes, stamp) {
+                self.report.write_failures += 1;
+                warn!("{e}");
+            }
+        }
         let d = &mut self.report.detections;
         d.messages += 1;
         d.proposals += u64::from(h.proposal_count);

@@ -10,6 +10,7 @@ pub mod cpu;
 pub mod detector;
 pub mod launcher;
 pub mod producer;
+pub mod scene;
 pub mod segmenter;
 pub mod signals;
 pub mod stage;
