@@ -219,6 +219,11 @@ pub struct Ros2Args {
     /// Also publish the ground points on /<namespace>/<node>/ground.
     #[arg(long)]
     pub publish_ground: bool,
+    /// A nav_msgs/Odometry topic that gives each cloud its pose (at the cloud's stamp):
+    /// the segmenter then keeps its multi-frame history. Its child frame is the vehicle's
+    /// base (the sensor placed on it by the mount), or the cloud's own frame.
+    #[arg(long)]
+    pub odom_topic: Option<String>,
 }
 
 /// Arguments of `groundwork ros2`.

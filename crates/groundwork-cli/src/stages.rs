@@ -87,6 +87,7 @@ pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
             ground_threshold: seg.ground.ground_threshold,
             count: a.count,
             mount: Some(mount),
+            odometry_topic: r.odom_topic.clone(),
         },
     );
     stop_view.store(true, Ordering::Relaxed);
@@ -119,6 +120,9 @@ fn ros2_stage_args(c: &mut std::process::Command, r: &Ros2Args) {
     }
     if r.publish_ground {
         c.arg("--publish-ground");
+    }
+    if let Some(t) = &r.odom_topic {
+        c.arg("--odom-topic").arg(t);
     }
 }
 

@@ -23,7 +23,8 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-SCANS = sorted((Path(__file__).resolve().parents[3] / "tests/data/semantickitti-00/velodyne").glob("*.bin"))
+ROOT = Path(__file__).resolve().parents[3]
+SCANS = sorted((ROOT / "tests/data/semantickitti-00/velodyne").glob("*.bin"))
 FLOAT32, UINT16 = 7, 4
 
 
@@ -207,6 +208,26 @@ class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
     transforms: sequence[TransformStamped]
 
 
+@dataclass
+class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
+    linear: Vector3
+    angular: Vector3
+
+
+@dataclass
+class TwistWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::TwistWithCovariance_"):
+    twist: Twist
+    covariance: array[float64, 36]
+
+
+@dataclass
+class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
+    header: Header
+    child_frame_id: str
+    pose: PoseWithCovariance
+    twist: TwistWithCovariance
+
+
 def xyzi_cloud(points: np.ndarray, sec: int, frame: str, height: int = 1) -> PointCloud2:
     """A cloud as most drivers publish it: x, y, z, intensity as float32."""
     fields = [PointField(n, 4 * i, FLOAT32, 1) for i, n in enumerate(["x", "y", "z", "intensity"])]
@@ -386,3 +407,111 @@ def test_the_bridge_answers_every_cloud_as_segment_would(cli: Path, tmp_path: Pa
     for t in tf:
         assert t.header.frame_id == "base_footprint"
         assert abs(t.transform.translation.z - 1.73) < 1e-9 and t.transform.rotation.w == 1.0
+
+
+def lidar_poses() -> list[np.ndarray]:
+    """KITTI's camera poses of frames 0-2 as the LiDAR's (Tr^-1 P Tr), rotations made exact."""
+    data = ROOT / "tests/data/semantickitti-00"
+    tr = np.eye(4)
+    tr[:3] = np.array([float(v) for v in next(line for line in (data / "calib.txt").read_text().splitlines()
+                                               if line.startswith("Tr:")).split()[1:]]).reshape(3, 4)
+    poses = []
+    for line in (data / "poses.txt").read_text().splitlines()[:3]:
+        cam = np.eye(4)
+        cam[:3] = np.array([float(v) for v in line.split()]).reshape(3, 4)
+        lidar = np.linalg.inv(tr) @ cam @ tr
+        u, _, vt = np.linalg.svd(lidar[:3, :3])
+        lidar[:3, :3] = u @ vt
+        poses.append(lidar)
+    return poses
+
+
+def quaternion(r: np.ndarray) -> tuple:
+    """(x, y, z, w) of a rotation matrix near the identity (w well away from 0)."""
+    w = np.sqrt(1.0 + np.trace(r)) / 2
+    return ((r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w), w)
+
+
+def rotation(q: tuple) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def test_odometry_gives_the_bridge_the_multi_frame_history(cli: Path, tmp_path: Path) -> None:
+    """A driver's clouds with a nav_msgs/Odometry of the LiDAR at their stamps: the bridge
+    gives each scan its pose, and the answers are `segment`'s over the same scans with
+    those poses (multi-frame), not its single-frame ones."""
+    pid = os.getpid()
+    domain = 100 + (pid + 37) % 100
+    ns = f"/gw_odom_{pid}"
+    reliable = Qos(Policy.Reliability.Reliable(duration(seconds=2)), Policy.History.KeepLast(10))
+    frames = [np.fromfile(SCANS[k], np.float32).reshape(-1, 4)[:30_000] for k in range(3)]
+    poses = lidar_poses()
+    quats = [quaternion(p[:3, :3]) for p in poses]
+
+    # `segment` over the same points, with the same poses (the LiDAR's own: no calib.txt).
+    bins = tmp_path / "bins"
+    bins.mkdir()
+    rows = []
+    for k, (pts, p, q) in enumerate(zip(frames, poses, quats)):
+        pts.tofile(bins / f"{k:06d}.bin")
+        m = np.hstack([rotation(q), p[:3, 3:]])
+        rows.append(" ".join(repr(float(v)) for v in m.ravel()))
+    (bins / "poses.txt").write_text("\n".join(rows) + "\n")
+    expected = {}
+    for name, extra in [("history", []), ("single", ["--frames", "1"])]:
+        subprocess.run([str(cli), "segment", *extra, "--out", str(tmp_path / name), str(bins)],
+                       check=True, capture_output=True)
+        expected[name] = [np.fromfile(tmp_path / name / f"{k:06d}.prob", np.float32) for k in range(3)]
+
+    pipeline = subprocess.Popen(
+        [str(cli), "pipeline", "--ros2", "--no-detector", "--prefix", f"gw-py-odom-{pid}",
+         "--domain-id", str(domain), "--input-topic", f"{ns}/points_in", "--namespace", ns,
+         "--odom-topic", f"{ns}/odom"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    got = []
+    try:
+        dp = DomainParticipant(domain)
+        reader = DataReader(dp, Topic(dp, f"rt{ns}/groundwork/points", PointCloud2, qos=reliable), qos=reliable)
+        clouds = DataWriter(dp, Topic(dp, f"rt{ns}/points_in", PointCloud2, qos=reliable), qos=reliable)
+        odom = DataWriter(dp, Topic(dp, f"rt{ns}/odom", Odometry, qos=reliable), qos=reliable)
+        end = time.time() + 60
+        while not (clouds.get_matched_subscriptions() and odom.get_matched_subscriptions()
+                   and reader.get_matched_publications()):
+            assert pipeline.poll() is None, pipeline.stderr.read()[-4000:]
+            assert time.time() < end, "the bridge did not appear"
+            time.sleep(0.05)
+        time.sleep(1.0)
+        zero = Vector3(0.0, 0.0, 0.0)
+        for k, (pts, p, q) in enumerate(zip(frames, poses, quats)):
+            stamp = Time(1_700_000_000 + k // 10, 100_000_000 * (k % 10))
+            odom.write(Odometry(Header(stamp, "odom"), "velodyne",
+                                PoseWithCovariance(Pose(Point(*map(float, p[:3, 3])), Quaternion(*map(float, q))),
+                                                   [0.0] * 36),
+                                TwistWithCovariance(Twist(zero, zero), [0.0] * 36)))
+            time.sleep(0.1)
+            cloud = xyzi_cloud(pts, 0, "velodyne")
+            cloud.header.stamp = stamp
+            clouds.write(cloud)
+            while len(got) <= k and time.time() < end:
+                got.extend(m for m in reader.take(N=10) if isinstance(m, PointCloud2))
+                time.sleep(0.05)
+        pipeline.send_signal(signal.SIGINT)
+        out, err = pipeline.communicate(timeout=60)
+    finally:
+        if pipeline.poll() is None:
+            pipeline.kill()
+            pipeline.communicate()
+    assert pipeline.returncode == 0, err[-3000:]
+    assert len(got) == 3, err[-3000:]
+    assert "odometry=3 odometry_rejected=0 no_pose=0" in err, err[-3000:]
+    for k, answer in enumerate(got):
+        probs = as_array(answer, "ground_probability")
+        history, single = expected["history"][k], expected["single"][k]
+        # The poses travel as quaternions, rebuilt on each side: agreement to rounding.
+        assert np.abs(probs - history).max() < 1e-4, k
+        assert np.mean((probs >= 0.5) != (history >= 0.5)) < 5e-4, k
+        if k > 0:  # the history changed the answer, and the bridge has it
+            assert np.abs(history - single).max() > 0.01, k

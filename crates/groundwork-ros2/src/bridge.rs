@@ -21,7 +21,7 @@ use tracing::{info, warn};
 use groundwork_detect::ProposalFlags;
 use groundwork_io::Scan;
 use groundwork_io::pointcloud2::{CloudPoints, select_records, with_probability};
-use groundwork_io::transform::{GROUND_FRAME, StaticTransform};
+use groundwork_io::transform::{GROUND_FRAME, SENSOR_FRAME, StaticTransform};
 use groundwork_msg::{
     FrameId, MaskHeader, MaskStatus, ProposalRecord, ProposalsHeader, SCHEMA_VERSION, ScanHeader,
     ScanPoint, ScanSource, monotonic_ns, new_epoch, wall_clock_ns,
@@ -31,9 +31,10 @@ use groundwork_service::stage::{self, Input, Inputs, Outbox, Stage, Topic, Wirin
 
 use crate::msg::{
     BoundingBox3D, ColorRGBA, Covariance, Detection3D, Detection3DArray, Header, Marker,
-    MarkerArray, ObjectHypothesis, ObjectHypothesisWithPose, PointCloud2, Pose, PoseWithCovariance,
-    Quaternion, TFMessage, Time, Transform, TransformStamped, Vector3,
+    MarkerArray, ObjectHypothesis, ObjectHypothesisWithPose, Odometry, PointCloud2, Pose,
+    PoseWithCovariance, Quaternion, TFMessage, Time, Transform, TransformStamped, Vector3,
 };
+use crate::odom::{OdomTrack, row_major};
 
 /// Reliability of the input subscription.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -68,6 +69,9 @@ pub struct BridgeOptions {
     /// The sensor's mount, published on `/tf_static` for each cloud frame seen (the
     /// detections' frame, `base_footprint`, to the cloud's).
     pub mount: Option<StaticTransform>,
+    /// A `nav_msgs/Odometry` topic giving each scan its pose (the multi-frame history);
+    /// `None`: scans carry no pose and are segmented on their own.
+    pub odometry_topic: Option<String>,
 }
 
 impl Default for BridgeOptions {
@@ -82,6 +86,7 @@ impl Default for BridgeOptions {
             ground_threshold: 0.5,
             count: None,
             mount: None,
+            odometry_topic: None,
         }
     }
 }
@@ -111,6 +116,13 @@ pub struct BridgeReport {
     pub dropped: u64,
     /// DDS reads or writes that failed.
     pub dds_errors: u64,
+    /// Odometry samples taken (with an odometry topic).
+    pub odometry: u64,
+    /// Odometry samples refused (no time, no pose) or unreadable.
+    pub odometry_rejected: u64,
+    /// Clouds published without a pose although an odometry topic was given (no sample
+    /// within 0.1 s of their stamp).
+    pub no_pose: u64,
 }
 
 /// Clouds published and not yet answered, oldest first. Bounded: a segmenter that stops
@@ -175,6 +187,38 @@ struct CloudsIn {
     answers_wanted: Option<u64>,
     /// Polled this long for a cloud before the runner looks at signals again.
     wait: Duration,
+    /// The odometry that gives scans their poses, if any.
+    odometry: Option<OdomIn>,
+}
+
+/// The odometry subscription and the samples it gave.
+struct OdomIn {
+    subscription: Subscription<Odometry>,
+    track: OdomTrack,
+}
+
+impl OdomIn {
+    /// Takes every sample that has arrived.
+    fn take(&mut self, shared: &Shared) {
+        loop {
+            let added = match self.subscription.take() {
+                Ok(Some((odom, _))) => self.track.add(&odom),
+                Ok(None) => return,
+                Err(e) => Err(format!("DDS read failed: {e:?}")),
+            };
+            let mut s = lock(shared);
+            match added {
+                Ok(()) => s.report.odometry += 1,
+                Err(reason) => {
+                    // Throttled: a bad odometry at 100 Hz would flood the log.
+                    if (s.report.odometry_rejected + 1).is_power_of_two() {
+                        warn!("skipped an odometry sample: {reason}");
+                    }
+                    s.report.odometry_rejected += 1;
+                }
+            }
+        }
+    }
 }
 
 impl CloudsIn {
@@ -223,6 +267,16 @@ impl CloudsIn {
             ..ScanHeader::default()
         };
         header.stamps.produced_ns = produced;
+        if let Some(o) = &self.odometry {
+            let frame = header.frame_id.get().unwrap_or(SENSOR_FRAME);
+            match o.track.sensor_pose(frame, header.sensor_timestamp_ns) {
+                Some(p) => {
+                    header.has_pose = 1;
+                    header.pose = row_major(&p);
+                }
+                None => lock(&self.shared).report.no_pose += 1,
+            }
+        }
         {
             // Held before it is published: the answer may come back at once.
             let mut s = lock(&self.shared);
@@ -275,6 +329,10 @@ impl Stage for CloudsIn {
             r => r.context("poll the DDS subscription")?,
         }
         loop {
+            // The poses first: a cloud takes the odometry that came before it.
+            if let Some(o) = &mut self.odometry {
+                o.take(&self.shared);
+            }
             match self.subscription.take() {
                 Ok(Some((cloud, info))) => {
                     let received = info
@@ -666,7 +724,7 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         .create_topic(&input, cloud_type(), &in_qos)
         .context("input topic")?;
     let mut subscription = node
-        .create_subscription::<PointCloud2>(&topic, Some(in_qos))
+        .create_subscription::<PointCloud2>(&topic, Some(in_qos.clone()))
         .context("input subscription")?;
     // Outputs are reliable (which best-effort subscribers match too), keep last 5.
     let out_qos = profile(Qos::Reliable);
@@ -713,6 +771,41 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
     poll.registry()
         .register(&mut subscription, Token(0), Interest::READABLE)
         .context("register the DDS subscription")?;
+    let odometry = match &opts.odometry_topic {
+        Some(name) => {
+            let topic = node
+                .create_topic(
+                    &ros_name(name)?,
+                    MessageTypeName::new("nav_msgs", "Odometry"),
+                    &in_qos,
+                )
+                .context("odometry topic")?;
+            let mut subscription = node
+                // Odometry comes at up to 100 Hz: room for a few polls' worth.
+                .create_subscription::<Odometry>(
+                    &topic,
+                    Some(in_qos.clone().history(qos::History::KeepLast { depth: 50 })),
+                )
+                .context("odometry subscription")?;
+            poll.registry()
+                .register(&mut subscription, Token(1), Interest::READABLE)
+                .context("register the odometry subscription")?;
+            let base_from_sensor = opts.mount.as_ref().map(|m| {
+                let ([x, y, z], [qx, qy, qz, qw]) = (m.translation, m.rotation);
+                crate::odom::Pose::from_parts(
+                    nalgebra::Translation3::new(x, y, z),
+                    nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                        qw, qx, qy, qz,
+                    )),
+                )
+            });
+            Some(OdomIn {
+                subscription,
+                track: OdomTrack::new(base_from_sensor),
+            })
+        }
+        None => None,
+    };
     info!(
         domain = opts.domain_id,
         input = %opts.input_topic,
@@ -762,6 +855,7 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         max_points: cfg.max_points,
         answers_wanted: opts.count,
         wait: Duration::from_millis(50),
+        odometry,
     };
     let input_result = stage::run(cfg, || Ok(clouds));
     let output_result = answering
@@ -784,6 +878,9 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         unmatched = report.unmatched_masks,
         dropped = report.dropped,
         dds_errors = report.dds_errors,
+        odometry = report.odometry,
+        odometry_rejected = report.odometry_rejected,
+        no_pose = report.no_pose,
         "ROS 2 bridge stopped"
     );
     Ok(report)

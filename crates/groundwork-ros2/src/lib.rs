@@ -2,7 +2,8 @@
 //! topic over DDS, publishes each cloud into the pipeline's `scans` topic (stamp and frame
 //! kept), and answers each mask on ROS 2 topics, stamped with the input's stamp and frame:
 //! the cloud with a `ground_probability` field (`~/points`), the non-ground points
-//! (`~/nonground`) and, if asked, the ground points (`~/ground`).
+//! (`~/nonground`) and, if asked, the ground points (`~/ground`). With an odometry topic,
+//! each scan carries its pose, and the segmenter its multi-frame history.
 //!
 //! DDS is RustDDS through `ros2-client` (pure Rust, no ROS installation, ROS 2's topic
 //! naming `rt/<name>` and type naming `pkg::msg::dds_::Type_`). The layout of clouds is
@@ -11,5 +12,6 @@
 
 pub mod bridge;
 pub mod msg;
+pub mod odom;
 
 pub use bridge::{BridgeOptions, BridgeReport, Qos, cloud_type, profile, ros_name, run};

@@ -174,6 +174,37 @@ pub struct PoseWithCovariance {
     pub covariance: Covariance,
 }
 
+/// `geometry_msgs/msg/Twist`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Twist {
+    /// Linear velocity.
+    pub linear: Vector3,
+    /// Angular velocity.
+    pub angular: Vector3,
+}
+
+/// `geometry_msgs/msg/TwistWithCovariance`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TwistWithCovariance {
+    /// The twist.
+    pub twist: Twist,
+    /// Its covariance.
+    pub covariance: Covariance,
+}
+
+/// `nav_msgs/msg/Odometry`: the pose of `child_frame_id` in `header.frame_id`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Odometry {
+    /// Stamp, and the fixed frame the pose is in (`odom`, `map`).
+    pub header: Header,
+    /// The frame whose pose it is (`base_link`, or a LiDAR odometry's sensor frame).
+    pub child_frame_id: String,
+    /// The pose.
+    pub pose: PoseWithCovariance,
+    /// The velocity (unused).
+    pub twist: TwistWithCovariance,
+}
+
 /// `vision_msgs/msg/ObjectHypothesis` (vision_msgs 4: Humble and later).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ObjectHypothesis {
