@@ -581,7 +581,21 @@ fn the_consumer_records_the_pipeline_to_mcap() {
         .map(Result::unwrap)
         .collect();
     assert_eq!(all[0].channel.topic, "/tf_static");
-    let messages = &all[1..];
+    let messages: Vec<_> = all[1..]
+        .iter()
+        .filter(|m| m.channel.topic == "/points")
+        .collect();
+    // The detector's boxes beside them (foxglove.SceneUpdate), each at its scan's stamp;
+    // the last one may miss the consumer's stop.
+    let boxes: Vec<_> = all
+        .iter()
+        .filter(|m| m.channel.topic == "/proposals")
+        .collect();
+    assert!((5..=6).contains(&boxes.len()), "{} proposals", boxes.len());
+    for b in &boxes {
+        assert_eq!(b.channel.message_encoding, "protobuf");
+        assert!(messages.iter().any(|m| m.log_time == b.log_time));
+    }
     let bundled: Vec<_> = groundwork_io::list_scans(&data().join("velodyne"))
         .unwrap()
         .iter()

@@ -542,6 +542,39 @@ impl<'a> CloudPoints<'a> {
         self.read(r)
     }
 
+    /// Writes every point, in order, into `out` (as `convert` makes it), in one pass over
+    /// the records: the copy into shared memory, without [`CloudPoints::point`]'s per-point
+    /// record arithmetic. Writes `min(out.len(), self.len())` points; returns how many.
+    pub fn copy_into<T>(&self, out: &mut [T], convert: impl Fn(Point) -> T) -> usize {
+        let n = out.len().min(self.len());
+        let out = &mut out[..n];
+        match (&self.source_index, self.floats) {
+            (None, Some(f)) => {
+                let [x, y, z] = self.xyz.map(|(off, _)| off / 4);
+                let value = self.value.map(|(off, _)| off / 4);
+                for (o, c) in out.iter_mut().zip(self.layout.records_in(f, 4)) {
+                    *o = convert(Point {
+                        x: c[x],
+                        y: c[y],
+                        z: c[z],
+                        intensity: value.map_or(0.0, |v| c[v]),
+                    });
+                }
+            }
+            (None, None) => {
+                for (r, o) in out.iter_mut().enumerate() {
+                    *o = convert(self.read(r));
+                }
+            }
+            (Some(index), _) => {
+                for (o, &r) in out.iter_mut().zip(index) {
+                    *o = convert(self.read(r as usize));
+                }
+            }
+        }
+        n
+    }
+
     /// Record `r` as a point.
     #[inline]
     fn read(&self, r: usize) -> Point {
@@ -845,6 +878,69 @@ mod tests {
             decode_probabilities(label, &msg, 10).unwrap(),
             vec![0.9, 0.0, 0.1, 0.0]
         );
+    }
+
+    proptest::proptest! {
+        /// The one-pass copy gives what point-by-point reading gives, for any layout: rows
+        /// with padding, fields in any order and type, either endianness, placeholders.
+        #[test]
+        fn copying_all_points_equals_reading_them_one_by_one(
+            height in 1u32..4,
+            width in 1u32..40,
+            pad in 0u32..3,
+            row_pad in 0u32..2,
+            f64_x in proptest::bool::ANY,
+            big in proptest::bool::ANY,
+            with_intensity in proptest::bool::ANY,
+            holes in proptest::collection::vec(0usize..160, 0..5),
+            seed in 0u32..1000,
+        ) {
+            // x (f32 or f64), y, z, intensity (f32), `pad` 4-byte words of padding.
+            let xs = if f64_x { 8 } else { 4 };
+            let mut fields = vec![
+                PointField { name: "y".into(), offset: 0, datatype: FLOAT32, count: 1 },
+                PointField { name: "z".into(), offset: 4, datatype: FLOAT32, count: 1 },
+                PointField { name: "x".into(), offset: 8, datatype: if f64_x { 8 } else { FLOAT32 }, count: 1 },
+            ];
+            if with_intensity {
+                fields.push(PointField { name: "intensity".into(), offset: 8 + xs, datatype: FLOAT32, count: 1 });
+            }
+            let point_step = 8 + xs + 4 + 4 * pad;
+            let row_step = width * point_step + 4 * row_pad;
+            let records = (height * width) as usize;
+            let mut data = vec![0u8; (height * row_step) as usize];
+            for r in 0..records {
+                let o = (r / width as usize) * row_step as usize + (r % width as usize) * point_step as usize;
+                let v = |k: u32| ((r as u32 * 7 + k * 13 + seed) % 101) as f32 * 0.25 - 10.0;
+                let hole = holes.contains(&r);
+                let x = if hole { f32::NAN } else { v(0) };
+                let mut put = |at: usize, b: &[u8]| data[o + at..o + at + b.len()].copy_from_slice(b);
+                let f4 = |f: f32| if big { f.to_be_bytes() } else { f.to_le_bytes() };
+                put(0, &f4(v(1)));
+                put(4, &f4(v(2)));
+                if f64_x {
+                    let d = f64::from(x);
+                    put(8, &if big { d.to_be_bytes() } else { d.to_le_bytes() });
+                } else {
+                    put(8, &f4(x));
+                }
+                put(8 + xs as usize, &f4(v(3)));
+            }
+            let cloud = CloudRef {
+                stamp_sec: 0, stamp_nanosec: 0, frame_id: "f", height, width, fields: &fields,
+                is_bigendian: big, point_step, row_step, data: &data, is_dense: false,
+            };
+            let Ok(points) = CloudPoints::new(Path::new("p"), &cloud, 10_000) else {
+                // Every record a placeholder: refused either way.
+                proptest::prop_assert!((0..records).all(|r| holes.contains(&r)));
+                return Ok(());
+            };
+            let one_by_one: Vec<Point> = (0..points.len()).map(|i| points.point(i)).collect();
+            let mut copied = vec![Point::new(0.0, 0.0, 0.0); points.len() + 2];
+            proptest::prop_assert_eq!(points.copy_into(&mut copied, |p| p), points.len());
+            proptest::prop_assert_eq!(&copied[..points.len()], &one_by_one[..]);
+            proptest::prop_assert!(copied[points.len()..].iter().all(|p| p.x == 0.0));
+        }
     }
 
     #[test]

@@ -292,17 +292,17 @@ impl CloudsIn {
                 points: points.len(),
             });
         }
-        // The one copy: from the DDS sample's bytes straight into shared memory.
-        let point = |i: usize| {
-            let p = points.point(i);
-            ScanPoint {
+        // The one copy: from the DDS sample's bytes straight into shared memory, in one
+        // pass over the records.
+        let fill = |sample: &mut [ScanPoint]| {
+            points.copy_into(sample, |p| ScanPoint {
                 x: p.x,
                 y: p.y,
                 z: p.z,
                 intensity: p.intensity,
-            }
+            });
         };
-        out.send_scan(points.len(), point, header)?;
+        out.send_scan_filled(points.len(), fill, header)?;
         self.sequence += 1;
         lock(&self.shared).report.published += 1;
         Ok(())

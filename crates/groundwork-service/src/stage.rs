@@ -402,6 +402,28 @@ impl Outbox {
         Ok(reached)
     }
 
+    /// Publishes a scan of `len` points, which `fill` writes in place in shared memory
+    /// (a zeroed sample: for sources that copy faster in one pass than point by point).
+    pub fn send_scan_filled(
+        &mut self,
+        len: usize,
+        fill: impl FnOnce(&mut [ScanPoint]),
+        mut header: ScanHeader,
+    ) -> anyhow::Result<usize> {
+        let Port::Scans(p) = &self.port else {
+            anyhow::bail!("this stage publishes no scans");
+        };
+        let mut sample = p
+            .loan_slice(len)
+            .map_err(|e| anyhow::anyhow!("loan of {len} points: {e:?}"))?;
+        fill(sample.payload_mut());
+        header.stamps.published_ns = monotonic_ns();
+        *sample.user_header_mut() = header;
+        let reached = sample.send().context("send scan")?;
+        self.wake_readers();
+        Ok(reached)
+    }
+
     /// Publishes a mask of `len` values, which `fill` writes in place in shared memory,
     /// with the header `fill` returns.
     pub fn send_mask(
