@@ -18,7 +18,6 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::Context as _;
 use foxglove::bytes::Bytes;
@@ -29,7 +28,9 @@ use foxglove::messages::{
 };
 use foxglove::{Channel, ChannelBuilder, Context, PartialMetadata, RawChannel, Schema};
 use groundwork_io::transform::{SENSOR_FRAME, StaticTransform};
-use groundwork_msg::{MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint};
+use groundwork_msg::{
+    MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint, wall_clock_ns,
+};
 use groundwork_service::config::ServiceConfig;
 use groundwork_service::scene::{self, timestamp};
 use groundwork_service::stage::{self, Input, Inputs, Outbox, Stage, Topic, Wiring};
@@ -388,11 +389,10 @@ impl View {
 /// A scan's stamp; none (0): now.
 fn stamp_or_now(stamp_ns: u64) -> u64 {
     if stamp_ns > 0 {
-        return stamp_ns;
+        stamp_ns
+    } else {
+        wall_clock_ns()
     }
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
 }
 
 /// The colour of a probability: orange non-ground, green ground, blended where unsure
