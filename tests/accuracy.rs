@@ -7,10 +7,11 @@ use groundwork_eval::{Protocol, Sequence, evaluate};
 use groundwork_io::load_config;
 use groundwork_tests::{hdl64e_preset, kitti_sequence};
 
-/// Measured 97.64 pooled ground IoU (gmm protocol) with the HDL-64E preset; the paper
-/// reports 95.37 on the whole of sequence 00, Patchwork++ 1.4.1 scores 98.04 on these three
-/// frames. The threshold leaves room for float differences across machines only.
-const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 97.3;
+/// Measured 98.25 pooled ground IoU (gmm protocol) with the HDL-64E preset, precision
+/// 99.40, scans 98.43 / 98.32 / 97.99 (97.64 before ground continuity); the paper reports
+/// 95.37 on the whole of sequence 00, Patchwork++ 1.4.1 scores 98.04 on these three frames.
+/// The floors are the measurement less 0.1.
+const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 98.15;
 
 #[test]
 fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
@@ -32,10 +33,10 @@ fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
     );
     // Precision is what the GMM paper stresses (modelling objects keeps them out of the
     // ground): it must stay high, not be traded for recall.
-    assert!(m.precision >= 99.0, "precision {:.2}", m.precision);
+    assert!(m.precision >= 99.3, "precision {:.2}", m.precision);
     for s in &r.scans {
         let iou = s.metrics.unwrap().iou_ground;
-        assert!(iou >= 96.5, "scan {}: IoU {iou:.2}", s.name);
+        assert!(iou >= 97.89, "scan {}: IoU {iou:.2}", s.name);
     }
 }
 
@@ -56,11 +57,9 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
     assert!(ts.pooled_metrics.miou > 85.0, "{:?}", ts.pooled_metrics);
 }
 
-/// Measured: pooled IoU 97.64 single-frame → 97.86 with 2 frames, 97.88 with 3 (frames 1 and
-/// 2 gain 0.2 and 0.5 IoU points) on the vendored frames. Which 2 cm cubes hold the fit
-/// points is one draw of a hash: over ten draws the 2-frame figure is 97.91 ± 0.17 (the
-/// coordinate-bit hash before shipped a draw of 98.14), so the floor sits a standard
-/// deviation under the mean, not under one lucky draw.
+/// Measured: pooled IoU 98.25 single-frame → 98.50 with 2 frames, 98.53 with 3, 4 and 16
+/// (frames 1 and 2 gain 0.26 and 0.5–0.6 IoU points) on the vendored frames; precision
+/// 99.44–99.45. The floor is the 2-frame measurement less 0.1.
 #[test]
 fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
     let single = {
@@ -102,7 +101,7 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
             multi.pooled_metrics.iou_ground, multi.pooled_metrics.precision
         );
         assert!(
-            multi.pooled_metrics.iou_ground >= 97.7,
+            multi.pooled_metrics.iou_ground >= 98.4 && multi.pooled_metrics.precision >= 99.3,
             "{:?}",
             multi.pooled_metrics
         );

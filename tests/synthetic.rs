@@ -21,37 +21,37 @@ use SceneKind::{Hill, Offroad, Parking, Urban};
 /// Pooled ground IoU (gmm protocol, default history, true poses) measured per preset and
 /// scene.
 const MEASURED: &[(&str, SceneKind, f64)] = &[
-    ("hdl64e", Urban, 95.24),
-    ("hdl64e", Offroad, 94.35),
-    ("hdl64e", Parking, 93.15),
-    ("hdl64e", Hill, 95.99),
-    ("hdl32e", Urban, 82.54),
-    ("hdl32e", Offroad, 94.04),
-    ("hdl32e", Parking, 89.89),
-    ("hdl32e", Hill, 96.41),
-    ("vlp16", Urban, 91.55),
-    ("vlp16", Offroad, 91.28),
-    ("vlp16", Parking, 90.61),
-    ("vlp16", Hill, 94.04),
-    ("vlp32c", Urban, 93.54),
-    ("vlp32c", Offroad, 81.00),
-    ("vlp32c", Parking, 79.77),
-    ("vlp32c", Hill, 94.16),
-    ("os1-64", Urban, 97.40),
-    ("os1-64", Offroad, 94.50),
-    ("os1-64", Parking, 96.80),
-    ("os1-64", Hill, 97.96),
-    ("os1-128", Urban, 94.92),
-    ("os1-128", Offroad, 96.01),
-    ("os1-128", Parking, 96.26),
-    ("os1-128", Hill, 93.33),
-    ("pandar64", Urban, 93.25),
-    ("pandar64", Offroad, 78.84),
-    ("pandar64", Parking, 85.64),
-    ("pandar64", Hill, 94.16),
-    ("livox", Urban, 98.10),
-    ("livox", Offroad, 87.94),
-    ("livox", Parking, 98.28),
+    ("hdl64e", Urban, 97.03),
+    ("hdl64e", Offroad, 94.98),
+    ("hdl64e", Parking, 94.95),
+    ("hdl64e", Hill, 96.53),
+    ("hdl32e", Urban, 84.17),
+    ("hdl32e", Offroad, 94.22),
+    ("hdl32e", Parking, 92.03),
+    ("hdl32e", Hill, 96.53),
+    ("vlp16", Urban, 92.35),
+    ("vlp16", Offroad, 91.75),
+    ("vlp16", Parking, 90.99),
+    ("vlp16", Hill, 94.38),
+    ("vlp32c", Urban, 94.50),
+    ("vlp32c", Offroad, 81.24),
+    ("vlp32c", Parking, 81.72),
+    ("vlp32c", Hill, 94.22),
+    ("os1-64", Urban, 97.95),
+    ("os1-64", Offroad, 94.64),
+    ("os1-64", Parking, 97.46),
+    ("os1-64", Hill, 97.94),
+    ("os1-128", Urban, 95.46),
+    ("os1-128", Offroad, 96.31),
+    ("os1-128", Parking, 97.19),
+    ("os1-128", Hill, 93.84),
+    ("pandar64", Urban, 93.88),
+    ("pandar64", Offroad, 79.00),
+    ("pandar64", Parking, 87.14),
+    ("pandar64", Hill, 94.17),
+    ("livox", Urban, 98.48),
+    ("livox", Offroad, 88.07),
+    ("livox", Parking, 99.16),
     ("livox", Hill, 98.85),
 ];
 
@@ -313,50 +313,51 @@ fn mean_iou_over_seeds_of_every_preset_and_scene() {
                 .collect::<Vec<_>>()
         );
         if let Some(f) = floor {
-            // The goal was −0.3 at most; three urban scenes lose 0.4–0.9 on these means
-            // (docs/synthetic.md), with per-seed swings of ±4–7 points either way: the
-            // guard is against a real regression, at one point.
-            if mean < f - 1.0 {
-                failures.push(format!("{sensor} {}: {mean:.2} < {f:.2} − 1", scene.name()));
+            // A change of the method may cost at most 0.3 on any of these means.
+            if mean < f - 0.3 {
+                failures.push(format!(
+                    "{sensor} {}: {mean:.2} < {f:.2} − 0.3",
+                    scene.name()
+                ));
             }
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
 }
 
-/// Mean IoU over seeds 0–5 before the fit points were chosen by the geometry (the
-/// coordinate-bit hash, commit d0f8323).
+/// Mean IoU over seeds 0–5 with ground continuity (docs/synthetic.md; every entry gained
+/// or held against the build without it).
 const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
-    ("hdl64e", Urban, 93.09),
-    ("hdl64e", Offroad, 91.22),
-    ("hdl64e", Parking, 90.49),
-    ("hdl64e", Hill, 0.0),
-    ("hdl32e", Urban, 87.96),
-    ("hdl32e", Offroad, 91.42),
-    ("hdl32e", Parking, 88.56),
-    ("hdl32e", Hill, 0.0),
-    ("vlp16", Urban, 91.71),
-    ("vlp16", Offroad, 90.29),
-    ("vlp16", Parking, 92.67),
-    ("vlp16", Hill, 0.0),
-    ("vlp32c", Urban, 88.54),
-    ("vlp32c", Offroad, 71.73),
-    ("vlp32c", Parking, 80.57),
-    ("vlp32c", Hill, 0.0),
-    ("os1-64", Urban, 96.08),
-    ("os1-64", Offroad, 93.87),
-    ("os1-64", Parking, 97.18),
-    ("os1-64", Hill, 0.0),
-    ("os1-128", Urban, 90.37),
-    ("os1-128", Offroad, 91.09),
-    ("os1-128", Parking, 91.55),
-    ("os1-128", Hill, 0.0),
-    ("pandar64", Urban, 90.90),
-    ("pandar64", Offroad, 77.32),
-    ("pandar64", Parking, 85.96),
-    ("pandar64", Hill, 0.0),
-    ("livox", Urban, 98.15),
-    ("livox", Offroad, 88.95),
-    ("livox", Parking, 97.49),
-    ("livox", Hill, 0.0),
+    ("hdl64e", Urban, 93.86),
+    ("hdl64e", Offroad, 94.25),
+    ("hdl64e", Parking, 93.68),
+    ("hdl64e", Hill, 94.87),
+    ("hdl32e", Urban, 88.53),
+    ("hdl32e", Offroad, 92.48),
+    ("hdl32e", Parking, 90.78),
+    ("hdl32e", Hill, 94.18),
+    ("vlp16", Urban, 91.98),
+    ("vlp16", Offroad, 91.76),
+    ("vlp16", Parking, 93.12),
+    ("vlp16", Hill, 94.30),
+    ("vlp32c", Urban, 89.53),
+    ("vlp32c", Offroad, 80.32),
+    ("vlp32c", Parking, 84.00),
+    ("vlp32c", Hill, 91.53),
+    ("os1-64", Urban, 96.34),
+    ("os1-64", Offroad, 94.43),
+    ("os1-64", Parking, 97.54),
+    ("os1-64", Hill, 97.51),
+    ("os1-128", Urban, 92.10),
+    ("os1-128", Offroad, 94.87),
+    ("os1-128", Parking, 93.50),
+    ("os1-128", Hill, 95.35),
+    ("pandar64", Urban, 91.55),
+    ("pandar64", Offroad, 80.82),
+    ("pandar64", Parking, 87.79),
+    ("pandar64", Hill, 94.08),
+    ("livox", Urban, 98.53),
+    ("livox", Offroad, 89.66),
+    ("livox", Parking, 98.95),
+    ("livox", Hill, 98.50),
 ];

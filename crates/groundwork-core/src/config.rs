@@ -30,6 +30,54 @@ pub struct SegmenterConfig {
     pub history: HistoryConfig,
     /// The mount observed in the fitted ground, checked against `sensor.mount`.
     pub mount_check: MountCheckConfig,
+    /// Uncertain points at the height of confident ground next to them become ground.
+    pub continuity: ContinuityConfig,
+}
+
+/// Ground continuity, a step after the query (docs/algorithm.md, "Ground continuity"): a
+/// point the mixtures leave uncertain is raised towards ground where it lies at the height
+/// of the confident ground within `reach` of it. Every rule is a ramp, not a cut, so the
+/// output stays a continuous function of the coordinates.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ContinuityConfig {
+    /// Off: the paper's probabilities, untouched.
+    pub enabled: bool,
+    /// Spacing of the horizontal grid whose nodes hold the confident ground's height (m).
+    pub cell: f64,
+    /// Nodes within this horizontal distance of a point count: fully within half of it,
+    /// fading to nothing at it (m).
+    pub reach: f64,
+    /// A point within this height of a node's ground counts fully (m)...
+    pub height_tolerance: f64,
+    /// ...fading to nothing at this height (m).
+    pub height_cutoff: f64,
+    /// A point's weight in the ground height ramps from 0 at the first probability to 1
+    /// at the second.
+    pub confident: [f64; 2],
+    /// Which points may be raised: none below the first probability, fully from the
+    /// second (a point the mixtures call surely non-ground stays so).
+    pub uncertain: [f64; 2],
+    /// Sum of confident weights a node needs to be trusted fully (fewer: in proportion).
+    pub support: f64,
+    /// The probability a fully supported point is raised to (never lowered).
+    pub probability: f64,
+}
+
+impl Default for ContinuityConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            cell: 1.0,
+            reach: 1.0,
+            height_tolerance: 0.03,
+            height_cutoff: 0.06,
+            confident: [0.6, 0.75],
+            uncertain: [0.02, 0.05],
+            support: 1.0,
+            probability: 0.8,
+        }
+    }
 }
 
 /// How the sensor sits on the vehicle, and what the segmenter accepts from it.
@@ -756,6 +804,42 @@ impl SegmenterConfig {
             10.0,
             " m",
         )?;
+        let c = &self.continuity;
+        within("continuity.cell", c.cell, 0.05, 10.0, " m")?;
+        within(
+            "continuity.reach",
+            c.reach,
+            c.cell,
+            20.0,
+            " m (at least continuity.cell)",
+        )?;
+        within(
+            "continuity.height_tolerance",
+            c.height_tolerance,
+            0.0,
+            1.0,
+            " m",
+        )?;
+        within(
+            "continuity.height_cutoff",
+            c.height_cutoff,
+            c.height_tolerance + 1e-3,
+            2.0,
+            " m (above continuity.height_tolerance)",
+        )?;
+        for (name, [a, b]) in [
+            ("continuity.confident", c.confident),
+            ("continuity.uncertain", c.uncertain),
+        ] {
+            if !(0.0 <= a && a < b && b <= 1.0) {
+                return Err(ConfigError::invalid(
+                    name,
+                    "must be two probabilities [from, to] with 0 ≤ from < to ≤ 1",
+                ));
+            }
+        }
+        positive("continuity.support", c.support, 1e6, "")?;
+        within("continuity.probability", c.probability, 0.0, 1.0, "")?;
         let h = &self.height_filter;
         positive("height_filter.sigmas", h.sigmas, 100.0, "")?;
         within("height_filter.min_std", h.min_std, 0.0, 10.0, " m")?;

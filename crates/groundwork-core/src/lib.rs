@@ -8,7 +8,9 @@
 //! 4. ground likelihoods per component with outlier removal and the zone-1 height filter
 //!    ([`likelihood`], [`height_filter`]);
 //! 5. query: a ground probability per input point, in input order, optionally over the
-//!    last N_f fitted frames ([`query`], [`Segmenter`]).
+//!    last N_f fitted frames ([`query`], [`Segmenter`]);
+//! 6. ground continuity: uncertain points at the height of confident ground next to them
+//!    are raised towards ground (docs/algorithm.md).
 //!
 //! ```
 //! use groundwork_core::{Point, Segmenter, SegmenterConfig};
@@ -38,6 +40,7 @@
 #![warn(missing_docs)]
 
 pub mod config;
+mod continuity;
 pub mod cpu;
 pub mod error;
 mod fastmath;

@@ -38,6 +38,9 @@ pub struct SegmentStats {
     pub outliers: u32,
     /// Components ignored by the zone-1 height filter.
     pub height_filtered: u32,
+    /// Height of the segment's lowest inlier (the paper's elevation reference), if it has
+    /// a model.
+    pub lowest_inlier: Option<f64>,
 }
 
 /// One scan's fitted model, segment by segment.
@@ -48,9 +51,32 @@ pub struct FrameModel {
     components: Vec<GroundComponent>,
     /// The same components in f32, laid out for the vectorised query.
     table: QueryTable,
+    /// Per segment: the height of its lowest inlier (NaN without a model).
+    lowest_inliers: Vec<f32>,
 }
 
 impl FrameModel {
+    /// A model of `lowest_inliers.len()` segments without components, for tests of what
+    /// reads the references.
+    #[cfg(test)]
+    pub(crate) fn with_lowest_inliers(lowest_inliers: Vec<f32>) -> Self {
+        Self {
+            start: vec![0; lowest_inliers.len() + 1],
+            lowest_inliers,
+            ..Self::default()
+        }
+    }
+
+    /// Height of segment `s`'s lowest inlier, the paper's elevation reference (NaN if it
+    /// has no model).
+    #[inline]
+    pub fn lowest_inlier(&self, s: u32) -> f32 {
+        self.lowest_inliers
+            .get(s as usize)
+            .copied()
+            .unwrap_or(f32::NAN)
+    }
+
     /// Components of segment `s` (empty if it has no model).
     #[inline]
     pub fn segment(&self, s: u32) -> &[GroundComponent] {
@@ -268,6 +294,7 @@ fn fit_ground_segment(
         // Cannot happen (the lowest mean lies above its lowest point), kept for safety.
         min_inlier = lowest;
     }
+    stats.lowest_inlier = Some(min_inlier);
     let g = &cfg.ground;
     let w = g.elevation_window;
     let profile = (w > 0.0).then(|| RangeProfile::new(xs, ys, zs, cut));
@@ -329,12 +356,16 @@ pub fn fit_frame(
         start: Vec::with_capacity(segments + 1),
         components: Vec::with_capacity(fitted.iter().map(|f| f.1.len()).sum()),
         table: QueryTable::default(),
+        lowest_inliers: Vec::with_capacity(segments),
     };
     let mut stats = Vec::with_capacity(segments);
     model.start.push(0);
     for (_, comps, st) in fitted {
         model.components.extend(comps);
         model.start.push(model.components.len() as u32);
+        model
+            .lowest_inliers
+            .push(st.lowest_inlier.map_or(f32::NAN, |z| z as f32));
         stats.push(st);
     }
     model.table = QueryTable::new(&model);

@@ -12,6 +12,7 @@ use crate::mount_watch::{MountWatch, ObservedMount};
 
 use crate::config::{PastQuery, SegmenterConfig};
 use crate::config::{mount_transform, roll_pitch_of, vertical_in_sensor};
+use crate::continuity::{ContinuityScratch, Elevation, raise_continuous_ground};
 use crate::error::{ConfigError, SegmentError};
 use crate::grouping::SegmentedPoints;
 use crate::grouping::{GroundPoints, SegmentCounts, group_points};
@@ -135,6 +136,7 @@ pub struct Segmenter {
     counts: SegmentCounts,
     sorted: SegmentedPoints,
     query_scratch: QueryScratch,
+    continuity: ContinuityScratch,
 }
 
 impl Segmenter {
@@ -159,6 +161,7 @@ impl Segmenter {
             counts: SegmentCounts::default(),
             sorted: SegmentedPoints::default(),
             query_scratch: QueryScratch::default(),
+            continuity: ContinuityScratch::default(),
         })
     }
 
@@ -314,6 +317,25 @@ impl Segmenter {
             &mut self.query_scratch,
             out,
         );
+        let n = out.len();
+        let g = &self.ground;
+        let lifted = raise_continuous_ground(
+            &self.cfg.continuity,
+            self.cfg.zones.max_range,
+            (&g.x[..n], &g.y[..n], &g.z[..n]),
+            &Elevation {
+                bins: &self.bins[..n],
+                model,
+                sigmoid: self.cfg.ground.elevation,
+            },
+            out,
+            self.cfg.ground.ground_threshold,
+            &mut self.continuity,
+        );
+        let tally = OutputTally {
+            ground: tally.ground + lifted,
+            ..tally
+        };
         (frames.len(), tally)
     }
 

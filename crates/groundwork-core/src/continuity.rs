@@ -1,0 +1,549 @@
+//! Ground continuity: a step after the query, where the papers are silent
+//! (docs/algorithm.md, "Ground continuity").
+//!
+//! A segment's mixture explains its points with a few Gaussians. Where ground meets a wall,
+//! a kerb or a parked car, the ground points at the foot of the object often fall to the
+//! object's component, or a small segment holds no ground-like component at all, and
+//! points lying on the road are called non-ground. Their neighbours across the segment
+//! border are confident ground at the same height. This step raises an uncertain point
+//! towards ground where it lies at the height of confident ground within a metre of it.
+//!
+//! It is built to keep the output stable (issue 41): every rule is a ramp, not a cut, and
+//! the ground height is a weighted mean splatted bilinearly onto grid nodes, so the raised
+//! probability is a continuous function of every coordinate and probability. The sums are
+//! integers (fixed point), so they are exact in any order: a permuted scan gives the same
+//! nodes, and the same output permuted.
+
+use rayon::prelude::*;
+
+use crate::config::{ContinuityConfig, Sigmoid};
+use crate::likelihood::inverted_sigmoid;
+use crate::model::FrameModel;
+use crate::zones::{BEYOND, NEAR};
+
+/// Fixed-point scale of a confident point's weight (a weight of 1 is 2¹⁶).
+const WEIGHT_ONE: f64 = 65_536.0;
+/// Fixed-point scale of heights (2⁻¹⁶ m, 15 µm: far below any tolerance).
+const HEIGHT_ONE: f64 = 65_536.0;
+/// Heights are clamped to ±this (m) before the fixed-point sum, so that no sum can wrap
+/// for any scan the segmenter accepts (2⁹ m · 2¹⁶ · 2¹⁶ per point, 2²⁰ points: < 2⁶¹).
+const HEIGHT_CLAMP: f64 = 512.0;
+
+/// The grid of one scan, kept between scans.
+#[derive(Debug, Default, Clone)]
+pub(crate) struct ContinuityScratch {
+    /// Per node: Σ weight, Σ weight · height (fixed point); all zero between scans.
+    /// One grid of sums per part of the scan splatted in parallel.
+    sums: Vec<Vec<[i64; 2]>>,
+    /// Per node: the confident ground's height (m) and how far the node is trusted (0: no
+    /// confident point reaches it).
+    nodes: Vec<[f32; 2]>,
+}
+
+/// The paper's elevation likelihood of a single point: its height above the lowest
+/// inlier of its own segment. A flat car roof or bonnet the mixtures already half call
+/// ground is level with itself; this keeps its other points from rising with it.
+pub(crate) struct Elevation<'a> {
+    /// Segment of each point (`zones::NEAR`, or with the `zones::BEYOND` bit).
+    pub bins: &'a [u32],
+    /// The scan's fitted model (each segment's lowest inlier).
+    pub model: &'a FrameModel,
+    pub sigmoid: Sigmoid,
+}
+
+impl Elevation<'_> {
+    /// 1 where a point's segment has no model to judge it by.
+    fn likelihood(&self, i: usize, z: f64) -> f64 {
+        let b = self.bins[i];
+        if b == NEAR {
+            return 0.0;
+        }
+        let lowest = self.model.lowest_inlier(b & !BEYOND);
+        if lowest.is_nan() {
+            1.0
+        } else {
+            inverted_sigmoid(z - f64::from(lowest), self.sigmoid)
+        }
+    }
+}
+
+/// Rises from 0 at `a` to 1 at `b`.
+#[inline(always)]
+fn rise(v: f64, [a, b]: [f64; 2]) -> f64 {
+    ((v - a) / (b - a)).clamp(0.0, 1.0)
+}
+
+/// Grid geometry: nodes `side × side`, node (i, j) at (origin + i·cell, origin + j·cell).
+#[derive(Debug, Clone, Copy)]
+struct Grid {
+    side: usize,
+    origin: f64,
+    inv_cell: f64,
+}
+
+impl Grid {
+    /// Place of (x, y) in node units, if its four nodes are inside.
+    #[inline(always)]
+    fn place(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        let (u, v) = (
+            (x - self.origin) * self.inv_cell,
+            (y - self.origin) * self.inv_cell,
+        );
+        let hi = (self.side - 1) as f64;
+        (u >= 0.0 && v >= 0.0 && u < hi && v < hi).then_some((u, v))
+    }
+}
+
+/// Raises the uncertain points of `out` (one probability per point, the scan's points in
+/// the ground-aligned frame `x`, `y`, `z`) that lie at the height of confident ground next
+/// to them. `extent` is the half-width of the grid (m): points beyond it are left alone.
+/// Returns how many points it lifted from below `threshold` to at or above it.
+pub(crate) fn raise_continuous_ground(
+    cfg: &ContinuityConfig,
+    extent: f64,
+    (x, y, z): (&[f64], &[f64], &[f64]),
+    elevation: &Elevation,
+    out: &mut [f32],
+    threshold: f32,
+    scratch: &mut ContinuityScratch,
+) -> usize {
+    if !cfg.enabled || out.is_empty() {
+        return 0;
+    }
+    let side = (2.0 * extent / cfg.cell).ceil() as usize + 2;
+    let grid = Grid {
+        side,
+        origin: -(side as f64 - 1.0) * cfg.cell / 2.0,
+        inv_cell: 1.0 / cfg.cell,
+    };
+    // The scan in as many parts as there are worker threads, each splatted into its own
+    // grid (integer sums: the parts add up to the same nodes in any split).
+    let parts = rayon::current_num_threads().clamp(1, 8);
+    if scratch.nodes.len() != side * side || scratch.sums.len() != parts {
+        scratch.sums = vec![vec![[0, 0]; side * side]; parts];
+        scratch.nodes = vec![[0.0, 0.0]; side * side];
+    }
+    let part = out.len().div_ceil(parts);
+    scratch
+        .sums
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(k, sums)| {
+            let r = (k * part).min(out.len())..((k + 1) * part).min(out.len());
+            splat_confident(
+                cfg,
+                &grid,
+                sums,
+                (&x[r.clone()], &y[r.clone()], &z[r.clone()]),
+                &out[r],
+            );
+        });
+    // Each node's height and trust, once; the sums are zeroed for the next scan.
+    let (sums, nodes) = (&mut scratch.sums, &mut scratch.nodes);
+    for (i, node) in nodes.iter_mut().enumerate() {
+        let [mut w, mut wh] = [0i64, 0i64];
+        for grid in sums.iter_mut() {
+            let [a, b] = std::mem::take(&mut grid[i]);
+            w = w.wrapping_add(a);
+            wh = wh.wrapping_add(b);
+        }
+        *node = if w > 0 {
+            [
+                (wh as f64 / w as f64 / HEIGHT_ONE) as f32,
+                rise(w as f64 / WEIGHT_ONE, [0.0, cfg.support]) as f32,
+            ]
+        } else {
+            [0.0, 0.0]
+        };
+    }
+    // Raise each uncertain point by its best node: nearness × trust × height match. Each
+    // point reads the nodes and writes only its own probability.
+    const CHUNK: usize = 4096;
+    let nodes: &[[f32; 2]] = &scratch.nodes;
+    let rule = RaiseRule::new(cfg);
+    out.par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let mut lifted = 0;
+            for (k, p) in chunk.iter_mut().enumerate() {
+                let i = c * CHUNK + k;
+                let raised = rule.raised(&grid, nodes, (x[i], y[i], z[i]), *p, || {
+                    elevation.likelihood(i, z[i])
+                });
+                if let Some(r) = raised {
+                    lifted += usize::from(*p < threshold && r >= threshold);
+                    *p = r;
+                }
+            }
+            lifted
+        })
+        .sum()
+}
+
+/// Rounds to the nearest integer (ties to even) for |v| < 2³¹: adding 1.5·2⁵² leaves the
+/// integer in the low mantissa bits, a plain add that vectorises where `as` saturates
+/// lane by lane.
+#[inline(always)]
+fn round_i32(v: f64) -> i32 {
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    (v + MAGIC).to_bits() as u32 as i32
+}
+
+/// Adds every confident point's height to its four nodes, weighted by its confidence and
+/// its bilinear share. Blocks of points are prepared in straight loops that vectorise
+/// (node, four weights, height), then added; consecutive points mostly share their nodes,
+/// so their sums run in registers until the nodes change. Integer sums: the order
+/// changes nothing.
+fn splat_confident(
+    cfg: &ContinuityConfig,
+    grid: &Grid,
+    sums: &mut [[i64; 2]],
+    (x, y, z): (&[f64], &[f64], &[f64]),
+    out: &[f32],
+) {
+    const BLOCK: usize = 64;
+    let side = grid.side;
+    let hi = (side - 1) as f64;
+    let [c0, c1] = cfg.confident;
+    let inv_confident = 1.0 / (c1 - c0);
+    let mut base = u32::MAX;
+    let mut run = [[0i64; 2]; 4];
+    let flush = |sums: &mut [[i64; 2]], base: u32, run: &[[i64; 2]; 4]| {
+        if base == u32::MAX {
+            return;
+        }
+        let b = base as usize;
+        for (k, add) in [b, b + 1, b + side, b + side + 1].into_iter().zip(run) {
+            sums[k][0] = sums[k][0].wrapping_add(add[0]);
+            sums[k][1] = sums[k][1].wrapping_add(add[1]);
+        }
+    };
+    let (mut nodes, mut weights, mut heights) =
+        ([u32::MAX; BLOCK], [[0i32; 4]; BLOCK], [0i32; BLOCK]);
+    for (((bx, by), bz), bp) in x
+        .chunks(BLOCK)
+        .zip(y.chunks(BLOCK))
+        .zip(z.chunks(BLOCK))
+        .zip(out.chunks(BLOCK))
+    {
+        for k in 0..bp.len() {
+            let c = ((f64::from(bp[k]) - c0) * inv_confident).clamp(0.0, 1.0);
+            let u = (bx[k] - grid.origin) * grid.inv_cell;
+            let v = (by[k] - grid.origin) * grid.inv_cell;
+            // NaN probabilities and places fail every comparison: not splatted.
+            let inside = (c > 0.0) & (u >= 0.0) & (v >= 0.0) & (u < hi) & (v < hi);
+            let (iu, iv) = (u.floor(), v.floor());
+            let (fu, fv) = (u - iu, v - iv);
+            let node = round_i32(iu) as u32 * side as u32 + round_i32(iv) as u32;
+            nodes[k] = if inside { node } else { u32::MAX };
+            let cw = c * WEIGHT_ONE;
+            weights[k] = [
+                round_i32(cw * (1.0 - fu) * (1.0 - fv)),
+                round_i32(cw * (1.0 - fu) * fv),
+                round_i32(cw * fu * (1.0 - fv)),
+                round_i32(cw * fu * fv),
+            ];
+            heights[k] = round_i32(bz[k].clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
+        }
+        for k in 0..bp.len() {
+            if nodes[k] == u32::MAX {
+                continue;
+            }
+            if nodes[k] != base {
+                flush(sums, base, &run);
+                base = nodes[k];
+                run = [[0; 2]; 4];
+            }
+            let h = i64::from(heights[k]);
+            for (acc, &w) in run.iter_mut().zip(&weights[k]) {
+                let w = i64::from(w);
+                acc[0] = acc[0].wrapping_add(w);
+                acc[1] = acc[1].wrapping_add(w.wrapping_mul(h));
+            }
+        }
+    }
+    flush(sums, base, &run);
+}
+
+/// The raising rule with its constants worked out once.
+struct RaiseRule {
+    uncertain: [f64; 2],
+    probability: f64,
+    /// Nearness in node units: 1 within `full`, 0 from `zero` on.
+    full: f64,
+    zero: f64,
+    /// Height match: 1 within `tolerance`, 0 from `cutoff` on.
+    tolerance: f32,
+    cutoff: f32,
+}
+
+impl RaiseRule {
+    fn new(cfg: &ContinuityConfig) -> Self {
+        Self {
+            uncertain: cfg.uncertain,
+            probability: cfg.probability,
+            full: cfg.reach / cfg.cell / 2.0,
+            zero: cfg.reach / cfg.cell,
+            tolerance: cfg.height_tolerance as f32,
+            cutoff: cfg.height_cutoff as f32,
+        }
+    }
+
+    /// The probability a point of probability `p` is raised to, if it rises.
+    #[inline]
+    fn raised(
+        &self,
+        grid: &Grid,
+        nodes: &[[f32; 2]],
+        (x, y, z): (f64, f64, f64),
+        p: f32,
+        elevation: impl FnOnce() -> f64,
+    ) -> Option<f32> {
+        let p64 = f64::from(p);
+        // Most points are sure either way: one compare each. Points at or above the
+        // raised probability cannot rise; NaN never does.
+        if !(p64 > self.uncertain[0] && p64 < self.probability) {
+            return None;
+        }
+        let gate = rise(p64, self.uncertain);
+        let (u, v) = grid.place(x, y)?;
+        let side = grid.side as isize;
+        let (zero, full) = (self.zero, self.full);
+        let span = |c: f64| {
+            (
+                ((c - zero).ceil() as isize).max(0),
+                ((c + zero).floor() as isize).min(side - 1),
+            )
+        };
+        let ((u0, u1), (v0, v1)) = (span(u), span(v));
+        // In f32 relative to the point (node units): every node is scored branch-free
+        // (a skip on the running best mispredicted half the time, and a square root and
+        // a division sat on each skipped path).
+        let z = z as f32;
+        let band = 1.0 / (self.cutoff - self.tolerance);
+        let (zero, fade) = (zero as f32, 1.0 / (zero - full) as f32);
+        let (fu, fv) = ((u - u0 as f64) as f32, (v - v0 as f64) as f32);
+        let mut best = 0.0f32;
+        for (a, nu) in (u0..=u1).enumerate() {
+            let du = fu - a as f32;
+            let row = &nodes[(nu * side + v0) as usize..=(nu * side + v1) as usize];
+            for (b, &[height, trust]) in row.iter().enumerate() {
+                let dv = fv - b as f32;
+                let fit = ((self.cutoff - (z - height).abs()) * band).clamp(0.0, 1.0);
+                let near = ((zero - (du * du + dv * dv).sqrt()) * fade).clamp(0.0, 1.0);
+                best = best.max(near * fit * trust);
+            }
+        }
+        // The elevation likelihood (an exponential) only where it can still matter.
+        let r = self.probability * f64::from(best) * gate;
+        if r <= p64 {
+            return None;
+        }
+        let r = (r * elevation()) as f32;
+        (r > p).then_some(r)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A flat road at z = 0 (10 cm spacing, x 5–15 m, y −5–5 m) the mixtures call ground
+    /// (0.8), with `extra` points appended: (x, y, z, probability).
+    fn road(extra: &[(f64, f64, f64, f32)]) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f32>) {
+        let (mut x, mut y, mut z, mut p) = (vec![], vec![], vec![], vec![]);
+        for i in 0..100 {
+            for j in 0..100 {
+                // A road with a few millimetres of texture.
+                x.push(5.0 + f64::from(i) * 0.1);
+                y.push(-5.0 + f64::from(j) * 0.1);
+                z.push(f64::from((i * 7 + j * 3) % 5) * 0.002);
+                p.push(0.8);
+            }
+        }
+        for &(a, b, c, q) in extra {
+            x.push(a);
+            y.push(b);
+            z.push(c);
+            p.push(q);
+        }
+        (x, y, z, p)
+    }
+
+    fn run(cfg: &ContinuityConfig, pts: &(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f32>)) -> Vec<f32> {
+        let mut out = pts.3.clone();
+        // No model: every point's segment lets it rise as far as its neighbours allow
+        // (the elevation gate is the segmenter's, tested there).
+        let (bins, model) = (vec![0; out.len()], FrameModel::default());
+        let elevation = Elevation {
+            bins: &bins,
+            model: &model,
+            sigmoid: Sigmoid {
+                alpha: 4.0,
+                beta: 0.8,
+            },
+        };
+        raise_continuous_ground(
+            cfg,
+            80.0,
+            (&pts.0, &pts.1, &pts.2),
+            &elevation,
+            &mut out,
+            0.5,
+            &mut ContinuityScratch::default(),
+        );
+        out
+    }
+
+    #[test]
+    fn an_uncertain_point_on_the_road_rises_and_an_object_does_not() {
+        let cfg = ContinuityConfig::default();
+        let extra = [
+            (15.5, 0.0, 0.01, 0.3), // beside the road, at its height: ground
+            (15.5, 1.0, 0.3, 0.3),  // 30 cm up (a kerb top, a bumper): stays
+            (15.5, 2.0, 0.05, 0.3), // between tolerance and cutoff: partly
+            (15.5, 3.0, 0.0, 0.01), // called surely non-ground: stays
+            (20.0, 0.0, 0.0, 0.3),  // 5 m from any confident ground: stays
+        ];
+        let pts = road(&extra);
+        let out = run(&cfg, &pts);
+        let tail = &out[10_000..];
+        assert!(tail[0] >= 0.5, "{tail:?}");
+        assert_eq!(tail[1], 0.3);
+        assert!(tail[2] > 0.3 && tail[2] < 0.5, "{tail:?}");
+        assert_eq!(tail[3], 0.01);
+        assert_eq!(tail[4], 0.3);
+        // Confident ground is never lowered, nor raised past `probability`.
+        assert!(out[..10_000].iter().all(|&p| p == 0.8));
+        // Off: untouched.
+        let off = ContinuityConfig {
+            enabled: false,
+            ..cfg
+        };
+        assert_eq!(run(&off, &pts), pts.3);
+    }
+
+    #[test]
+    fn a_flat_roof_the_mixtures_half_call_ground_does_not_spread() {
+        // A car roof 1.5 m up, 2 × 2 m, half of it (wrongly) confident ground, half
+        // uncertain; and one uncertain point on the road.
+        let mut extra = vec![];
+        for i in 0..20 {
+            for j in 0..20 {
+                let p = if j < 10 { 0.8 } else { 0.3 };
+                extra.push((20.0 + f64::from(i) * 0.1, f64::from(j) * 0.1, 1.5, p));
+            }
+        }
+        extra.push((15.5, 0.0, 0.01, 0.3));
+        let pts = road(&extra);
+        let n = pts.3.len();
+        let sigmoid = Sigmoid {
+            alpha: 4.0,
+            beta: 0.8,
+        };
+        let raise = |model: &FrameModel| {
+            let mut out = pts.3.clone();
+            let bins = vec![0; n];
+            raise_continuous_ground(
+                &ContinuityConfig::default(),
+                80.0,
+                (&pts.0, &pts.1, &pts.2),
+                &Elevation {
+                    bins: &bins,
+                    model,
+                    sigmoid,
+                },
+                &mut out,
+                0.5,
+                &mut ContinuityScratch::default(),
+            );
+            out
+        };
+        let roof_rose = |out: &[f32]| {
+            (0..400)
+                .filter(|&k| pts.3[10_000 + k] < 0.5 && out[10_000 + k] >= 0.5)
+                .count()
+        };
+        // The segment's lowest inlier is the road: the roof stays, the road point rises.
+        let judged = raise(&FrameModel::with_lowest_inliers(vec![0.0]));
+        assert_eq!(roof_rose(&judged), 0);
+        assert!(judged[n - 1] >= 0.5);
+        // Without a model to judge by, the roof would spread.
+        let unjudged = raise(&FrameModel::with_lowest_inliers(vec![f32::NAN]));
+        assert!(roof_rose(&unjudged) > 100, "{}", roof_rose(&unjudged));
+    }
+
+    #[test]
+    fn a_permuted_scan_gives_the_same_probabilities_permuted() {
+        let cfg = ContinuityConfig::default();
+        let extra: Vec<_> = (0..200)
+            .map(|k| {
+                let k = f64::from(k);
+                (
+                    4.0 + k * 0.06,
+                    -6.0 + k * 0.05,
+                    (k * 0.37).sin() * 0.08,
+                    0.35,
+                )
+            })
+            .collect();
+        let pts = road(&extra);
+        let out = run(&cfg, &pts);
+        // Reverse and interleave: every float sum would round differently.
+        let n = pts.3.len();
+        let order: Vec<usize> = (0..n).map(|i| (i * 7919) % n).collect();
+        assert_eq!(
+            order
+                .iter()
+                .collect::<std::collections::BTreeSet<_>>()
+                .len(),
+            n
+        );
+        let permuted = (
+            order.iter().map(|&i| pts.0[i]).collect(),
+            order.iter().map(|&i| pts.1[i]).collect(),
+            order.iter().map(|&i| pts.2[i]).collect(),
+            order.iter().map(|&i| pts.3[i]).collect(),
+        );
+        let out_p = run(&cfg, &permuted);
+        for (k, &i) in order.iter().enumerate() {
+            assert_eq!(out_p[k].to_bits(), out[i].to_bits(), "point {i}");
+        }
+        assert!(out[10_000..].iter().any(|&p| p > 0.5), "some rose");
+    }
+
+    #[test]
+    fn the_raised_probability_moves_continuously_with_the_coordinates() {
+        // A point slid in 1 mm steps across the whole range of every ramp: towards and
+        // away from the road (nearness), up through the height band, and the road's
+        // points themselves shifted across node boundaries. No step moves it by more
+        // than a few per cent of what a 1 mm move of a ramp allows.
+        let cfg = ContinuityConfig::default();
+        let mut last: Option<f32> = None;
+        for step in 0..2000 {
+            let d = f64::from(step) * 0.001;
+            let pts = road(&[(15.0 + d, 0.3, d * 0.05, 0.3)]);
+            let p = run(&cfg, &pts)[10_000];
+            if let Some(q) = last {
+                assert!((p - q).abs() < 0.03, "step {step}: {q} → {p}");
+            }
+            last = Some(p);
+        }
+        // The whole road moved by 0–1 m in 1 mm steps: the point beside it follows.
+        let mut last: Option<f32> = None;
+        for step in 0..1000 {
+            let d = f64::from(step) * 0.001;
+            let mut pts = road(&[(15.4, 0.2, 0.0, 0.3)]);
+            for v in pts.0.iter_mut().chain(pts.1.iter_mut()) {
+                *v += d;
+            }
+            pts.0[10_000] = 15.4 + d;
+            pts.1[10_000] = 0.2 + d;
+            let p = run(&cfg, &pts)[10_000];
+            if let Some(q) = last {
+                assert!((p - q).abs() < 0.01, "shift {d}: {q} → {p}");
+            }
+            last = Some(p);
+        }
+    }
+}
