@@ -64,6 +64,10 @@ pub struct ContinuityConfig {
     pub probability: f64,
 }
 
+/// Nodes a side of the continuity grid at most (a million nodes, 24 MB of scratch per
+/// worker thread at worst).
+pub const MAX_CONTINUITY_SIDE: u32 = 1024;
+
 impl Default for ContinuityConfig {
     fn default() -> Self {
         Self {
@@ -838,6 +842,19 @@ impl SegmenterConfig {
                 ));
             }
         }
+        // The grid spans ±zones.max_range: bounded, so that no setting allocates gigabytes.
+        let side = 2.0 * self.zones.max_range / c.cell + 2.0;
+        if c.enabled && side > f64::from(MAX_CONTINUITY_SIDE) {
+            return Err(ConfigError::invalid(
+                "continuity.cell",
+                &format!(
+                    "the grid over ±zones.max_range ({} m) would have {:.0} nodes a side (at                      most {MAX_CONTINUITY_SIDE}): raise cell to at least {:.2} m",
+                    shown(self.zones.max_range),
+                    side,
+                    2.0 * self.zones.max_range / f64::from(MAX_CONTINUITY_SIDE - 2)
+                ),
+            ));
+        }
         positive("continuity.support", c.support, 1e6, "")?;
         within("continuity.probability", c.probability, 0.0, 1.0, "")?;
         let h = &self.height_filter;
@@ -988,6 +1005,32 @@ mod tests {
         let mut c = SegmenterConfig::default();
         c.zones.rings = vec![2, 4, 4];
         assert!(c.validate().is_err());
+
+        // A continuity grid that would take gigabytes is refused, naming the fix; off, it
+        // is not built and the cell does not matter.
+        let mut c = SegmenterConfig::default();
+        c.zones.max_range = 1000.0;
+        c.continuity.cell = 0.05;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("continuity.cell") && e.contains("raise cell"),
+            "{e}"
+        );
+        c.continuity.enabled = false;
+        c.validate().unwrap();
+        for (confident, ok) in [
+            ([0.6, 0.75], true),
+            ([0.75, 0.6], false),
+            ([0.5, 1.5], false),
+        ] {
+            let mut c = SegmenterConfig::default();
+            c.continuity.confident = confident;
+            assert_eq!(c.validate().is_ok(), ok, "{confident:?}");
+        }
+        let mut c = SegmenterConfig::default();
+        c.continuity.height_cutoff = c.continuity.height_tolerance;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("continuity.height_cutoff"), "{e}");
     }
 
     #[test]

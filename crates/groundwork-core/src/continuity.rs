@@ -234,7 +234,10 @@ fn splat_confident(
             let inside = (c > 0.0) & (u >= 0.0) & (v >= 0.0) & (u < hi) & (v < hi);
             let (iu, iv) = (u.floor(), v.floor());
             let (fu, fv) = (u - iu, v - iv);
-            let node = round_i32(iu) as u32 * side as u32 + round_i32(iv) as u32;
+            // Outside the grid the index is garbage (wrapping, never a panic) and unused.
+            let node = (round_i32(iu) as u32)
+                .wrapping_mul(side as u32)
+                .wrapping_add(round_i32(iv) as u32);
             nodes[k] = if inside { node } else { u32::MAX };
             let cw = c * WEIGHT_ONE;
             weights[k] = [
