@@ -275,8 +275,9 @@ struct RaiseRule {
     /// Nearness in node units: 1 within `full`, 0 from `zero` on.
     full: f64,
     zero: f64,
-    /// Height match: 1 within `tolerance`, 0 from `cutoff` on.
-    tolerance: f32,
+    /// Height match: 1 within the tolerance, 0 from `cutoff` on; `band` is
+    /// 1 / (cutoff − tolerance), worked out here rather than per point.
+    band: f32,
     cutoff: f32,
 }
 
@@ -287,7 +288,7 @@ impl RaiseRule {
             probability: cfg.probability,
             full: cfg.reach / cfg.cell / 2.0,
             zero: cfg.reach / cfg.cell,
-            tolerance: cfg.height_tolerance as f32,
+            band: 1.0 / (cfg.height_cutoff as f32 - cfg.height_tolerance as f32),
             cutoff: cfg.height_cutoff as f32,
         }
     }
@@ -323,7 +324,7 @@ impl RaiseRule {
         // (a skip on the running best mispredicted half the time, and a square root and
         // a division sat on each skipped path).
         let z = z as f32;
-        let band = 1.0 / (self.cutoff - self.tolerance);
+        let band = self.band;
         let (zero, fade) = (zero as f32, 1.0 / (zero - full) as f32);
         let (fu, fv) = ((u - u0 as f64) as f32, (v - v0 as f64) as f32);
         let mut best = 0.0f32;
