@@ -810,12 +810,13 @@ impl SegmenterConfig {
         )?;
         let c = &self.continuity;
         within("continuity.cell", c.cell, 0.05, 10.0, " m")?;
+        // A point is scored against the (2 · reach / cell)² nodes around it: bounded.
         within(
             "continuity.reach",
             c.reach,
             c.cell,
-            20.0,
-            " m (at least continuity.cell)",
+            (8.0 * c.cell).min(20.0),
+            " m (from continuity.cell to 8 cells, at most 20 m)",
         )?;
         within(
             "continuity.height_tolerance",
@@ -848,7 +849,8 @@ impl SegmenterConfig {
             return Err(ConfigError::invalid(
                 "continuity.cell",
                 &format!(
-                    "the grid over ±zones.max_range ({} m) would have {:.0} nodes a side (at                      most {MAX_CONTINUITY_SIDE}): raise cell to at least {:.2} m",
+                    "the grid over ±zones.max_range ({} m) would have {:.0} nodes a side (at \
+                     most {MAX_CONTINUITY_SIDE}): raise cell to at least {:.2} m",
                     shown(self.zones.max_range),
                     side,
                     2.0 * self.zones.max_range / f64::from(MAX_CONTINUITY_SIDE - 2)
@@ -1011,6 +1013,7 @@ mod tests {
         let mut c = SegmenterConfig::default();
         c.zones.max_range = 1000.0;
         c.continuity.cell = 0.05;
+        c.continuity.reach = 0.1;
         let e = c.validate().unwrap_err().to_string();
         assert!(
             e.contains("continuity.cell") && e.contains("raise cell"),
@@ -1018,6 +1021,16 @@ mod tests {
         );
         c.continuity.enabled = false;
         c.validate().unwrap();
+        // Reach: from one cell to eight.
+        for (reach, ok) in [(0.5, false), (1.0, true), (8.0, true), (8.5, false)] {
+            let mut c = SegmenterConfig::default();
+            c.continuity.reach = reach;
+            let r = c.validate();
+            assert_eq!(r.is_ok(), ok, "{reach}: {r:?}");
+            if let Err(e) = r {
+                assert!(e.to_string().contains("continuity.reach"), "{e}");
+            }
+        }
         for (confident, ok) in [
             ([0.6, 0.75], true),
             ([0.75, 0.6], false),

@@ -35,9 +35,19 @@ pub(crate) struct ContinuityScratch {
     /// Per node: Σ weight, Σ weight · height (fixed point); all zero between scans.
     /// One grid of sums per part of the scan splatted in parallel.
     sums: Vec<Vec<[i64; 2]>>,
+    /// Per part: its uncertain points inside the grid (index in the scan, cell), listed
+    /// while splatting so that raising reads only them.
+    candidates: Vec<Vec<[u32; 2]>>,
     /// Per node: the confident ground's height (m) and how far the node is trusted (0: no
     /// confident point reaches it).
     nodes: Vec<[f32; 2]>,
+    /// Per cell (the square right of and above node (i, j), same index): the heights an
+    /// uncertain point in it can match, the lowest trusted node height within reach less
+    /// the cutoff and the highest plus it (empty: +∞, −∞). Most uncertain points lie far
+    /// from any such height and are passed over with one lookup.
+    bounds: Vec<[f32; 2]>,
+    /// Scratch of the same size for the bounds' first pass (along rows).
+    row_bounds: Vec<[f32; 2]>,
 }
 
 /// The paper's elevation likelihood of a single point: its height above the lowest
@@ -82,6 +92,16 @@ struct Grid {
 }
 
 impl Grid {
+    /// The grid of `cell` over ±`extent`, one node beyond on each side.
+    fn new(extent: f64, cell: f64) -> Self {
+        let side = (2.0 * extent / cell).ceil() as usize + 2;
+        Self {
+            side,
+            origin: -(side as f64 - 1.0) * cell / 2.0,
+            inv_cell: 1.0 / cell,
+        }
+    }
+
     /// Place of (x, y) in node units, if its four nodes are inside.
     #[inline(always)]
     fn place(&self, x: f64, y: f64) -> Option<(f64, f64)> {
@@ -110,30 +130,34 @@ pub(crate) fn raise_continuous_ground(
     if !cfg.enabled || out.is_empty() {
         return 0;
     }
-    let side = (2.0 * extent / cfg.cell).ceil() as usize + 2;
-    let grid = Grid {
-        side,
-        origin: -(side as f64 - 1.0) * cfg.cell / 2.0,
-        inv_cell: 1.0 / cfg.cell,
-    };
+    let grid = Grid::new(extent, cfg.cell);
+    let side = grid.side;
     // The scan in as many parts as there are worker threads, each splatted into its own
     // grid (integer sums: the parts add up to the same nodes in any split).
     let parts = rayon::current_num_threads().clamp(1, 8);
     if scratch.nodes.len() != side * side || scratch.sums.len() != parts {
         scratch.sums = vec![vec![[0, 0]; side * side]; parts];
+        scratch.candidates = vec![Vec::new(); parts];
         scratch.nodes = vec![[0.0, 0.0]; side * side];
+        scratch.bounds = vec![[0.0, 0.0]; side * side];
+        scratch.row_bounds = vec![[0.0, 0.0]; side * side];
     }
+    let rule = RaiseRule::new(cfg);
     let part = out.len().div_ceil(parts);
     scratch
         .sums
         .par_iter_mut()
+        .zip(scratch.candidates.par_iter_mut())
         .enumerate()
-        .for_each(|(k, sums)| {
+        .for_each(|(k, (sums, candidates))| {
             let r = (k * part).min(out.len())..((k + 1) * part).min(out.len());
+            candidates.clear();
             splat_confident(
                 cfg,
+                &rule,
                 &grid,
-                sums,
+                (sums, candidates),
+                r.start,
                 (&x[r.clone()], &y[r.clone()], &z[r.clone()]),
                 &out[r],
             );
@@ -156,17 +180,32 @@ pub(crate) fn raise_continuous_ground(
             [0.0, 0.0]
         };
     }
+    height_bounds(
+        &grid,
+        &scratch.nodes,
+        rule.zero,
+        rule.cutoff,
+        &mut scratch.row_bounds,
+        &mut scratch.bounds,
+    );
     // Raise each uncertain point by its best node: nearness × trust × height match. Each
-    // point reads the nodes and writes only its own probability.
-    const CHUNK: usize = 4096;
-    let nodes: &[[f32; 2]] = &scratch.nodes;
-    let rule = RaiseRule::new(cfg);
-    out.par_chunks_mut(CHUNK)
+    // point reads the nodes and writes only its own probability; one lookup of its cell's
+    // bounds passes over most of them.
+    let (nodes, bounds): (&[[f32; 2]], &[[f32; 2]]) = (&scratch.nodes, &scratch.bounds);
+    out.par_chunks_mut(part)
+        .zip(scratch.candidates.par_iter())
         .enumerate()
-        .map(|(c, chunk)| {
+        .map(|(k, (out, candidates))| {
+            let first = k * part;
             let mut lifted = 0;
-            for (k, p) in chunk.iter_mut().enumerate() {
-                let i = c * CHUNK + k;
+            for &[i, cell] in candidates {
+                let i = i as usize;
+                let [lo, up] = bounds[cell as usize];
+                let h = z[i] as f32;
+                if !(h > lo && h < up) {
+                    continue;
+                }
+                let p = &mut out[i - first];
                 let raised = rule.raised(&grid, nodes, (x[i], y[i], z[i]), *p, || {
                     elevation.likelihood(i, z[i])
                 });
@@ -178,6 +217,45 @@ pub(crate) fn raise_continuous_ground(
             lifted
         })
         .sum()
+}
+
+/// Each cell's bounds (see `ContinuityScratch::bounds`): the trusted node heights in the
+/// box of nodes a point in the cell can reach (`zero` node units), widened by `cutoff`.
+/// Separable: the window's extremes along one axis into `rows`, then along the other.
+fn height_bounds(
+    grid: &Grid,
+    nodes: &[[f32; 2]],
+    zero: f64,
+    cutoff: f32,
+    rows: &mut [[f32; 2]],
+    bounds: &mut [[f32; 2]],
+) {
+    let side = grid.side;
+    // A point at u in [i, i + 1) reaches nodes n with |n − u| < zero: i + 1 − r ..= i + r.
+    let r = zero.ceil() as usize;
+    let window = |i: usize| (i + 1).saturating_sub(r)..(i + r + 1).min(side);
+    const EMPTY: [f32; 2] = [f32::INFINITY, f32::NEG_INFINITY];
+    let widen = |acc: &mut [f32; 2], [lo, hi]: [f32; 2]| {
+        *acc = [acc[0].min(lo), acc[1].max(hi)];
+    };
+    for (row, node_row) in rows.chunks_exact_mut(side).zip(nodes.chunks_exact(side)) {
+        for (j, b) in row.iter_mut().enumerate() {
+            *b = EMPTY;
+            for &[h, t] in &node_row[window(j)] {
+                if t > 0.0 {
+                    widen(b, [h - cutoff, h + cutoff]);
+                }
+            }
+        }
+    }
+    for (i, out) in bounds.chunks_exact_mut(side).enumerate() {
+        out.fill(EMPTY);
+        for n in window(i) {
+            for (b, &o) in out.iter_mut().zip(&rows[n * side..(n + 1) * side]) {
+                widen(b, o);
+            }
+        }
+    }
 }
 
 /// Rounds to the nearest integer (ties to even) for |v| < 2³¹: adding 1.5·2⁵² leaves the
@@ -196,8 +274,10 @@ fn round_i32(v: f64) -> i32 {
 /// changes nothing.
 fn splat_confident(
     cfg: &ContinuityConfig,
+    rule: &RaiseRule,
     grid: &Grid,
-    sums: &mut [[i64; 2]],
+    (sums, candidates): (&mut [[i64; 2]], &mut Vec<[u32; 2]>),
+    first: usize,
     (x, y, z): (&[f64], &[f64], &[f64]),
     out: &[f32],
 ) {
@@ -206,6 +286,7 @@ fn splat_confident(
     let hi = (side - 1) as f64;
     let [c0, c1] = cfg.confident;
     let inv_confident = 1.0 / (c1 - c0);
+    let (lo_p, hi_p) = (rule.uncertain[0] as f32, rule.probability as f32);
     let mut base = u32::MAX;
     let mut run = [[0i64; 2]; 4];
     let flush = |sums: &mut [[i64; 2]], base: u32, run: &[[i64; 2]; 4]| {
@@ -220,25 +301,32 @@ fn splat_confident(
     };
     let (mut nodes, mut weights, mut heights) =
         ([u32::MAX; BLOCK], [[0i32; 4]; BLOCK], [0i32; BLOCK]);
-    for (((bx, by), bz), bp) in x
+    let (mut cells, mut uncertain) = ([0u32; BLOCK], [false; BLOCK]);
+    for (b, (((bx, by), bz), bp)) in x
         .chunks(BLOCK)
         .zip(y.chunks(BLOCK))
         .zip(z.chunks(BLOCK))
         .zip(out.chunks(BLOCK))
+        .enumerate()
     {
         for k in 0..bp.len() {
-            let c = ((f64::from(bp[k]) - c0) * inv_confident).clamp(0.0, 1.0);
+            let p = bp[k];
+            let c = ((f64::from(p) - c0) * inv_confident).clamp(0.0, 1.0);
             let u = (bx[k] - grid.origin) * grid.inv_cell;
             let v = (by[k] - grid.origin) * grid.inv_cell;
-            // NaN probabilities and places fail every comparison: not splatted.
-            let inside = (c > 0.0) & (u >= 0.0) & (v >= 0.0) & (u < hi) & (v < hi);
+            // NaN probabilities and places fail every comparison: not splatted, not raised.
+            let inside = (u >= 0.0) & (v >= 0.0) & (u < hi) & (v < hi);
             let (iu, iv) = (u.floor(), v.floor());
             let (fu, fv) = (u - iu, v - iv);
             // Outside the grid the index is garbage (wrapping, never a panic) and unused.
+            // The point's cell, the square above and right of its node (the same index).
             let node = (round_i32(iu) as u32)
                 .wrapping_mul(side as u32)
                 .wrapping_add(round_i32(iv) as u32);
-            nodes[k] = if inside { node } else { u32::MAX };
+            cells[k] = node;
+            nodes[k] = if inside & (c > 0.0) { node } else { u32::MAX };
+            // Points at or above the raised probability cannot rise.
+            uncertain[k] = inside & (p > lo_p) & (p < hi_p);
             let cw = c * WEIGHT_ONE;
             weights[k] = [
                 round_i32(cw * (1.0 - fu) * (1.0 - fv)),
@@ -249,6 +337,9 @@ fn splat_confident(
             heights[k] = round_i32(bz[k].clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
         }
         for k in 0..bp.len() {
+            if uncertain[k] {
+                candidates.push([(first + b * BLOCK + k) as u32, cells[k]]);
+            }
             if nodes[k] == u32::MAX {
                 continue;
             }
@@ -397,6 +488,53 @@ mod tests {
             &mut ContinuityScratch::default(),
         );
         out
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(24))]
+
+        /// Screening (the uncertain points listed while splatting, a cell's height bounds)
+        /// only passes over points that could not rise: every point gets what scoring it
+        /// against the nodes gives.
+        #[test]
+        fn screening_passes_over_only_points_that_cannot_rise(
+            seed in 0u64..1_000_000,
+            cell in 0.4f64..2.0,
+            reach_cells in 1.0f64..3.5,
+        ) {
+            use rand::{Rng, SeedableRng};
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            let cfg = ContinuityConfig { cell, reach: reach_cells * cell, ..Default::default() };
+            // Rolling ground, boxes on it and points beyond the grid, with every probability.
+            let n = 6_000;
+            let (mut x, mut y, mut z, mut p) = (vec![], vec![], vec![], vec![]);
+            for _ in 0..n {
+                let (a, b): (f64, f64) = (rng.random_range(-25.0..25.0), rng.random_range(-25.0..25.0));
+                let ground = 0.4 * (a / 3.0).sin() + 0.3 * (b / 5.0).cos();
+                let up = if rng.random_bool(0.3) { rng.random_range(0.0..0.3) } else { 0.0 };
+                x.push(a);
+                y.push(b);
+                z.push(ground + up + rng.random_range(-0.02..0.02));
+                p.push(rng.random_range(0.0f32..1.0));
+            }
+            let extent = 20.0;
+            let (bins, model) = (vec![0; n], FrameModel::default());
+            let elevation = Elevation { bins: &bins, model: &model, sigmoid: Sigmoid { alpha: 4.0, beta: 0.3 } };
+            let mut out = p.clone();
+            let mut scratch = ContinuityScratch::default();
+            raise_continuous_ground(&cfg, extent, (&x, &y, &z), &elevation, &mut out, 0.5, &mut scratch);
+            let (grid, rule) = (Grid::new(extent, cell), RaiseRule::new(&cfg));
+            let mut risen = 0;
+            for i in 0..n {
+                let every = rule
+                    .raised(&grid, &scratch.nodes, (x[i], y[i], z[i]), p[i], || elevation.likelihood(i, z[i]))
+                    .unwrap_or(p[i]);
+                proptest::prop_assert_eq!(out[i].to_bits(), every.to_bits(), "point {}", i);
+                risen += usize::from(every > p[i]);
+            }
+            // The scene is one where points do rise (else the comparison proves little).
+            proptest::prop_assert!(risen > 50, "{} risen", risen);
+        }
     }
 
     #[test]
