@@ -286,7 +286,6 @@ fn splat_confident(
     let hi = (side - 1) as f64;
     let [c0, c1] = cfg.confident;
     let inv_confident = 1.0 / (c1 - c0);
-    let (lo_p, hi_p) = (rule.uncertain[0] as f32, rule.probability as f32);
     let mut base = u32::MAX;
     let mut run = [[0i64; 2]; 4];
     let flush = |sums: &mut [[i64; 2]], base: u32, run: &[[i64; 2]; 4]| {
@@ -325,8 +324,7 @@ fn splat_confident(
                 .wrapping_add(round_i32(iv) as u32);
             cells[k] = node;
             nodes[k] = if inside & (c > 0.0) { node } else { u32::MAX };
-            // Points at or above the raised probability cannot rise.
-            uncertain[k] = inside & (p > lo_p) & (p < hi_p);
+            uncertain[k] = inside & rule.may_rise(p);
             let cw = c * WEIGHT_ONE;
             weights[k] = [
                 round_i32(cw * (1.0 - fu) * (1.0 - fv)),
@@ -384,6 +382,14 @@ impl RaiseRule {
         }
     }
 
+    /// Whether a point of probability `p` may rise at all: most points are sure either
+    /// way. Points at or above the raised probability cannot rise; NaN never does.
+    #[inline(always)]
+    fn may_rise(&self, p: f32) -> bool {
+        let p = f64::from(p);
+        p > self.uncertain[0] && p < self.probability
+    }
+
     /// The probability a point of probability `p` is raised to, if it rises.
     #[inline]
     fn raised(
@@ -394,12 +400,10 @@ impl RaiseRule {
         p: f32,
         elevation: impl FnOnce() -> f64,
     ) -> Option<f32> {
-        let p64 = f64::from(p);
-        // Most points are sure either way: one compare each. Points at or above the
-        // raised probability cannot rise; NaN never does.
-        if !(p64 > self.uncertain[0] && p64 < self.probability) {
+        if !self.may_rise(p) {
             return None;
         }
+        let p64 = f64::from(p);
         let gate = rise(p64, self.uncertain);
         let (u, v) = grid.place(x, y)?;
         let side = grid.side as isize;
