@@ -3,15 +3,19 @@
 //! - [`mount`]: the sensor's height, roll and pitch above the ground, by ground-plane
 //!   consensus ([`plane`]) over many scans, with the spread across scans as confidence and a
 //!   refusal (with the reason) when the scans cannot determine it.
+//! - [`params`]: with the mount fixed, the segmenter's likelihood parameters and ground
+//!   threshold fitted to reference labels (the PseudoLabeler's), judged on held-out scans.
 //!
 //! Pure algorithm: the caller reads the scans (the `groundwork calibrate` command).
 
 #![warn(missing_docs)]
 
 pub mod mount;
+pub mod params;
 pub mod plane;
 
 pub use mount::{MountEstimate, MountSearchConfig, combine, estimate_mount, frame_mount};
+pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 
 /// Why a calibration could not be done.

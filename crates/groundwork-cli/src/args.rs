@@ -517,6 +517,18 @@ pub struct CalibrateArgs {
     /// Seed of the plane hypotheses: the same scans and seed give the same file.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// With the mount found, also fit the segmenter's likelihood parameters and ground
+    /// threshold to the PseudoLabeler's labels of a sample of the scans (one in four held
+    /// out to judge the fit; docs/calibration.md).
+    #[arg(long)]
+    pub fit_params: bool,
+    /// Scans in that sample, at most (spread over the scans looked at).
+    #[arg(long, default_value_t = 48)]
+    pub param_scans: usize,
+    /// The labels count only out to where the preset agrees with them on at least this much
+    /// (ground IoU, %, in 10 m rings from the sensor): beyond, neither can be taken as truth.
+    #[arg(long, default_value_t = 90.0)]
+    pub param_trust: f64,
     /// Scan files, folders of scans or recordings of one sensor on one mount.
     #[arg(required = true)]
     pub inputs: Vec<PathBuf>,

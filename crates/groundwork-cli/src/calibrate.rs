@@ -13,9 +13,15 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
-use groundwork_calibrate::{MountEstimate, MountSearchConfig, NoGround, combine, frame_mount};
+use groundwork_calibrate::{
+    LabeledScan, MountEstimate, MountSearchConfig, NoGround, ParamFit, ParamSearchConfig, combine,
+    fit_parameters, frame_mount,
+};
+use groundwork_core::SegmenterConfig;
 use groundwork_core::config::MountConfig;
 use groundwork_core::mount_transform;
+use groundwork_eval::MethodsConfig;
+use groundwork_pseudolabel::{GroundFrame, PseudoLabeler};
 use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{error, info};
@@ -36,11 +42,13 @@ struct ScanReport {
     problem: Option<String>,
 }
 
-/// One scan looked at: its place, its report line, its view of the mount (None: unreadable).
+/// One scan looked at: its place, its report line, its view of the mount (None: unreadable),
+/// and its points if it is in the parameter fit's sample.
 struct Looked {
     k: usize,
     line: ScanReport,
     view: Option<Result<FrameMount, NoGround>>,
+    points: Option<Vec<[f32; 3]>>,
 }
 
 /// The report `--report` writes.
@@ -62,6 +70,12 @@ struct Report {
     per_scan: Vec<ScanReport>,
     /// The search's settings.
     settings: MountSearchConfig,
+    /// The parameter fit (`--fit-params`), if it ran.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    parameters: Option<ParamFit>,
+    /// Why the parameters were not fitted, if they were asked for and could not be.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    parameters_refused: Option<String>,
     /// Wall time, s.
     seconds: f64,
 }
@@ -73,7 +87,8 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .sensor
         .clone()
         .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_string());
-    let cfg = crate::common::load(&a.sensor.into(), None)?;
+    let methods = crate::common::load_methods(&a.sensor.into(), None)?;
+    let cfg = methods.segmenter.clone();
     for out in std::iter::once(&a.out).chain(a.report.as_ref()) {
         if out.exists() && !a.overwrite {
             bail!("{}: exists; pass --overwrite to replace it", out.display());
@@ -99,6 +114,11 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         "calibrate",
     );
     let max_points = cfg.sensor.max_points;
+    // Every `keep`-th scan looked at is kept for the parameter fit's sample.
+    let looked = total.map_or(a.max_scans, |n| n.div_ceil(stride).min(a.max_scans));
+    let keep = a
+        .fit_params
+        .then(|| looked.div_ceil(a.param_scans.max(1)).max(1));
     info!(
         base = %base,
         inputs = a.inputs.len(),
@@ -114,9 +134,14 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .take(a.max_scans)
         .par_bridge()
         .map(|(k, item)| {
+            let mut points = None;
             let result = item.scan.as_ref().map(|scan| {
                 let xyz: Vec<[f32; 3]> = scan.points.iter().map(|p| [p.x, p.y, p.z]).collect();
-                frame_mount(&xyz, &prior, &settings, k as u64)
+                let m = frame_mount(&xyz, &prior, &settings, k as u64);
+                if keep.is_some_and(|e| (k / stride).is_multiple_of(e)) {
+                    points = Some(xyz);
+                }
+                m
             });
             pb.inc(1);
             let (mount, problem, view) = match result {
@@ -132,7 +157,12 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
                 mount,
                 problem,
             };
-            Looked { k, line, view }
+            Looked {
+                k,
+                line,
+                view,
+                points,
+            }
         })
         .collect();
     pb.finish_and_clear();
@@ -141,6 +171,21 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let frames: Vec<Result<FrameMount, NoGround>> =
         views.iter_mut().filter_map(|v| v.view.take()).collect();
     let result = combine(&frames, &prior, &settings);
+    let sample: Vec<Vec<[f32; 3]>> = views
+        .iter_mut()
+        .filter_map(|v| v.points.take())
+        .take(a.param_scans)
+        .collect();
+    let (parameters, parameters_refused) = match (&result, a.fit_params) {
+        (Ok(est), true) => match fit_params(&methods, est, &sample, a.param_trust) {
+            Ok(fit) => (Some(fit), None),
+            Err(e) => {
+                error!("parameters not fitted: {e:#}");
+                (None, Some(format!("{e:#}")))
+            }
+        },
+        _ => (None, None),
+    };
     let report = Report {
         base_preset: base.clone(),
         prior: prior_mount.clone(),
@@ -150,6 +195,8 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         unreadable,
         per_scan: views.into_iter().map(|v| v.line).collect(),
         settings,
+        parameters,
+        parameters_refused,
         seconds: t.elapsed().as_secs_f64(),
     };
     if let Some(path) = &a.report {
@@ -165,7 +212,13 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .out
         .file_stem()
         .map_or_else(|| "calibrated".into(), |s| s.to_string_lossy().into_owned());
-    let text = preset_text(&base, &name, &prior_mount, &est, &a.inputs);
+    let mut text = preset_text(&base, &name, &prior_mount, &est, &a.inputs);
+    if let Some(fit) = &report.parameters {
+        text += &params_text(&cfg, fit);
+        print!("{}", params_summary(fit));
+    } else if let Some(why) = &report.parameters_refused {
+        let _ = writeln!(text, "\n# Parameters not fitted: {why}");
+    }
     std::fs::write(&a.out, &text).with_context(|| format!("{}: cannot write", a.out.display()))?;
     print!("{}", summary(&base, &prior_mount, &est));
     println!(
@@ -174,11 +227,148 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         a.out.display(),
         t.elapsed().as_secs_f64()
     );
-    Ok(if unreadable + skipped_inputs > 0 {
-        ExitCode::from(1)
-    } else {
-        ExitCode::SUCCESS
-    })
+    Ok(
+        if unreadable + skipped_inputs > 0 || report.parameters_refused.is_some() {
+            ExitCode::from(1)
+        } else {
+            ExitCode::SUCCESS
+        },
+    )
+}
+
+/// The parameter fit: the sample pseudo-labelled with the mount found, then the search.
+fn fit_params(
+    methods: &MethodsConfig,
+    est: &MountEstimate,
+    sample: &[Vec<[f32; 3]>],
+    trust: f64,
+) -> Result<ParamFit> {
+    let mut cfg = methods.segmenter.clone();
+    cfg.sensor.mount = est.mount();
+    cfg.validate().context("the calibrated mount")?;
+    let labeler = PseudoLabeler::new(
+        methods.pseudolabeler.clone(),
+        GroundFrame::from_config(&cfg)?,
+    )?;
+    let pb = progress(sample.len(), "pseudo-label");
+    let ground: Vec<Vec<bool>> = sample
+        .par_iter()
+        .map(|points| {
+            let mut p = vec![0.0f32; points.len()];
+            let labelled = labeler.label(points, &mut p);
+            pb.inc(1);
+            labelled.map(|_| p.iter().map(|&p| p >= 0.5).collect())
+        })
+        .collect::<Result<_, _>>()
+        .context("pseudo-labelling the sample")?;
+    pb.finish_and_clear();
+    let scans: Vec<LabeledScan> = sample
+        .iter()
+        .zip(&ground)
+        .map(|(points, ground)| LabeledScan { points, ground })
+        .collect();
+    let search = ParamSearchConfig {
+        trust_agreement: trust,
+        ..ParamSearchConfig::default()
+    };
+    info!(
+        scans = scans.len(),
+        "fitting the parameters to the PseudoLabeler's labels"
+    );
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(crate::common::progress_style(
+        "fit parameters [{bar:30}] {pos} segmenter runs (at most {len}), {elapsed}",
+    ));
+    let fit = fit_parameters(&cfg, &scans, &search, |done, most| {
+        bar.set_length(most as u64);
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    Ok(fit?)
+}
+
+/// The fit's figures in one line: the sample, the trusted range and the agreement with the
+/// PseudoLabeler's labels (ground IoU, %) before and after.
+fn fit_figures(fit: &ParamFit) -> String {
+    format!(
+        "{} scans ({} held out), within {} m: agreement with the PseudoLabeler, held out, \
+         {:.2} -> {:.2} (fitted scans {:.2} -> {:.2})",
+        fit.fitted_scans + fit.held_out_scans,
+        fit.held_out_scans,
+        fit.trusted_range,
+        fit.held_out_before.iou(),
+        fit.held_out_after.iou(),
+        fit.fitted_before.iou(),
+        fit.fitted_after.iou(),
+    )
+}
+
+/// The fitted parameters as TOML, after the mount: what changed, each old value in a comment,
+/// and the agreement with the PseudoLabeler before and after.
+fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
+    let mut s = format!(
+        "\n# Parameters fitted to the PseudoLabeler's labels (ground IoU with them, within the\n\
+         # range where the preset and the labels agree), from\n# {}.\n",
+        fit_figures(fit)
+    );
+    if fit.kept_preset {
+        s += "# No change agreed better with the held-out scans: the preset's parameters are kept.\n";
+        return s;
+    }
+    s += "[ground]\n";
+    let (new, old) = (&fit.config.ground, &base.ground);
+    for (key, n, o) in [
+        ("flatness", new.flatness, old.flatness),
+        ("orientation", new.orientation, old.orientation),
+        ("elevation", new.elevation, old.elevation),
+    ] {
+        if n != o {
+            let _ = writeln!(
+                s,
+                "{key} = {{ alpha = {}, beta = {} }}  # was {{ alpha = {}, beta = {} }}",
+                n.alpha, n.beta, o.alpha, o.beta
+            );
+        }
+    }
+    // Shortest round-trip forms: the f32 threshold is written as the f32 it is.
+    for (key, n, o) in [
+        (
+            "elevation_window",
+            new.elevation_window.to_string(),
+            old.elevation_window.to_string(),
+        ),
+        (
+            "outlier_threshold",
+            new.outlier_threshold.to_string(),
+            old.outlier_threshold.to_string(),
+        ),
+        (
+            "ground_threshold",
+            new.ground_threshold.to_string(),
+            old.ground_threshold.to_string(),
+        ),
+    ] {
+        if n != o {
+            let _ = writeln!(s, "{key} = {n}  # was {o}");
+        }
+    }
+    s
+}
+
+/// The parameter fit, for the terminal.
+fn params_summary(fit: &ParamFit) -> String {
+    let mut s = format!(
+        "parameters from {}; {} segmenter runs\n",
+        fit_figures(fit),
+        fit.evaluations
+    );
+    if fit.kept_preset {
+        s += "  kept the preset's: no change agreed better with the held-out scans\n";
+    }
+    for c in &fit.changed {
+        let _ = writeln!(s, "  {} {}  was {}", c.name, c.new, c.old);
+    }
+    s
 }
 
 /// `value ± error unit`, with the spread over the scans.

@@ -1091,6 +1091,110 @@ fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_
     assert!(!tmp.path().join("two.toml").exists());
 }
 
+/// `--fit-params`: the mount, then the parameters fitted to the PseudoLabeler's labels of
+/// the sample, written after the mount with their old values (the values the report says
+/// were fitted, agreeing at least as well with the held-out labels); the same scans give
+/// the same file; a sample too small to hold a part out is refused with the reason (the
+/// mount is still written, exit code 1).
+#[test]
+fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
+    let text = |o: &std::process::Output| {
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        )
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    fs::create_dir(&input).unwrap();
+    for n in 0..6 {
+        copy_scan(n, &input);
+    }
+    let run = |out: &str, extra: &[&str]| {
+        bin()
+            .args(["calibrate", "--sensor", "hdl64e", "--fit-params", "--out"])
+            .arg(tmp.path().join(out))
+            .arg("--report")
+            .arg(tmp.path().join(format!("{out}.json")))
+            .args(extra)
+            .arg(&input)
+            .output()
+            .unwrap()
+    };
+    // The labels trusted at every range (on KITTI the PseudoLabeler is right far out too),
+    // so that parameters change and are written.
+    let o = run("a.toml", &["--param-trust", "0"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(
+        stdout.contains("parameters from 6 scans (1 held out)"),
+        "{stdout}"
+    );
+    let written = fs::read_to_string(tmp.path().join("a.toml")).unwrap();
+    assert!(
+        written.contains("# Parameters fitted to the PseudoLabeler's labels")
+            && written.contains("# 6 scans (1 held out), within "),
+        "{written}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&fs::read(tmp.path().join("a.toml.json")).unwrap()).unwrap();
+    let p = &json["parameters"];
+    let before = p["held_out_before"].clone();
+    let iou = |a: &serde_json::Value| {
+        let n = |k: &str| a[k].as_f64().unwrap();
+        n("both") / (n("both") + n("segmenter_only") + n("reference_only"))
+    };
+    // What the file holds is what the report says was fitted, and it agrees with the
+    // held-out labels at least as well as the preset did.
+    assert!(iou(&p["held_out_after"]) >= iou(&before), "{p}");
+    let cfg =
+        groundwork_io::load_config_over(Some("hdl64e"), Some(&tmp.path().join("a.toml"))).unwrap();
+    assert!(!p["changed"].as_array().unwrap().is_empty(), "{p}");
+    for change in p["changed"].as_array().unwrap() {
+        let name = change["name"].as_str().unwrap();
+        let new = change["new"].as_f64().unwrap();
+        let got = match name {
+            "ground.elevation.beta" => cfg.ground.elevation.beta,
+            "ground.elevation.alpha" => cfg.ground.elevation.alpha,
+            "ground.orientation.beta" => cfg.ground.orientation.beta,
+            "ground.orientation.alpha" => cfg.ground.orientation.alpha,
+            "ground.flatness.beta" => cfg.ground.flatness.beta,
+            "ground.flatness.alpha" => cfg.ground.flatness.alpha,
+            "ground.elevation_window" => cfg.ground.elevation_window,
+            "ground.outlier_threshold" => cfg.ground.outlier_threshold,
+            "ground.ground_threshold" => f64::from(cfg.ground.ground_threshold),
+            other => panic!("unexpected parameter {other}"),
+        };
+        assert!(
+            (got - new).abs() < 1e-6,
+            "{name}: {got} in the file, {new} fitted"
+        );
+        assert!(written.contains("# was "), "{written}");
+    }
+    // Deterministic: the same scans give the same file.
+    let o = run("b.toml", &["--param-trust", "0"]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let again = fs::read_to_string(tmp.path().join("b.toml")).unwrap();
+    // The name is the file's stem; everything else is the same.
+    assert_eq!(written, again.replace("name = \"b\"", "name = \"a\""));
+
+    // Three scans cannot hold one in four out: refused with the reason, the mount kept.
+    let o = run("c.toml", &["--param-scans", "3"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(
+        text(&o).contains("too few to fit parameters"),
+        "{}",
+        text(&o)
+    );
+    let c = fs::read_to_string(tmp.path().join("c.toml")).unwrap();
+    assert!(
+        c.contains("height = ") && c.contains("# Parameters not fitted"),
+        "{c}"
+    );
+    assert!(!c.contains("[ground]"), "{c}");
+}
+
 #[test]
 fn a_mount_that_disagrees_with_the_ground_is_reported_once() {
     let tmp = tempfile::tempdir().unwrap();

@@ -1,0 +1,579 @@
+//! The segmenter's parameters fitted to reference labels (the PseudoLabeler's, made by the
+//! caller), with the mount fixed: a bounded coordinate descent on the agreement of the
+//! segmenter's decisions with the labels over one part of the scans, and a held-out part
+//! that decides which round's parameters are kept, so that the fit follows the sensor and
+//! not the labeler's own mistakes.
+//!
+//! Deterministic: the segmenter gives the same bits on any number of threads, each scan is
+//! segmented on its own (single frame, a fresh segmenter: no history, no height filter
+//! state), agreement is counted in integers, and the knobs are tried in a fixed order.
+
+use groundwork_core::Segmenter;
+use groundwork_core::config::SegmenterConfig;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::CalibrateError;
+
+/// One scan of the sample: its points (sensor frame) and the reference label of each
+/// (ground or not).
+#[derive(Debug, Clone, Copy)]
+pub struct LabeledScan<'a> {
+    /// Points, sensor frame, metres.
+    pub points: &'a [[f32; 3]],
+    /// Reference: ground per point, same length.
+    pub ground: &'a [bool],
+}
+
+/// How the search runs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ParamSearchConfig {
+    /// Rounds over all knobs; round r steps by `STEPS[r]` of a knob's unit step.
+    pub rounds: usize,
+    /// Every this-many-th scan of the sample (the last of each group) is held out.
+    pub held_out_every: usize,
+    /// A move is taken only if it raises the fitted part's agreement (ground IoU, %) by
+    /// more than this: smaller gains are the labels' noise.
+    pub min_gain: f64,
+    /// Only points where the labels are trusted are counted: from the sensor outwards, ring
+    /// after ring of this width (m), as long as the preset's decisions agree with the labels
+    /// on at least `trust_agreement` (ground IoU, %) of the ring. The PseudoLabeler's
+    /// elevation map is sure near the vehicle and can lose far ground on hills (synthetic
+    /// Livox off-road: recall 99.9 % within 20 m, 48 % at 40–80 m, where the preset finds
+    /// 85 %): where the two part, neither can be taken as the truth, and a fit to those
+    /// labels would lose that ground too.
+    pub trust_ring: f64,
+    /// See `trust_ring`.
+    pub trust_agreement: f64,
+    /// The fitted parameters are kept only if they agree better with the held-out labels
+    /// than the preset's by more than this (ground IoU, %); otherwise the preset's stay.
+    pub min_held_out_gain: f64,
+}
+
+impl Default for ParamSearchConfig {
+    fn default() -> Self {
+        Self {
+            rounds: 3,
+            held_out_every: 4,
+            min_gain: 0.02,
+            trust_ring: 10.0,
+            trust_agreement: 90.0,
+            min_held_out_gain: 0.25,
+        }
+    }
+}
+
+/// The step of each round, as a share of a knob's unit step (log knobs: the exponent).
+const STEPS: [f64; 4] = [1.0, 0.5, 0.25, 0.125];
+/// Moves in one direction per knob and round, at most.
+const MAX_MOVES: usize = 8;
+
+/// A parameter the search may move.
+struct Knob {
+    name: &'static str,
+    get: fn(&SegmenterConfig) -> f64,
+    set: fn(&mut SegmenterConfig, f64),
+    /// Unit step: a factor for log knobs (×/÷), an amount for linear ones (±).
+    unit: f64,
+    log: bool,
+    /// Bounds, absolute.
+    lo: f64,
+    hi: f64,
+}
+
+/// The knobs, in the order they are tried: the elevation likelihood and the decision
+/// threshold first (they move most on a new mount or sensor), then the shape likelihoods.
+fn knobs() -> Vec<Knob> {
+    vec![
+        Knob {
+            name: "ground.elevation.beta",
+            get: |c| c.ground.elevation.beta,
+            set: |c, v| c.ground.elevation.beta = v,
+            unit: 0.2,
+            log: false,
+            lo: 0.05,
+            hi: 3.0,
+        },
+        Knob {
+            name: "ground.elevation.alpha",
+            get: |c| c.ground.elevation.alpha,
+            set: |c, v| c.ground.elevation.alpha = v,
+            unit: 1.6,
+            log: true,
+            lo: 0.5,
+            hi: 64.0,
+        },
+        Knob {
+            name: "ground.ground_threshold",
+            get: |c| round_sig(f64::from(c.ground.ground_threshold)),
+            set: |c, v| c.ground.ground_threshold = v as f32,
+            unit: 0.1,
+            log: false,
+            lo: 0.2,
+            hi: 0.8,
+        },
+        Knob {
+            name: "ground.elevation_window",
+            get: |c| c.ground.elevation_window,
+            set: |c, v| c.ground.elevation_window = v,
+            unit: 1.0,
+            log: false,
+            lo: 0.0,
+            hi: 8.0,
+        },
+        Knob {
+            name: "ground.orientation.beta",
+            get: |c| c.ground.orientation.beta,
+            set: |c, v| c.ground.orientation.beta = v,
+            unit: 0.1,
+            log: false,
+            lo: 0.1,
+            hi: 1.4,
+        },
+        Knob {
+            name: "ground.orientation.alpha",
+            get: |c| c.ground.orientation.alpha,
+            set: |c, v| c.ground.orientation.alpha = v,
+            unit: 1.6,
+            log: true,
+            lo: 0.5,
+            hi: 64.0,
+        },
+        Knob {
+            name: "ground.flatness.beta",
+            get: |c| c.ground.flatness.beta,
+            set: |c, v| c.ground.flatness.beta = v,
+            unit: 1.6,
+            log: true,
+            lo: 1e-3,
+            hi: 1.0,
+        },
+        Knob {
+            name: "ground.flatness.alpha",
+            get: |c| c.ground.flatness.alpha,
+            set: |c, v| c.ground.flatness.alpha = v,
+            unit: 1.6,
+            log: true,
+            lo: 1.0,
+            hi: 1000.0,
+        },
+        Knob {
+            name: "ground.outlier_threshold",
+            get: |c| c.ground.outlier_threshold,
+            set: |c, v| c.ground.outlier_threshold = v,
+            unit: 0.2,
+            log: false,
+            lo: 0.1,
+            hi: 2.0,
+        },
+    ]
+}
+
+impl Knob {
+    /// The value `moves` steps of `share` away from `v` (negative: down), within bounds,
+    /// rounded to 4 significant digits so that the file written reads cleanly.
+    fn stepped(&self, v: f64, share: f64, moves: i32) -> f64 {
+        let w = if self.log {
+            v * self.unit.powf(share * f64::from(moves))
+        } else {
+            v + self.unit * share * f64::from(moves)
+        };
+        round_sig(w.clamp(self.lo, self.hi))
+    }
+}
+
+fn round_sig(v: f64) -> f64 {
+    if v == 0.0 || !v.is_finite() {
+        return v;
+    }
+    let digits = 4 - 1 - v.abs().log10().floor() as i32;
+    let scale = 10f64.powi(digits);
+    (v * scale).round() / scale
+}
+
+/// Agreement of decisions with reference labels, pooled over scans.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct Agreement {
+    /// Ground in both.
+    pub both: u64,
+    /// Ground in the segmenter's decisions only.
+    pub segmenter_only: u64,
+    /// Ground in the reference only.
+    pub reference_only: u64,
+}
+
+impl Agreement {
+    /// Ground IoU in percent (100 when neither calls anything ground).
+    pub fn iou(&self) -> f64 {
+        let union = self.both + self.segmenter_only + self.reference_only;
+        if union == 0 {
+            100.0
+        } else {
+            100.0 * self.both as f64 / union as f64
+        }
+    }
+
+    fn add(self, o: Self) -> Self {
+        Self {
+            both: self.both + o.both,
+            segmenter_only: self.segmenter_only + o.segmenter_only,
+            reference_only: self.reference_only + o.reference_only,
+        }
+    }
+}
+
+/// Agreement after one round of the search (round 0: the preset).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RoundScore {
+    /// The round.
+    pub round: usize,
+    /// Ground IoU (%) with the labels on the fitted part.
+    pub fitted_iou: f64,
+    /// The same on the held-out part.
+    pub held_out_iou: f64,
+}
+
+/// One parameter the fit changed.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ParamChange {
+    /// Its path in the configuration (`ground.elevation.beta`).
+    pub name: &'static str,
+    /// The preset's value.
+    pub old: f64,
+    /// The fitted value.
+    pub new: f64,
+}
+
+/// The outcome of a parameter fit.
+#[derive(Debug, Clone, Serialize)]
+pub struct ParamFit {
+    /// The configuration to use (the preset's when `kept_preset`).
+    #[serde(skip)]
+    pub config: SegmenterConfig,
+    /// Parameters that changed (empty when `kept_preset`).
+    pub changed: Vec<ParamChange>,
+    /// Agreement on the fitted part with the preset's parameters, and with the result.
+    pub fitted_before: Agreement,
+    /// The same with the fitted parameters.
+    pub fitted_after: Agreement,
+    /// Agreement on the held-out part, before and after.
+    pub held_out_before: Agreement,
+    /// The same with the fitted parameters.
+    pub held_out_after: Agreement,
+    /// Scans fitted on and held out.
+    pub fitted_scans: usize,
+    /// Scans held out.
+    pub held_out_scans: usize,
+    /// Segmenter runs over the fitted part (each a pass over its scans).
+    pub evaluations: usize,
+    /// Rounds run, and the round whose parameters were kept (0: the preset's).
+    pub rounds: usize,
+    /// See `rounds`.
+    pub kept_round: usize,
+    /// True when no round agreed better with the held-out labels than the preset (by more
+    /// than `ParamSearchConfig::min_held_out_gain`).
+    pub kept_preset: bool,
+    /// Every round's agreement, the preset's first.
+    pub history: Vec<RoundScore>,
+    /// Only points within this horizontal distance of the sensor (m) were counted: where
+    /// the preset and the labels agreed (`ParamSearchConfig::trust_ring`).
+    pub trusted_range: f64,
+    /// The preset's agreement with the labels, ring by ring, out to the first ring not
+    /// trusted (ground IoU, %).
+    pub ring_agreement: Vec<f64>,
+}
+
+/// Agreement of `cfg`'s single-frame decisions with the labels of `scans`, each scan
+/// segmented on its own (in parallel).
+pub fn agreement(
+    cfg: &SegmenterConfig,
+    scans: &[LabeledScan],
+    max_range: f64,
+) -> Result<Agreement, CalibrateError> {
+    Ok(agreement_by_ring(cfg, scans, max_range, 1)?[0])
+}
+
+/// [`agreement`] in `rings` rings of `width` metres from the sensor (points beyond the last
+/// are not counted).
+pub fn agreement_by_ring(
+    cfg: &SegmenterConfig,
+    scans: &[LabeledScan],
+    width: f64,
+    rings: usize,
+) -> Result<Vec<Agreement>, CalibrateError> {
+    let threshold = cfg.ground.ground_threshold;
+    scans
+        .par_iter()
+        .map(|s| {
+            let mut seg = Segmenter::new(cfg.clone())
+                .map_err(|e| CalibrateError::Config(format!("fitted parameters: {e}")))?;
+            let mut p = vec![0.0f32; s.points.len()];
+            seg.segment(s.points, None, &mut p)
+                .map_err(|e| CalibrateError::Refused(format!("a scan of the sample: {e}")))?;
+            let mut a = vec![Agreement::default(); rings];
+            let ring = s.points.iter().map(|q| {
+                let r = f64::from(q[0]).hypot(f64::from(q[1]));
+                (r / width) as usize
+            });
+            for ((&p, &g), ring) in p.iter().zip(s.ground).zip(ring) {
+                let Some(a) = a.get_mut(ring) else {
+                    continue;
+                };
+                match (p >= threshold, g) {
+                    (true, true) => a.both += 1,
+                    (true, false) => a.segmenter_only += 1,
+                    (false, true) => a.reference_only += 1,
+                    (false, false) => {}
+                }
+            }
+            Ok(a)
+        })
+        .try_reduce(
+            || vec![Agreement::default(); rings],
+            |a, b| Ok(a.into_iter().zip(b).map(|(a, b)| a.add(b)).collect()),
+        )
+}
+
+/// Rings of the trust test: out to 500 m, beyond any sensor's ground.
+const TRUST_REACH: f64 = 500.0;
+
+/// Fits the knobs of `base` to the labels of `scans` (see the module notes). `progress` is
+/// called with (evaluations done, evaluations at most).
+pub fn fit_parameters(
+    base: &SegmenterConfig,
+    scans: &[LabeledScan],
+    cfg: &ParamSearchConfig,
+    progress: impl Fn(usize, usize),
+) -> Result<ParamFit, CalibrateError> {
+    if cfg.rounds == 0 || cfg.rounds > STEPS.len() {
+        return Err(CalibrateError::Config(format!(
+            "rounds must be 1–{}, not {}",
+            STEPS.len(),
+            cfg.rounds
+        )));
+    }
+    if cfg.held_out_every < 2
+        || !cfg.min_gain.is_finite()
+        || cfg.min_gain < 0.0
+        || !(cfg.trust_ring >= 0.5 && cfg.trust_ring.is_finite())
+        || !(0.0..=100.0).contains(&cfg.trust_agreement)
+        || !(cfg.min_held_out_gain.is_finite() && cfg.min_held_out_gain >= 0.0)
+    {
+        return Err(CalibrateError::Config(
+            "held_out_every must be at least 2, min_gain and min_held_out_gain non-negative \
+             numbers, trust_ring at least 0.5 m and trust_agreement a percentage"
+                .into(),
+        ));
+    }
+    if let Some(s) = scans.iter().find(|s| s.points.len() != s.ground.len()) {
+        return Err(CalibrateError::Config(format!(
+            "a scan of {} points came with {} labels",
+            s.points.len(),
+            s.ground.len()
+        )));
+    }
+    let every = cfg.held_out_every;
+    let held: Vec<LabeledScan> = scans
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| k % every == every - 1)
+        .map(|(_, s)| *s)
+        .collect();
+    let fitted: Vec<LabeledScan> = scans
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| k % every != every - 1)
+        .map(|(_, s)| *s)
+        .collect();
+    if held.is_empty() || fitted.is_empty() {
+        return Err(CalibrateError::Refused(format!(
+            "{} scans are too few to fit parameters: at least {every} are needed (one in \
+             {every} is held out to judge the fit)",
+            scans.len()
+        )));
+    }
+    let reference_ground: usize = scans
+        .iter()
+        .map(|s| s.ground.iter().filter(|&&g| g).count())
+        .sum();
+    if reference_ground == 0 {
+        return Err(CalibrateError::Refused(
+            "the reference labels call no point ground: nothing to fit to".into(),
+        ));
+    }
+
+    // Where the labels are trusted (see `trust_ring`).
+    let rings = (TRUST_REACH / cfg.trust_ring).ceil() as usize;
+    let by_ring = agreement_by_ring(base, scans, cfg.trust_ring, rings)?;
+    let trusted_rings = by_ring
+        .iter()
+        .take_while(|a| a.iou() >= cfg.trust_agreement)
+        .count();
+    let trusted_range = trusted_rings as f64 * cfg.trust_ring;
+    if trusted_rings == 0 {
+        return Err(CalibrateError::Refused(format!(
+            "the labels and the preset disagree within {} m of the sensor (ground IoU {:.1} %, \
+             {} % needed to trust the labels): check the mount, or the labeler fails on \
+             these scans",
+            cfg.trust_ring,
+            by_ring[0].iou(),
+            cfg.trust_agreement
+        )));
+    }
+    let max_range = trusted_range;
+    let knobs = knobs();
+    let most = 1 + cfg.rounds * knobs.len() * 2 * MAX_MOVES;
+    let mut evaluations = 0;
+    let mut eval = |c: &SegmenterConfig| -> Result<Agreement, CalibrateError> {
+        evaluations += 1;
+        progress(evaluations, most);
+        agreement(c, &fitted, max_range)
+    };
+    let fitted_before = eval(base)?;
+    let held_out_before = agreement(base, &held, max_range)?;
+    let (mut current, mut score) = (base.clone(), fitted_before);
+    let mut best = (0, base.clone(), fitted_before, held_out_before);
+    let mut history = vec![RoundScore {
+        round: 0,
+        fitted_iou: fitted_before.iou(),
+        held_out_iou: held_out_before.iou(),
+    }];
+    let mut rounds = 0;
+    for &share in &STEPS[..cfg.rounds] {
+        rounds += 1;
+        let mut moved = false;
+        for knob in &knobs {
+            // Up first, then down; in one direction as long as it keeps gaining.
+            for dir in [1, -1] {
+                let mut taken = false;
+                for _ in 0..MAX_MOVES {
+                    let v = (knob.get)(&current);
+                    let w = knob.stepped(v, share, dir);
+                    if w == v {
+                        break;
+                    }
+                    let mut trial = current.clone();
+                    (knob.set)(&mut trial, w);
+                    if trial.validate().is_err() {
+                        break;
+                    }
+                    let a = eval(&trial)?;
+                    if a.iou() > score.iou() + cfg.min_gain {
+                        (current, score, taken) = (trial, a, true);
+                    } else {
+                        break;
+                    }
+                }
+                moved |= taken;
+                if taken {
+                    break; // the other direction cannot gain from the same start
+                }
+            }
+        }
+        if !moved {
+            break;
+        }
+        // The held-out part decides which round is kept.
+        let h = agreement(&current, &held, max_range)?;
+        history.push(RoundScore {
+            round: rounds,
+            fitted_iou: score.iou(),
+            held_out_iou: h.iou(),
+        });
+        if h.iou() > best.3.iou() && h.iou() > held_out_before.iou() + cfg.min_held_out_gain {
+            best = (rounds, current.clone(), score, h);
+        }
+    }
+    let (kept_round, config, fitted_after, held_out_after) = best;
+    let changed = knobs
+        .iter()
+        .filter_map(|k| {
+            let (old, new) = ((k.get)(base), (k.get)(&config));
+            (old != new).then_some(ParamChange {
+                name: k.name,
+                old,
+                new,
+            })
+        })
+        .collect();
+    Ok(ParamFit {
+        config,
+        changed,
+        fitted_before,
+        fitted_after,
+        held_out_before,
+        held_out_after,
+        fitted_scans: fitted.len(),
+        held_out_scans: held.len(),
+        evaluations,
+        rounds,
+        kept_round,
+        kept_preset: kept_round == 0,
+        history,
+        trusted_range,
+        ring_agreement: by_ring
+            .iter()
+            .take(trusted_rings + 1)
+            .map(Agreement::iou)
+            .collect(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn steps_stay_in_bounds_and_read_cleanly() {
+        for k in knobs() {
+            let base = SegmenterConfig::default();
+            let v = (k.get)(&base);
+            assert!(
+                v >= k.lo && v <= k.hi,
+                "{} default {v} outside bounds",
+                k.name
+            );
+            let mut w = v;
+            for _ in 0..100 {
+                w = k.stepped(w, 1.0, 1);
+            }
+            assert_eq!(w, round_sig(k.hi), "{}", k.name);
+            for _ in 0..200 {
+                w = k.stepped(w, 1.0, -1);
+            }
+            assert_eq!(w, round_sig(k.lo), "{}", k.name);
+        }
+        assert_eq!(round_sig(0.123456), 0.1235);
+        assert_eq!(round_sig(1234.5), 1235.0);
+    }
+
+    #[test]
+    fn too_few_scans_or_no_ground_are_refused_with_the_reason() {
+        let pts = vec![[5.0f32, 0.0, -1.7]; 10];
+        let g = vec![true; 10];
+        let scan = LabeledScan {
+            points: &pts,
+            ground: &g,
+        };
+        let cfg = ParamSearchConfig::default();
+        let base = SegmenterConfig::default();
+        let e = fit_parameters(&base, &[scan; 3], &cfg, |_, _| {}).unwrap_err();
+        assert!(e.to_string().contains("too few"), "{e}");
+        let none = vec![false; 10];
+        let blank = LabeledScan {
+            points: &pts,
+            ground: &none,
+        };
+        let e = fit_parameters(&base, &[blank; 4], &cfg, |_, _| {}).unwrap_err();
+        assert!(e.to_string().contains("no point ground"), "{e}");
+        let short = LabeledScan {
+            points: &pts,
+            ground: &none[..3],
+        };
+        let e = fit_parameters(&base, &[short; 4], &cfg, |_, _| {}).unwrap_err();
+        assert!(
+            e.to_string().contains("10 points came with 3 labels"),
+            "{e}"
+        );
+    }
+}
