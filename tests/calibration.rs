@@ -438,6 +438,21 @@ fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() 
     assert!(fit.config.ground.elevation.beta <= 1.2, "{:?}", fit.changed);
     assert_eq!((fit.fitted_scans, fit.held_out_scans), (6, 2));
 
+    // With the trust rule (the default) the fit counts only the rings where the spoiled
+    // preset and the labels agree, the first always: it still gains on the held-out scans.
+    let default = groundwork_calibrate::ParamSearchConfig::default();
+    let trusted =
+        groundwork_calibrate::fit_parameters(&base, &sample, &default, |_, _| {}).unwrap();
+    eprintln!(
+        "trusted within {} m: held-out {:.2} -> {:.2} ({:?})",
+        trusted.trusted_range,
+        trusted.held_out_before.iou(),
+        trusted.held_out_after.iou(),
+        trusted.ring_agreement
+    );
+    assert!(!trusted.kept_preset, "{:?}", trusted.history);
+    assert!(trusted.trusted_range >= 10.0);
+
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
