@@ -95,6 +95,12 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         }
     }
     anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");
+    anyhow::ensure!(a.param_scans > 0, "--param-scans must be at least 1");
+    anyhow::ensure!(
+        (0.0..=100.0).contains(&a.param_trust),
+        "--param-trust is a ground IoU in percent (0–100), not {}",
+        a.param_trust
+    );
     let prior_mount = cfg.sensor.mount.clone();
     let prior = mount_transform(&prior_mount)?;
     let settings = MountSearchConfig {

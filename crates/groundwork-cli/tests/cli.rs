@@ -1193,6 +1193,14 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
         "{c}"
     );
     assert!(!c.contains("[ground]"), "{c}");
+
+    // Settings out of range are refused before anything is read or written.
+    for (flag, value) in [("--param-trust", "120"), ("--param-scans", "0")] {
+        let o = run("d.toml", &[flag, value]);
+        assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+        assert!(text(&o).contains(flag), "{}", text(&o));
+        assert!(!tmp.path().join("d.toml").exists());
+    }
 }
 
 #[test]
