@@ -406,24 +406,42 @@ pub fn fit_parameters(
     // Where the labels are trusted (see `trust_ring`). The first ring always is: near the
     // vehicle the labeler is at its surest, and a preset that disagrees there is what most
     // needs the fit.
+    // The preset's rings, per part, serve both the trust test and the agreements before
+    // the search: one pass of the segmenter over the sample.
     let rings = (TRUST_REACH / cfg.trust_ring).ceil() as usize;
-    let by_ring = agreement_by_ring(base, scans, cfg.trust_ring, rings)?;
+    let fitted_rings = agreement_by_ring(base, &fitted, cfg.trust_ring, rings)?;
+    let held_rings = agreement_by_ring(base, &held, cfg.trust_ring, rings)?;
+    let by_ring: Vec<Agreement> = fitted_rings
+        .iter()
+        .zip(&held_rings)
+        .map(|(a, b)| a.add(*b))
+        .collect();
     let trusted_rings = 1 + by_ring[1..]
         .iter()
         .take_while(|a| a.iou() >= cfg.trust_agreement)
         .count();
     let trusted_range = trusted_rings as f64 * cfg.trust_ring;
-    let max_range = trusted_range;
+    let within = |r: &[Agreement]| {
+        r[..trusted_rings]
+            .iter()
+            .fold(Agreement::default(), |a, b| a.add(*b))
+    };
     let knobs = knobs();
     let most = 1 + cfg.rounds * knobs.len() * 2 * MAX_MOVES;
-    let mut evaluations = 0;
+    let mut evaluations = 1;
+    progress(evaluations, most);
     let mut eval = |c: &SegmenterConfig| -> Result<Agreement, CalibrateError> {
         evaluations += 1;
         progress(evaluations, most);
-        agreement(c, &fitted, max_range)
+        Ok(within(&agreement_by_ring(
+            c,
+            &fitted,
+            cfg.trust_ring,
+            trusted_rings,
+        )?))
     };
-    let fitted_before = eval(base)?;
-    let held_out_before = agreement(base, &held, max_range)?;
+    let fitted_before = within(&fitted_rings);
+    let held_out_before = within(&held_rings);
     let (mut current, mut score) = (base.clone(), fitted_before);
     let mut best = (0, base.clone(), fitted_before, held_out_before);
     let mut history = vec![RoundScore {
@@ -467,7 +485,12 @@ pub fn fit_parameters(
             break;
         }
         // The held-out part decides which round is kept.
-        let h = agreement(&current, &held, max_range)?;
+        let h = within(&agreement_by_ring(
+            &current,
+            &held,
+            cfg.trust_ring,
+            trusted_rings,
+        )?);
         history.push(RoundScore {
             round: rounds,
             fitted_iou: score.iou(),
