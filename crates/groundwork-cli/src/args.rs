@@ -222,8 +222,14 @@ pub struct Ros2Args {
     /// A nav_msgs/Odometry topic that gives each cloud its pose (at the cloud's stamp):
     /// the segmenter then keeps its multi-frame history. Its child frame is the vehicle's
     /// base (the sensor placed on it by the mount), or the cloud's own frame.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "tf")]
     pub odom_topic: Option<String>,
+    /// Read the TF tree (/tf and /tf_static): each cloud's pose is its frame's in this
+    /// fixed frame at the cloud's stamp, and the segmenter keeps its multi-frame history.
+    /// The tree places the sensor: the mount is not published on /tf_static, and boxes are
+    /// given in the cloud's frame.
+    #[arg(long, value_name = "FIXED_FRAME", num_args = 0..=1, default_missing_value = "odom")]
+    pub tf: Option<String>,
 }
 
 /// Arguments of `groundwork ros2`.

@@ -88,6 +88,7 @@ pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
             count: a.count,
             mount: Some(mount),
             odometry_topic: r.odom_topic.clone(),
+            tf_fixed_frame: r.tf.clone(),
         },
     );
     stop_view.store(true, Ordering::Relaxed);
@@ -123,6 +124,9 @@ fn ros2_stage_args(c: &mut std::process::Command, r: &Ros2Args) {
     }
     if let Some(t) = &r.odom_topic {
         c.arg("--odom-topic").arg(t);
+    }
+    if let Some(f) = &r.tf {
+        c.arg(format!("--tf={f}"));
     }
 }
 

@@ -506,7 +506,7 @@ def test_odometry_gives_the_bridge_the_multi_frame_history(cli: Path, tmp_path: 
             pipeline.communicate()
     assert pipeline.returncode == 0, err[-3000:]
     assert len(got) == 3, err[-3000:]
-    assert "odometry=3 odometry_rejected=0 no_pose=0" in err, err[-3000:]
+    assert "odometry=3 odometry_rejected=0 " in err and " no_pose=0" in err, err[-3000:]
     for k, answer in enumerate(got):
         probs = as_array(answer, "ground_probability")
         history, single = expected["history"][k], expected["single"][k]
@@ -515,3 +515,126 @@ def test_odometry_gives_the_bridge_the_multi_frame_history(cli: Path, tmp_path: 
         assert np.mean((probs >= 0.5) != (history >= 0.5)) < 5e-4, k
         if k > 0:  # the history changed the answer, and the bridge has it
             assert np.abs(history - single).max() > 0.01, k
+
+
+def transform(parent: str, child: str, stamp: Time, m: np.ndarray) -> TransformStamped:
+    return TransformStamped(Header(stamp, parent), child,
+                            Transform(Vector3(*map(float, m[:3, 3])), Quaternion(*map(float, quaternion(m[:3, :3])))))
+
+
+def test_the_tf_tree_gives_the_bridge_its_poses_and_places_the_boxes(cli: Path, tmp_path: Path) -> None:
+    """A vehicle's TF tree as ROS 2 publishes it: map -> odom and base_link -> velodyne on
+    /tf_static (sent before the bridge starts: it must arrive by transient-local
+    durability), odom -> base_link on /tf at each cloud's stamp. With `--tf` the bridge
+    gives each scan the pose of `velodyne` in `odom`: the answers are `segment`'s over the
+    same scans with those poses. It publishes no mount of its own (the tree has the
+    sensor), and its boxes are `detect`'s, given in the cloud's frame."""
+    pid = os.getpid()
+    domain = 100 + (pid + 71) % 100
+    ns = f"/gw_tf_{pid}"
+    reliable = Qos(Policy.Reliability.Reliable(duration(seconds=2)), Policy.History.KeepLast(10))
+    static = Qos(Policy.Reliability.Reliable(duration(seconds=2)), Policy.History.KeepLast(1),
+                 Policy.Durability.TransientLocal)
+    frames = [np.fromfile(SCANS[k], np.float32).reshape(-1, 4)[:30_000] for k in range(3)]
+    poses = lidar_poses()
+    # The sensor on the vehicle: 1.2 m forward, 0.3 m left, 1.73 m up, turned 0.1 rad.
+    base_from_velodyne = np.eye(4)
+    c, s = np.cos(0.1), np.sin(0.1)
+    base_from_velodyne[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    base_from_velodyne[:3, 3] = [1.2, 0.3, 1.73]
+    map_from_odom = np.eye(4)
+    map_from_odom[:3, 3] = [500.0, -20.0, 3.0]
+
+    bins = tmp_path / "bins"
+    bins.mkdir()
+    rows = []
+    for k, (pts, p) in enumerate(zip(frames, poses)):
+        pts.tofile(bins / f"{k:06d}.bin")
+        m = np.hstack([rotation(quaternion(p[:3, :3])), p[:3, 3:]])
+        rows.append(" ".join(repr(float(v)) for v in m.ravel()))
+    (bins / "poses.txt").write_text("\n".join(rows) + "\n")
+    subprocess.run([str(cli), "segment", "--out", str(tmp_path / "seg"), str(bins)], check=True,
+                   capture_output=True)
+    expected = [np.fromfile(tmp_path / "seg" / f"{k:06d}.prob", np.float32) for k in range(3)]
+    subprocess.run([str(cli), "detect", "--out", str(tmp_path / "det"), str(bins)], check=True,
+                   capture_output=True)
+    proposals = [json.loads((tmp_path / "det" / f"{k:06d}.proposals.json").read_text())["proposals"]
+                 for k in range(3)]
+
+    dp = DomainParticipant(domain)
+    # The static broadcaster first, as robot_state_publisher starts before any driver.
+    tf_static = DataWriter(dp, Topic(dp, "rt/tf_static", TFMessage, qos=static), qos=static)
+    tf_static.write(TFMessage([transform("map", "odom", Time(0, 0), map_from_odom),
+                               transform("base_link", "velodyne", Time(0, 0), base_from_velodyne)]))
+    pipeline = subprocess.Popen(
+        [str(cli), "pipeline", "--ros2", "--prefix", f"gw-py-tf-{pid}",
+         "--domain-id", str(domain), "--input-topic", f"{ns}/points_in", "--namespace", ns, "--tf"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    got = {"points": [], "detections": [], "tf_static": []}
+    kinds = {"points": PointCloud2, "detections": Detection3DArray, "tf_static": TFMessage}
+    try:
+        readers = {
+            "points": DataReader(dp, Topic(dp, f"rt{ns}/groundwork/points", PointCloud2, qos=reliable), qos=reliable),
+            "detections": DataReader(dp, Topic(dp, f"rt{ns}/groundwork/detections", Detection3DArray, qos=reliable),
+                                     qos=reliable),
+            "tf_static": DataReader(dp, Topic(dp, "rt/tf_static", TFMessage, qos=static), qos=static),
+        }
+        clouds = DataWriter(dp, Topic(dp, f"rt{ns}/points_in", PointCloud2, qos=reliable), qos=reliable)
+        tf = DataWriter(dp, Topic(dp, "rt/tf", TFMessage, qos=reliable), qos=reliable)
+        end = time.time() + 60
+        while not (clouds.get_matched_subscriptions() and tf.get_matched_subscriptions()
+                   and readers["points"].get_matched_publications()
+                   and readers["detections"].get_matched_publications()):
+            assert pipeline.poll() is None, pipeline.stderr.read()[-4000:]
+            assert time.time() < end, "the bridge did not appear"
+            time.sleep(0.05)
+        time.sleep(1.0)
+
+        def take() -> None:
+            for n, r in readers.items():
+                got[n].extend(m for m in r.take(N=10) if isinstance(m, kinds[n]))
+
+        for k, (pts, p) in enumerate(zip(frames, poses)):
+            stamp = Time(1_700_000_000 + k // 10, 100_000_000 * (k % 10))
+            odom_from_base = p @ np.linalg.inv(base_from_velodyne)
+            tf.write(TFMessage([transform("odom", "base_link", stamp, odom_from_base)]))
+            time.sleep(0.1)
+            cloud = xyzi_cloud(pts, 0, "velodyne")
+            cloud.header.stamp = stamp
+            clouds.write(cloud)
+            while (len(got["points"]) <= k or len(got["detections"]) <= k) and time.time() < end:
+                take()
+                time.sleep(0.05)
+        take()
+        pipeline.send_signal(signal.SIGINT)
+        out, err = pipeline.communicate(timeout=60)
+    finally:
+        if pipeline.poll() is None:
+            pipeline.kill()
+            pipeline.communicate()
+    assert pipeline.returncode == 0, err[-3000:]
+    assert len(got["points"]) == 3 and len(got["detections"]) == 3, err[-3000:]
+    # Two static transforms and three moving ones taken, every cloud posed.
+    assert "transforms=5 transforms_rejected=0 no_pose=0" in err, err[-3000:]
+    for k, answer in enumerate(got["points"]):
+        probs = as_array(answer, "ground_probability")
+        # The poses travel as quaternions and through the tree: agreement to rounding.
+        assert np.abs(probs - expected[k]).max() < 1e-4, k
+        assert np.mean((probs >= 0.5) != (expected[k] >= 0.5)) < 5e-4, k
+    # The bridge gave the cloud frame no second parent: /tf_static holds our message only.
+    assert all(sorted(t.child_frame_id for t in m.transforms) == ["odom", "velodyne"]
+               and {t.header.frame_id for t in m.transforms} == {"map", "base_link"}
+               for m in got["tf_static"]), got["tf_static"]
+    # Boxes: `detect`'s, in the cloud's frame (the hdl64e mount: 1.73 m up, level).
+    f32 = np.float32
+    for k, boxes in enumerate(got["detections"]):
+        want = proposals[k]
+        assert boxes.header.frame_id == "velodyne" and boxes.header.stamp == got["points"][k].header.stamp
+        assert [d.id for d in boxes.detections] == [str(p["id"]) for p in want], k
+        for d, p in zip(boxes.detections, want):
+            c = d.bbox.center.position
+            z = f32(f32(p["ground_z"]) + 0.5 * (f32(p["bottom"]) + f32(p["height"])))
+            assert abs(c.x - p["center"][0]) < 1e-5 and abs(c.y - p["center"][1]) < 1e-5
+            assert abs(c.z - (z - 1.73)) < 1e-5
+            q = d.bbox.center.orientation
+            assert abs(2 * np.arctan2(q.z, q.w) - p["yaw"]) < 1e-6

@@ -1,8 +1,8 @@
 //! The bridge: three stages in one process (one thread each), sharing the DDS participant
 //! and the clouds in flight. `CloudsIn` is a source: it waits on the DDS subscription and
 //! publishes each cloud as a scan. `AnswersOut` wakes on masks and publishes the answering
-//! clouds (and the mount on `/tf_static`). `DetectionsOut` wakes on proposals and publishes
-//! their boxes.
+//! clouds (and, without a TF tree to read, the mount on `/tf_static`). `DetectionsOut`
+//! wakes on proposals and publishes their boxes.
 
 use std::collections::VecDeque;
 use std::path::Path;
@@ -34,7 +34,9 @@ use crate::msg::{
     MarkerArray, ObjectHypothesis, ObjectHypothesisWithPose, Odometry, PointCloud2, Pose,
     PoseWithCovariance, Quaternion, TFMessage, Time, Transform, TransformStamped, Vector3,
 };
-use crate::odom::{OdomTrack, row_major};
+use crate::odom::OdomTrack;
+use crate::pose::{Pose as Isometry, row_major};
+use crate::tf::TfTree;
 
 /// Reliability of the input subscription.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -72,6 +74,10 @@ pub struct BridgeOptions {
     /// A `nav_msgs/Odometry` topic giving each scan its pose (the multi-frame history);
     /// `None`: scans carry no pose and are segmented on their own.
     pub odometry_topic: Option<String>,
+    /// Read `/tf` and `/tf_static` instead: each scan's pose is its cloud frame's in this
+    /// fixed frame (e.g. `odom`) at its stamp. The vehicle's tree then places the sensor:
+    /// the mount is not published, and boxes are given in the cloud's frame.
+    pub tf_fixed_frame: Option<String>,
 }
 
 impl Default for BridgeOptions {
@@ -87,6 +93,7 @@ impl Default for BridgeOptions {
             count: None,
             mount: None,
             odometry_topic: None,
+            tf_fixed_frame: None,
         }
     }
 }
@@ -120,9 +127,15 @@ pub struct BridgeReport {
     pub odometry: u64,
     /// Odometry samples refused (no time, no pose) or unreadable.
     pub odometry_rejected: u64,
-    /// Clouds published without a pose although an odometry topic was given (no sample
-    /// within 0.1 s of their stamp).
+    /// Transforms taken from `/tf` and `/tf_static` (with a fixed frame).
+    pub transforms: u64,
+    /// Transforms refused (no time, no pose, a frame its own parent) or unreadable.
+    pub transforms_rejected: u64,
+    /// Clouds published without a pose although odometry or TF was to give one (no sample
+    /// within 0.1 s of their stamp; with TF also a frame not connected to the fixed one).
     pub no_pose: u64,
+    /// Why the last such cloud had none.
+    pub last_no_pose: Option<String>,
 }
 
 /// Clouds published and not yet answered, oldest first. Bounded: a segmenter that stops
@@ -130,6 +143,8 @@ pub struct BridgeReport {
 #[derive(Debug, Default)]
 struct InFlight {
     clouds: VecDeque<Held>,
+    /// With boxes in the clouds' frames: the frame of each recent scan (epoch, sequence).
+    frames: VecDeque<(u64, u64, String)>,
     report: BridgeReport,
     /// The answering stage has stopped (done, signalled or failed): so does the input.
     answers_stopped: bool,
@@ -187,36 +202,92 @@ struct CloudsIn {
     answers_wanted: Option<u64>,
     /// Polled this long for a cloud before the runner looks at signals again.
     wait: Duration,
-    /// The odometry that gives scans their poses, if any.
-    odometry: Option<OdomIn>,
+    /// What gives scans their poses, if anything.
+    poses: Option<PoseSource>,
+    /// Remember each scan's frame (for boxes given in the clouds' frames).
+    keep_frames: bool,
 }
 
-/// The odometry subscription and the samples it gave.
-struct OdomIn {
-    subscription: Subscription<Odometry>,
-    track: OdomTrack,
+/// Where scans' poses come from.
+// One per bridge: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
+enum PoseSource {
+    /// A `nav_msgs/Odometry` subscription and the samples it gave.
+    Odometry {
+        subscription: Subscription<Odometry>,
+        track: OdomTrack,
+    },
+    /// `/tf` and `/tf_static`, the tree they gave, and the fixed frame.
+    Tf {
+        moving: Subscription<TFMessage>,
+        statics: Subscription<TFMessage>,
+        tree: TfTree,
+        fixed: String,
+    },
 }
 
-impl OdomIn {
+/// Counts one refused pose sample or transform, logging its reason now and then (a bad
+/// source at 100 Hz would flood the log).
+fn refuse(count: &mut u64, what: &str, reason: &str) {
+    if (*count + 1).is_power_of_two() {
+        warn!("skipped {what}: {reason}");
+    }
+    *count += 1;
+}
+
+impl PoseSource {
     /// Takes every sample that has arrived.
     fn take(&mut self, shared: &Shared) {
-        loop {
-            let added = match self.subscription.take() {
-                Ok(Some((odom, _))) => self.track.add(&odom),
-                Ok(None) => return,
-                Err(e) => Err(format!("DDS read failed: {e:?}")),
-            };
-            let mut s = lock(shared);
-            match added {
-                Ok(()) => s.report.odometry += 1,
-                Err(reason) => {
-                    // Throttled: a bad odometry at 100 Hz would flood the log.
-                    if (s.report.odometry_rejected + 1).is_power_of_two() {
-                        warn!("skipped an odometry sample: {reason}");
+        match self {
+            Self::Odometry {
+                subscription,
+                track,
+            } => loop {
+                let added = match subscription.take() {
+                    Ok(Some((odom, _))) => track.add(&odom),
+                    Ok(None) => return,
+                    Err(e) => Err(format!("DDS read failed: {e:?}")),
+                };
+                let mut s = lock(shared);
+                match added {
+                    Ok(()) => s.report.odometry += 1,
+                    Err(r) => refuse(&mut s.report.odometry_rejected, "an odometry sample", &r),
+                }
+            },
+            Self::Tf {
+                moving,
+                statics,
+                tree,
+                ..
+            } => {
+                for (subscription, is_static) in [(statics, true), (moving, false)] {
+                    loop {
+                        let (taken, refused) = match subscription.take() {
+                            Ok(Some((msg, _))) => tree.add(&msg, is_static),
+                            Ok(None) => break,
+                            Err(e) => (0, vec![format!("DDS read failed: {e:?}")]),
+                        };
+                        let mut s = lock(shared);
+                        s.report.transforms += taken as u64;
+                        for r in &refused {
+                            refuse(&mut s.report.transforms_rejected, "a transform", r);
+                        }
                     }
-                    s.report.odometry_rejected += 1;
                 }
             }
+        }
+    }
+
+    /// The pose of a scan in `frame` stamped `stamp_ns`, or why there is none.
+    fn pose(&self, frame: &str, stamp_ns: u64) -> Result<Isometry, String> {
+        match self {
+            Self::Odometry { track, .. } => track.sensor_pose(frame, stamp_ns).ok_or_else(|| {
+                format!(
+                    "no odometry within {} ms of the stamp",
+                    crate::pose::HOLD_NS / 1_000_000
+                )
+            }),
+            Self::Tf { tree, fixed, .. } => tree.lookup(fixed, frame, stamp_ns),
         }
     }
 }
@@ -267,19 +338,30 @@ impl CloudsIn {
             ..ScanHeader::default()
         };
         header.stamps.produced_ns = produced;
-        if let Some(o) = &self.odometry {
-            let frame = header.frame_id.get().unwrap_or(SENSOR_FRAME);
-            match o.track.sensor_pose(frame, header.sensor_timestamp_ns) {
-                Some(p) => {
+        let frame = header.frame_id.get().unwrap_or(SENSOR_FRAME);
+        if let Some(o) = &self.poses {
+            match o.pose(frame, header.sensor_timestamp_ns) {
+                Ok(p) => {
                     header.has_pose = 1;
                     header.pose = row_major(&p);
                 }
-                None => lock(&self.shared).report.no_pose += 1,
+                Err(reason) => {
+                    let mut s = lock(&self.shared);
+                    refuse(&mut s.report.no_pose, "a cloud's pose", &reason);
+                    s.report.last_no_pose = Some(reason);
+                }
             }
         }
         {
             // Held before it is published: the answer may come back at once.
             let mut s = lock(&self.shared);
+            if self.keep_frames {
+                if s.frames.len() == 4 * MAX_IN_FLIGHT {
+                    s.frames.pop_front();
+                }
+                s.frames
+                    .push_back((self.epoch, self.sequence, frame.to_string()));
+            }
             if s.clouds.len() == MAX_IN_FLIGHT {
                 s.clouds.pop_front();
                 s.report.dropped += 1;
@@ -329,8 +411,8 @@ impl Stage for CloudsIn {
             r => r.context("poll the DDS subscription")?,
         }
         loop {
-            // The poses first: a cloud takes the odometry that came before it.
-            if let Some(o) = &mut self.odometry {
+            // The poses first: a cloud takes the odometry or transforms that came before it.
+            if let Some(o) = &mut self.poses {
                 o.take(&self.shared);
             }
             match self.subscription.take() {
@@ -499,27 +581,57 @@ fn send<M: Serialize>(shared: &Shared, p: &Publisher<M>, m: M) {
 }
 
 /// The answering stage for proposals: boxes as `vision_msgs/Detection3DArray` and as
-/// `visualization_msgs/MarkerArray` cubes, in the ground-aligned frame of the mount.
+/// `visualization_msgs/MarkerArray` cubes, in the ground-aligned frame of the mount, or
+/// in each cloud's own frame.
 struct DetectionsOut {
     detections: Publisher<Detection3DArray>,
     markers: Publisher<MarkerArray>,
     shared: Shared,
+    /// Boxes in the cloud's frame: the ground-aligned frame in the sensor's (the mount,
+    /// inverted). `None`: boxes in [`GROUND_FRAME`], which the mount on `/tf_static` places.
+    sensor_from_ground: Option<Isometry>,
 }
 
 /// The markers' namespace.
 const MARKER_NS: &str = "groundwork_proposals";
 
 impl DetectionsOut {
+    /// The frame of the scan `h` answers (the latest one seen if it has gone).
+    fn cloud_frame(&self, h: &ProposalsHeader) -> String {
+        let s = lock(&self.shared);
+        s.frames
+            .iter()
+            .rev()
+            .find(|(e, q, _)| *e == h.producer_epoch && *q == h.scan_sequence)
+            .or(s.frames.back())
+            .map_or_else(|| SENSOR_FRAME.to_string(), |f| f.2.clone())
+    }
+
     fn answer(&self, h: &ProposalsHeader) {
+        let frame_id = match self.sensor_from_ground {
+            Some(_) => self.cloud_frame(h),
+            None => GROUND_FRAME.into(),
+        };
         let header = Header {
             stamp: Time::from_ns(h.sensor_timestamp_ns),
-            frame_id: GROUND_FRAME.into(),
+            frame_id,
         };
         let n = (h.proposal_count as usize).min(h.records.len());
         let boxes: Vec<(&ProposalRecord, Pose, Vector3)> = h.records[..n]
             .iter()
             .map(|r| {
-                let ([x, y, z], [qx, qy, qz, qw]) = (r.box_center(), r.box_rotation());
+                let ([x, y, z], [qx, qy, qz, qw]) = match self.sensor_from_ground {
+                    None => (r.box_center(), r.box_rotation()),
+                    Some(m) => {
+                        // A box is always finite (the detector's checks); the identity
+                        // would only stand in for one that is not.
+                        let in_ground = crate::pose::pose_of(r.box_center(), r.box_rotation())
+                            .unwrap_or_else(|_| Isometry::identity());
+                        let p = m * in_ground;
+                        let (t, q) = (p.translation.vector, p.rotation.quaternion().coords);
+                        ([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
+                    }
+                };
                 let pose = Pose {
                     position: Vector3 { x, y, z },
                     orientation: Quaternion {
@@ -754,8 +866,11 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
     let tf_qos = profile(Qos::Reliable)
         .durability(qos::Durability::TransientLocal)
         .history(qos::History::KeepLast { depth: 1 });
+    // With a TF tree to read, the vehicle's tree places the sensor: publishing the mount
+    // would give the cloud frame a second parent.
+    let reads_tf = opts.tf_fixed_frame.is_some();
     let tf = match &opts.mount {
-        Some(m) => Some((
+        Some(m) if !reads_tf => Some((
             publisher::<TFMessage>(
                 &mut node,
                 "/tf_static",
@@ -765,14 +880,49 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
             m.clone(),
             Vec::new(),
         )),
-        None => None,
+        _ => None,
     };
     let poll = Poll::new().context("poll")?;
     poll.registry()
         .register(&mut subscription, Token(0), Interest::READABLE)
         .context("register the DDS subscription")?;
-    let odometry = match &opts.odometry_topic {
-        Some(name) => {
+    let mount_pose = opts.mount.as_ref().map(|m| {
+        let ([x, y, z], [qx, qy, qz, qw]) = (m.translation, m.rotation);
+        Isometry::from_parts(
+            nalgebra::Translation3::new(x, y, z),
+            nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(qw, qx, qy, qz)),
+        )
+    });
+    let poses = match (&opts.odometry_topic, &opts.tf_fixed_frame) {
+        (Some(_), Some(_)) => anyhow::bail!("poses come from odometry or from TF, not both"),
+        (None, Some(fixed)) => {
+            let tf_type = || MessageTypeName::new("tf2_msgs", "TFMessage");
+            // tf2's listeners: reliable, the last 100 of /tf; /tf_static transient local
+            // (a static broadcaster sends once, to those present and those who come later).
+            let moving_qos = profile(Qos::Reliable).history(qos::History::KeepLast { depth: 100 });
+            let static_qos = moving_qos
+                .clone()
+                .durability(qos::Durability::TransientLocal);
+            let mut subscribe = |name: &str, q: &QosProfile, token: usize| {
+                let topic = node
+                    .create_topic(&ros_name(name)?, tf_type(), q)
+                    .with_context(|| format!("topic {name}"))?;
+                let mut sub = node
+                    .create_subscription::<TFMessage>(&topic, Some(q.clone()))
+                    .with_context(|| format!("subscription to {name}"))?;
+                poll.registry()
+                    .register(&mut sub, Token(token), Interest::READABLE)
+                    .with_context(|| format!("register the subscription to {name}"))?;
+                anyhow::Ok(sub)
+            };
+            Some(PoseSource::Tf {
+                moving: subscribe("/tf", &moving_qos, 1)?,
+                statics: subscribe("/tf_static", &static_qos, 2)?,
+                tree: TfTree::default(),
+                fixed: fixed.clone(),
+            })
+        }
+        (Some(name), None) => {
             let topic = node
                 .create_topic(
                     &ros_name(name)?,
@@ -790,21 +940,12 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
             poll.registry()
                 .register(&mut subscription, Token(1), Interest::READABLE)
                 .context("register the odometry subscription")?;
-            let base_from_sensor = opts.mount.as_ref().map(|m| {
-                let ([x, y, z], [qx, qy, qz, qw]) = (m.translation, m.rotation);
-                crate::odom::Pose::from_parts(
-                    nalgebra::Translation3::new(x, y, z),
-                    nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-                        qw, qx, qy, qz,
-                    )),
-                )
-            });
-            Some(OdomIn {
+            Some(PoseSource::Odometry {
                 subscription,
-                track: OdomTrack::new(base_from_sensor),
+                track: OdomTrack::new(mount_pose),
             })
         }
-        None => None,
+        (None, None) => None,
     };
     info!(
         domain = opts.domain_id,
@@ -828,6 +969,11 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         detections,
         markers,
         shared: Arc::clone(&shared),
+        sensor_from_ground: if reads_tf {
+            Some(mount_pose.unwrap_or_else(Isometry::identity).inverse())
+        } else {
+            None
+        },
     };
     let boxes_cfg = cfg.clone();
     let boxing = std::thread::Builder::new()
@@ -855,7 +1001,8 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         max_points: cfg.max_points,
         answers_wanted: opts.count,
         wait: Duration::from_millis(50),
-        odometry,
+        poses,
+        keep_frames: reads_tf,
     };
     let input_result = stage::run(cfg, || Ok(clouds));
     let output_result = answering
@@ -880,6 +1027,8 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         dds_errors = report.dds_errors,
         odometry = report.odometry,
         odometry_rejected = report.odometry_rejected,
+        transforms = report.transforms,
+        transforms_rejected = report.transforms_rejected,
         no_pose = report.no_pose,
         "ROS 2 bridge stopped"
     );

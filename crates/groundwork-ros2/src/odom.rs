@@ -1,27 +1,15 @@
 //! Poses for the multi-frame history from a `nav_msgs/Odometry` topic: each cloud gets the
 //! world pose of its sensor at its stamp, from the odometry samples around that stamp.
 
-use std::collections::VecDeque;
-
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-
 use crate::msg::Odometry;
+use crate::pose::{PoseTrack, pose_of, stamp_ns};
 
-/// A rigid transform (world from frame).
-pub type Pose = Isometry3<f64>;
-
-/// Samples kept: five seconds of a 100 Hz odometry.
-const KEEP: usize = 500;
-
-/// How far past the newest sample (or before the oldest) a stamp may lie and still get a
-/// pose, extrapolated at the last known motion: odometry published at 10–100 Hz may trail
-/// a cloud by a sample or two. Further: no pose (the scan is segmented on its own).
-pub const HOLD_NS: u64 = 100_000_000;
+pub use crate::pose::{HOLD_NS, Pose, row_major};
 
 /// The odometry samples seen, in stamp order.
 #[derive(Debug)]
 pub struct OdomTrack {
-    samples: VecDeque<(u64, Pose)>,
+    track: PoseTrack,
     /// The frame the newest sample is the pose of (`child_frame_id`).
     child_frame: String,
     /// The sensor in the odometry's child frame when that is the vehicle's base: the
@@ -34,7 +22,7 @@ impl OdomTrack {
     /// is (see [`OdomTrack::sensor_pose`]).
     pub fn new(base_from_sensor: Option<Pose>) -> Self {
         Self {
-            samples: VecDeque::with_capacity(KEEP),
+            track: PoseTrack::default(),
             child_frame: String::new(),
             base_from_sensor,
         }
@@ -42,100 +30,37 @@ impl OdomTrack {
 
     /// Samples held.
     pub fn len(&self) -> usize {
-        self.samples.len()
+        self.track.len()
     }
 
     /// Whether no sample is held.
     pub fn is_empty(&self) -> bool {
-        self.samples.is_empty()
+        self.track.is_empty()
     }
 
     /// Adds one sample. A sample that is no pose (a stamp before 1970, a non-finite value,
     /// a zero quaternion) is refused with the reason; one with the stamp of a held sample
     /// replaces it.
     pub fn add(&mut self, odom: &Odometry) -> Result<(), String> {
-        let t = &odom.header.stamp;
-        let stamp = u64::try_from(t.sec)
-            .ok()
-            .filter(|_| t.nanosec < 1_000_000_000)
-            .map(|s| s * 1_000_000_000 + u64::from(t.nanosec))
-            .ok_or_else(|| format!("odometry stamp {}.{:09} is no time", t.sec, t.nanosec))?;
+        let stamp = stamp_ns(&odom.header.stamp).map_err(|e| format!("odometry {e}"))?;
         let (p, q) = (&odom.pose.pose.position, &odom.pose.pose.orientation);
-        let q = Quaternion::new(q.w, q.x, q.y, q.z);
-        let values = [p.x, p.y, p.z, q.w, q.i, q.j, q.k];
-        if values.iter().any(|v| !v.is_finite()) || q.norm() < 1e-6 {
-            return Err(format!("odometry at {stamp} ns holds no pose"));
-        }
-        let pose = Pose::from_parts(
-            Translation3::new(p.x, p.y, p.z),
-            UnitQuaternion::from_quaternion(q),
-        );
-        let at = self.samples.partition_point(|&(s, _)| s < stamp);
-        match self.samples.get_mut(at) {
-            Some((s, held)) if *s == stamp => *held = pose,
-            _ => self.samples.insert(at, (stamp, pose)),
-        }
-        if self.samples.len() > KEEP {
-            self.samples.pop_front();
-        }
+        let pose = pose_of([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+            .map_err(|e| format!("odometry at {stamp} ns holds no pose: {e}"))?;
+        self.track.add(stamp, pose);
         self.child_frame.clone_from(&odom.child_frame_id);
         Ok(())
     }
 
     /// The world pose of a scan in `frame` stamped `stamp_ns`: the odometry's pose at that
-    /// stamp (a sample's own at its stamp; between two samples, the motion between them in
-    /// proportion; up to [`HOLD_NS`] outside them, the nearest two samples' motion carried
-    /// on), composed with the mount unless the odometry is the pose of `frame` itself.
-    /// `None`: no sample near enough.
+    /// stamp ([`PoseTrack::at`]), composed with the mount unless the odometry is the pose
+    /// of `frame` itself. `None`: no sample near enough.
     pub fn sensor_pose(&self, frame: &str, stamp_ns: u64) -> Option<Pose> {
-        let n = self.samples.len();
-        let after = self.samples.partition_point(|&(s, _)| s <= stamp_ns);
-        let odom = match (after, self.samples.get(after.wrapping_sub(1))) {
-            (_, Some(&(s, p))) if s == stamp_ns => p,
-            (0, _) => {
-                let &(s, p) = self.samples.front()?;
-                (s - stamp_ns <= HOLD_NS).then_some(())?;
-                match self.samples.get(1) {
-                    Some(&(s1, p1)) => between((s, p), (s1, p1), stamp_ns),
-                    None => p,
-                }
-            }
-            (a, _) if a == n => {
-                let &(s, p) = self.samples.back()?;
-                (stamp_ns - s <= HOLD_NS).then_some(())?;
-                match n.checked_sub(2).and_then(|i| self.samples.get(i)) {
-                    Some(&(s0, p0)) => between((s0, p0), (s, p), stamp_ns),
-                    None => p,
-                }
-            }
-            (a, _) => between(self.samples[a - 1], self.samples[a], stamp_ns),
-        };
+        let odom = self.track.at(stamp_ns)?;
         Some(match &self.base_from_sensor {
             Some(mount) if self.child_frame != frame => odom * mount,
             _ => odom,
         })
     }
-}
-
-/// The pose at `t` on the motion from sample `a` to sample `b` (at constant velocity in
-/// `a`'s frame; `t` may lie outside them).
-fn between((ta, pa): (u64, Pose), (tb, pb): (u64, Pose), t: u64) -> Pose {
-    if tb == ta {
-        return pb;
-    }
-    let f = (t as f64 - ta as f64) / (tb as f64 - ta as f64);
-    let step = pa.inverse() * pb;
-    let scaled = Pose::from_parts(
-        Translation3::from(step.translation.vector * f),
-        UnitQuaternion::from_scaled_axis(step.rotation.scaled_axis() * f),
-    );
-    pa * scaled
-}
-
-/// A pose as the scan header's row-major 4×4 matrix.
-pub fn row_major(p: &Pose) -> [f64; 16] {
-    let m = p.to_homogeneous();
-    std::array::from_fn(|i| m[(i / 4, i % 4)])
 }
 
 #[cfg(test)]
@@ -145,7 +70,8 @@ mod tests {
         Covariance, Header, Pose as RosPose, PoseWithCovariance, Quaternion as RosQ, Time, Twist,
         TwistWithCovariance, Vector3 as RosV,
     };
-    use nalgebra::Vector3;
+    use crate::pose::KEEP;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
     fn odom(stamp_ns: u64, x: f64, yaw: f64, child: &str) -> Odometry {
         let zero = RosV {
@@ -182,37 +108,6 @@ mod tests {
     }
 
     const S: u64 = 1_000_000_000;
-
-    #[test]
-    fn a_stamp_between_samples_gets_the_motion_in_proportion() {
-        let mut t = OdomTrack::new(None);
-        // Out of order, as two topics may interleave.
-        t.add(&odom(100 * S + S / 10, 1.0, 0.2, "lidar")).unwrap();
-        t.add(&odom(100 * S, 0.0, 0.0, "lidar")).unwrap();
-        let p = t.sensor_pose("lidar", 100 * S + S / 40).unwrap();
-        assert!((p.rotation.angle() - 0.05).abs() < 1e-12);
-        // On the arc from the first pose to the second, a quarter of the way.
-        let exact = t.sensor_pose("lidar", 100 * S + S / 10).unwrap();
-        assert_eq!(exact.translation.vector.x, 1.0);
-        assert!(p.translation.vector.x > 0.2 && p.translation.vector.x < 0.3);
-    }
-
-    #[test]
-    fn near_the_ends_the_motion_carries_on_and_far_from_them_there_is_no_pose() {
-        let mut t = OdomTrack::new(None);
-        assert!(t.sensor_pose("lidar", 5 * S).is_none());
-        t.add(&odom(5 * S, 0.0, 0.0, "lidar")).unwrap();
-        t.add(&odom(5 * S + S / 10, 1.0, 0.0, "lidar")).unwrap();
-        let ahead = t.sensor_pose("lidar", 5 * S + S / 10 + S / 20).unwrap();
-        assert!((ahead.translation.vector.x - 1.5).abs() < 1e-12);
-        let before = t.sensor_pose("lidar", 5 * S - S / 20).unwrap();
-        assert!((before.translation.vector.x + 0.5).abs() < 1e-12);
-        assert!(
-            t.sensor_pose("lidar", 5 * S + S / 10 + HOLD_NS + 1)
-                .is_none()
-        );
-        assert!(t.sensor_pose("lidar", 5 * S - HOLD_NS - 1).is_none());
-    }
 
     #[test]
     fn a_vehicle_odometry_carries_the_sensor_by_its_mount() {
@@ -256,12 +151,5 @@ mod tests {
         t.add(&odom(S + 1000 * KEEP as u64, 9.0, 0.0, "lidar"))
             .unwrap();
         assert_eq!(t.len(), KEEP);
-    }
-
-    #[test]
-    fn row_major_is_the_header_layout() {
-        let p = Pose::from_parts(Translation3::new(1.0, 2.0, 3.0), UnitQuaternion::identity());
-        let m = row_major(&p);
-        assert_eq!([m[3], m[7], m[11], m[15]], [1.0, 2.0, 3.0, 1.0]);
     }
 }
