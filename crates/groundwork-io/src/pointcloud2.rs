@@ -400,13 +400,34 @@ pub struct CloudPoints<'a> {
     floats: Option<&'a [f32]>,
     /// The record of each point, where placeholders were left out.
     source_index: Option<Vec<u32>>,
+    /// The cloud says every record is a point (a non-finite one is then an error).
+    dense: bool,
 }
 
 impl<'a> CloudPoints<'a> {
     /// The points of `cloud`, intensity from its `intensity` field (0 without one).
     /// Errors as [`decode`]'s.
     pub fn new(label: &Path, cloud: &CloudRef<'a>, max_points: usize) -> Result<Self, FormatError> {
+        Self::unsearched(label, cloud, max_points)?.search_placeholders(label)
+    }
+
+    /// [`CloudPoints::new`] without the search for placeholders: until
+    /// [`CloudPoints::search_placeholders`], every record is a point, finite or not. For a
+    /// reader that checks the coordinates as it copies them ([`CloudPoints::copy_into`]),
+    /// one pass over the cloud instead of two, and searches only when one is not finite.
+    pub fn unsearched(
+        label: &Path,
+        cloud: &CloudRef<'a>,
+        max_points: usize,
+    ) -> Result<Self, FormatError> {
         Self::with_value(label, cloud, max_points, "intensity")
+    }
+
+    /// Finds the records with a non-finite coordinate: an error for a cloud that says it
+    /// is dense, else placeholders, left out of the points and mapped back.
+    pub fn search_placeholders(mut self, label: &Path) -> Result<Self, FormatError> {
+        self.find_placeholders(label)?;
+        Ok(self)
     }
 
     /// [`CloudPoints::new`], the named field read into `Point::intensity`.
@@ -457,7 +478,7 @@ impl<'a> CloudPoints<'a> {
             bytemuck::try_cast_slice::<u8, f32>(&cloud.data[..need]).ok()
         })
         .flatten();
-        let mut points = Self {
+        Ok(Self {
             data: cloud.data,
             layout,
             xyz: [x, y, z],
@@ -466,14 +487,13 @@ impl<'a> CloudPoints<'a> {
             plain,
             floats,
             source_index: None,
-        };
-        points.find_placeholders(label, cloud.is_dense)?;
-        Ok(points)
+            dense: cloud.is_dense,
+        })
     }
 
     /// Records with a non-finite coordinate: an error in a cloud that says it is dense,
     /// else placeholders, left out and mapped back.
-    fn find_placeholders(&mut self, label: &Path, dense: bool) -> Result<(), FormatError> {
+    fn find_placeholders(&mut self, label: &Path) -> Result<(), FormatError> {
         let first = match self.floats {
             Some(f) => {
                 let [x, y, z] = self.xyz.map(|(off, _)| off / 4);
@@ -484,7 +504,7 @@ impl<'a> CloudPoints<'a> {
         let Some(first) = first else {
             return Ok(());
         };
-        if dense {
+        if self.dense {
             let p = self.read(first);
             return Err(FormatError::NonFinite {
                 path: label.to_path_buf(),
@@ -543,36 +563,54 @@ impl<'a> CloudPoints<'a> {
     }
 
     /// Writes every point, in order, into `out` (as `convert` makes it), in one pass over
-    /// the records: the copy into shared memory, without [`CloudPoints::point`]'s per-point
-    /// record arithmetic. Writes `min(out.len(), self.len())` points; returns how many.
-    pub fn copy_into<T>(&self, out: &mut [T], convert: impl Fn(Point) -> T) -> usize {
+    /// the records: the copy into shared memory, without [`CloudPoints::point`]'s
+    /// per-point record arithmetic. Writes `min(out.len(), self.len())` points; returns
+    /// how many, and whether every coordinate written was finite (checked in the same
+    /// pass: for [`CloudPoints::unsearched`] points, whose placeholders were not sought).
+    pub fn copy_into<T>(&self, out: &mut [T], convert: impl Fn(Point) -> T) -> (usize, bool) {
         let n = out.len().min(self.len());
         let out = &mut out[..n];
+        let mut finite = true;
+        let mut put = |o: &mut T, p: Point| {
+            finite &= p.x.is_finite() & p.y.is_finite() & p.z.is_finite();
+            *o = convert(p);
+        };
         match (&self.source_index, self.floats) {
             (None, Some(f)) => {
                 let [x, y, z] = self.xyz.map(|(off, _)| off / 4);
                 let value = self.value.map(|(off, _)| off / 4);
-                for (o, c) in out.iter_mut().zip(self.layout.records_in(f, 4)) {
-                    *o = convert(Point {
-                        x: c[x],
-                        y: c[y],
-                        z: c[z],
-                        intensity: value.map_or(0.0, |v| c[v]),
-                    });
+                let point = |c: &[f32]| Point {
+                    x: c[x],
+                    y: c[y],
+                    z: c[z],
+                    intensity: value.map_or(0.0, |v| c[v]),
+                };
+                let l = &self.layout;
+                let step = l.point_step / 4;
+                if l.height == 1 || l.row_step == l.width * l.point_step {
+                    // Records one after the other (rows without padding, as drivers send
+                    // them): plain chunks, which the loop walks without a per-row step.
+                    for (o, c) in out.iter_mut().zip(f[..n * step].chunks_exact(step)) {
+                        put(o, point(c));
+                    }
+                } else {
+                    for (o, c) in out.iter_mut().zip(l.records_in(f, 4)) {
+                        put(o, point(c));
+                    }
                 }
             }
             (None, None) => {
                 for (r, o) in out.iter_mut().enumerate() {
-                    *o = convert(self.read(r));
+                    put(o, self.read(r));
                 }
             }
             (Some(index), _) => {
                 for (o, &r) in out.iter_mut().zip(index) {
-                    *o = convert(self.read(r as usize));
+                    put(o, self.read(r as usize));
                 }
             }
         }
-        n
+        (n, finite)
     }
 
     /// Record `r` as a point.
@@ -655,7 +693,8 @@ fn decode_with(
     max_points: usize,
     value_field: &str,
 ) -> Result<(Scan, bool), FormatError> {
-    let points = CloudPoints::with_value(label, cloud, max_points, value_field)?;
+    let points = CloudPoints::with_value(label, cloud, max_points, value_field)?
+        .search_placeholders(label)?;
     let found = points.value.is_some();
     let mut scan = Scan {
         points: (0..points.len()).map(|i| points.point(i)).collect(),
@@ -937,9 +976,17 @@ mod tests {
             };
             let one_by_one: Vec<Point> = (0..points.len()).map(|i| points.point(i)).collect();
             let mut copied = vec![Point::new(0.0, 0.0, 0.0); points.len() + 2];
-            proptest::prop_assert_eq!(points.copy_into(&mut copied, |p| p), points.len());
+            proptest::prop_assert_eq!(points.copy_into(&mut copied, |p| p), (points.len(), true));
             proptest::prop_assert_eq!(&copied[..points.len()], &one_by_one[..]);
             proptest::prop_assert!(copied[points.len()..].iter().all(|p| p.x == 0.0));
+            // Unsearched, every record is copied, and the copy tells whether one is no
+            // point; its finite records are the points.
+            let every = CloudPoints::unsearched(Path::new("p"), &cloud, 10_000).expect("layout");
+            let mut all = vec![Point::new(0.0, 0.0, 0.0); records];
+            let none_missing = !(0..records).any(|r| holes.contains(&r));
+            proptest::prop_assert_eq!(every.copy_into(&mut all, |p| p), (records, none_missing));
+            let kept: Vec<Point> = all.into_iter().filter(|p| p.x.is_finite()).collect();
+            proptest::prop_assert_eq!(&kept[..], &one_by_one[..]);
         }
     }
 

@@ -61,6 +61,17 @@ impl From<&ScanPoint> for groundwork_core::Point {
     }
 }
 
+impl From<groundwork_core::Point> for ScanPoint {
+    fn from(p: groundwork_core::Point) -> Self {
+        Self {
+            x: p.x,
+            y: p.y,
+            z: p.z,
+            intensity: p.intensity,
+        }
+    }
+}
+
 /// Lets the segmenter read scans in place, straight from shared memory.
 impl groundwork_core::PointXyz for ScanPoint {
     #[inline]

@@ -293,6 +293,23 @@ impl PoseSource {
 }
 
 impl CloudsIn {
+    /// Holds a cloud until its answer (before it is published: the answer may come back
+    /// at once).
+    fn hold(&self, cloud: &Arc<PointCloud2>, points: &CloudPoints<'_>) {
+        let mut s = lock(&self.shared);
+        if s.clouds.len() == MAX_IN_FLIGHT {
+            s.clouds.pop_front();
+            s.report.dropped += 1;
+        }
+        s.clouds.push_back(Held {
+            epoch: self.epoch,
+            sequence: self.sequence,
+            cloud: Arc::clone(cloud),
+            scan: points.records_map(),
+            points: points.len(),
+        });
+    }
+
     /// Publishes one received cloud; a bad one is counted and skipped.
     fn publish(
         &mut self,
@@ -314,14 +331,18 @@ impl CloudsIn {
         // Shared with the answering stage, which appends the probabilities to it.
         let cloud = Arc::new(cloud);
         let view = cloud.view();
-        let points = match CloudPoints::new(Path::new(&label), &view, self.max_points) {
+        let reject = |e: groundwork_io::FormatError| {
+            let reason = e.to_string();
+            warn!("skipped a cloud: {reason}");
+            let mut s = lock(&self.shared);
+            s.report.rejected += 1;
+            s.report.last_rejection = Some(reason);
+        };
+        // The layout first; the coordinates are checked as they are copied.
+        let points = match CloudPoints::unsearched(Path::new(&label), &view, self.max_points) {
             Ok(p) => p,
             Err(e) => {
-                let reason = e.to_string();
-                warn!("skipped a cloud: {reason}");
-                let mut s = lock(&self.shared);
-                s.report.rejected += 1;
-                s.report.last_rejection = Some(reason);
+                reject(e);
                 return Ok(());
             }
         };
@@ -352,39 +373,35 @@ impl CloudsIn {
                 }
             }
         }
-        {
-            // Held before it is published: the answer may come back at once.
+        if self.keep_frames {
             let mut s = lock(&self.shared);
-            if self.keep_frames {
-                if s.frames.len() == 4 * MAX_IN_FLIGHT {
-                    s.frames.pop_front();
-                }
-                s.frames
-                    .push_back((self.epoch, self.sequence, frame.to_string()));
+            if s.frames.len() == 4 * MAX_IN_FLIGHT {
+                s.frames.pop_front();
             }
-            if s.clouds.len() == MAX_IN_FLIGHT {
-                s.clouds.pop_front();
-                s.report.dropped += 1;
-            }
-            s.clouds.push_back(Held {
-                epoch: self.epoch,
-                sequence: self.sequence,
-                cloud: Arc::clone(&cloud),
-                scan: points.records_map(),
-                points: points.len(),
-            });
+            s.frames
+                .push_back((self.epoch, self.sequence, frame.to_string()));
         }
-        // The one copy: from the DDS sample's bytes straight into shared memory, in one
-        // pass over the records.
-        let fill = |sample: &mut [ScanPoint]| {
-            points.copy_into(sample, |p| ScanPoint {
-                x: p.x,
-                y: p.y,
-                z: p.z,
-                intensity: p.intensity,
-            });
-        };
-        out.send_scan_filled(points.len(), fill, header)?;
+        // The one copy, from the DDS sample's bytes straight into shared memory in one pass
+        // over the records, taking every record for a point and checking that as it goes
+        // (most clouds have no placeholder).
+        self.hold(&cloud, &points);
+        let copy = |sample: &mut [ScanPoint]| points.copy_into(sample, ScanPoint::from).1;
+        if out.send_scan_filled(points.len(), copy, header)?.is_none() {
+            // A record is no point: withdrawn, searched, and copied again without the
+            // placeholders (or rejected, if the cloud said it was dense).
+            lock(&self.shared).clouds.pop_back();
+            let points = match points.search_placeholders(Path::new(&label)) {
+                Ok(p) => p,
+                Err(e) => {
+                    reject(e);
+                    return Ok(());
+                }
+            };
+            header.point_count = points.len() as u32;
+            self.hold(&cloud, &points);
+            let copy = |sample: &mut [ScanPoint]| points.copy_into(sample, ScanPoint::from).1;
+            out.send_scan_filled(points.len(), copy, header)?;
+        }
         self.sequence += 1;
         lock(&self.shared).report.published += 1;
         Ok(())

@@ -402,26 +402,30 @@ impl Outbox {
         Ok(reached)
     }
 
-    /// Publishes a scan of `len` points, which `fill` writes in place in shared memory
-    /// (a zeroed sample: for sources that copy faster in one pass than point by point).
+    /// Publishes a scan of `len` points, which `fill` writes in place in shared memory (a
+    /// zeroed sample: for sources that copy faster in one pass than point by point),
+    /// unless `fill` says no (returns false: a source that checks its points as it copies
+    /// them). Then nothing is published, the loan goes back, and the answer is `None`.
     pub fn send_scan_filled(
         &mut self,
         len: usize,
-        fill: impl FnOnce(&mut [ScanPoint]),
+        fill: impl FnOnce(&mut [ScanPoint]) -> bool,
         mut header: ScanHeader,
-    ) -> anyhow::Result<usize> {
+    ) -> anyhow::Result<Option<usize>> {
         let Port::Scans(p) = &self.port else {
             anyhow::bail!("this stage publishes no scans");
         };
         let mut sample = p
             .loan_slice(len)
             .map_err(|e| anyhow::anyhow!("loan of {len} points: {e:?}"))?;
-        fill(sample.payload_mut());
+        if !fill(sample.payload_mut()) {
+            return Ok(None);
+        }
         header.stamps.published_ns = monotonic_ns();
         *sample.user_header_mut() = header;
         let reached = sample.send().context("send scan")?;
         self.wake_readers();
-        Ok(reached)
+        Ok(Some(reached))
     }
 
     /// Publishes a mask of `len` values, which `fill` writes in place in shared memory,
