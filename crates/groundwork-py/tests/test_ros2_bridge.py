@@ -244,6 +244,32 @@ def as_array(cloud: PointCloud2, name: str) -> np.ndarray:
     return raw[:, f.offset:f.offset + 4].copy().view(np.float32).ravel()
 
 
+def scan_folder(folder: Path, frames: list, poses: list | None = None) -> Path:
+    """The frames as a folder of KITTI .bin scans, with their poses in poses.txt (the
+    rotations as the quaternions a ROS message carries, rebuilt)."""
+    folder.mkdir()
+    for k, pts in enumerate(frames):
+        pts.astype(np.float32).tofile(folder / f"{k:06d}.bin")
+    if poses is not None:
+        rows = [" ".join(repr(float(v)) for v in np.hstack([rotation(quaternion(p[:3, :3])), p[:3, 3:]]).ravel())
+                for p in poses]
+        (folder / "poses.txt").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+def segment_probs(cli: Path, scans: Path, out: Path, *extra: str) -> list[np.ndarray]:
+    """`groundwork segment`'s probabilities for each scan of the folder."""
+    subprocess.run([str(cli), "segment", *extra, "--out", str(out), str(scans)], check=True, capture_output=True)
+    return [np.fromfile(out / f"{k:06d}.prob", np.float32) for k in range(len(list(scans.glob("*.bin"))))]
+
+
+def detect_proposals(cli: Path, scans: Path, out: Path) -> list[list]:
+    """`groundwork detect`'s proposals for each scan of the folder."""
+    subprocess.run([str(cli), "detect", "--out", str(out), str(scans)], check=True, capture_output=True)
+    return [json.loads((out / f"{k:06d}.proposals.json").read_text())["proposals"]
+            for k in range(len(list(scans.glob("*.bin"))))]
+
+
 def test_the_bridge_answers_every_cloud_as_segment_would(cli: Path, tmp_path: Path) -> None:
     pid = os.getpid()
     domain = 100 + pid % 100
@@ -278,17 +304,9 @@ def test_the_bridge_answers_every_cloud_as_segment_would(cli: Path, tmp_path: Pa
     nan_in_dense.data = bytes(nan_in_dense.data[:40]) + np.float32(np.nan).tobytes() + bytes(nan_in_dense.data[44:])
 
     # What `groundwork segment` makes of the same points (a folder of .bin, no poses).
-    bins = tmp_path / "bins"
-    bins.mkdir()
-    for k, pts in enumerate([frame0, frame1, frame2]):
-        pts.astype(np.float32).tofile(bins / f"{k:06d}.bin")
-    subprocess.run([str(cli), "segment", "--out", str(tmp_path / "seg"), str(bins)], check=True,
-                   capture_output=True)
-    expected = [np.fromfile(tmp_path / "seg" / f"{k:06d}.prob", np.float32) for k in range(3)]
-    subprocess.run([str(cli), "detect", "--out", str(tmp_path / "det"), str(bins)], check=True,
-                   capture_output=True)
-    proposals = [json.loads((tmp_path / "det" / f"{k:06d}.proposals.json").read_text())["proposals"]
-                 for k in range(3)]
+    bins = scan_folder(tmp_path / "bins", [frame0, frame1, frame2])
+    expected = segment_probs(cli, bins, tmp_path / "seg")
+    proposals = detect_proposals(cli, bins, tmp_path / "det")
 
     pipeline = subprocess.Popen(
         [str(cli), "pipeline", "--ros2", "--prefix", f"gw-py-ros2-{pid}",
@@ -452,19 +470,9 @@ def test_odometry_gives_the_bridge_the_multi_frame_history(cli: Path, tmp_path: 
     quats = [quaternion(p[:3, :3]) for p in poses]
 
     # `segment` over the same points, with the same poses (the LiDAR's own: no calib.txt).
-    bins = tmp_path / "bins"
-    bins.mkdir()
-    rows = []
-    for k, (pts, p, q) in enumerate(zip(frames, poses, quats)):
-        pts.tofile(bins / f"{k:06d}.bin")
-        m = np.hstack([rotation(q), p[:3, 3:]])
-        rows.append(" ".join(repr(float(v)) for v in m.ravel()))
-    (bins / "poses.txt").write_text("\n".join(rows) + "\n")
-    expected = {}
-    for name, extra in [("history", []), ("single", ["--frames", "1"])]:
-        subprocess.run([str(cli), "segment", *extra, "--out", str(tmp_path / name), str(bins)],
-                       check=True, capture_output=True)
-        expected[name] = [np.fromfile(tmp_path / name / f"{k:06d}.prob", np.float32) for k in range(3)]
+    bins = scan_folder(tmp_path / "bins", frames, poses)
+    expected = {"history": segment_probs(cli, bins, tmp_path / "history"),
+                "single": segment_probs(cli, bins, tmp_path / "single", "--frames", "1")}
 
     pipeline = subprocess.Popen(
         [str(cli), "pipeline", "--ros2", "--no-detector", "--prefix", f"gw-py-odom-{pid}",
@@ -545,21 +553,9 @@ def test_the_tf_tree_gives_the_bridge_its_poses_and_places_the_boxes(cli: Path, 
     map_from_odom = np.eye(4)
     map_from_odom[:3, 3] = [500.0, -20.0, 3.0]
 
-    bins = tmp_path / "bins"
-    bins.mkdir()
-    rows = []
-    for k, (pts, p) in enumerate(zip(frames, poses)):
-        pts.tofile(bins / f"{k:06d}.bin")
-        m = np.hstack([rotation(quaternion(p[:3, :3])), p[:3, 3:]])
-        rows.append(" ".join(repr(float(v)) for v in m.ravel()))
-    (bins / "poses.txt").write_text("\n".join(rows) + "\n")
-    subprocess.run([str(cli), "segment", "--out", str(tmp_path / "seg"), str(bins)], check=True,
-                   capture_output=True)
-    expected = [np.fromfile(tmp_path / "seg" / f"{k:06d}.prob", np.float32) for k in range(3)]
-    subprocess.run([str(cli), "detect", "--out", str(tmp_path / "det"), str(bins)], check=True,
-                   capture_output=True)
-    proposals = [json.loads((tmp_path / "det" / f"{k:06d}.proposals.json").read_text())["proposals"]
-                 for k in range(3)]
+    bins = scan_folder(tmp_path / "bins", frames, poses)
+    expected = segment_probs(cli, bins, tmp_path / "seg")
+    proposals = detect_proposals(cli, bins, tmp_path / "det")
 
     dp = DomainParticipant(domain)
     # The static broadcaster first, as robot_state_publisher starts before any driver.
