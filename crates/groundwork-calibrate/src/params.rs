@@ -426,6 +426,16 @@ pub fn fit_parameters(
             .iter()
             .fold(Agreement::default(), |a, b| a.add(*b))
     };
+    // A configuration's agreement with some scans' labels over the trusted rings.
+    let trusted =
+        |c: &SegmenterConfig, part: &[LabeledScan]| -> Result<Agreement, CalibrateError> {
+            Ok(within(&agreement_by_ring(
+                c,
+                part,
+                cfg.trust_ring,
+                trusted_rings,
+            )?))
+        };
     let knobs = knobs();
     let most = 1 + cfg.rounds * knobs.len() * 2 * MAX_MOVES;
     let mut evaluations = 1;
@@ -433,12 +443,7 @@ pub fn fit_parameters(
     let mut eval = |c: &SegmenterConfig| -> Result<Agreement, CalibrateError> {
         evaluations += 1;
         progress(evaluations, most);
-        Ok(within(&agreement_by_ring(
-            c,
-            &fitted,
-            cfg.trust_ring,
-            trusted_rings,
-        )?))
+        trusted(c, &fitted)
     };
     let fitted_before = within(&fitted_rings);
     let held_out_before = within(&held_rings);
@@ -485,12 +490,7 @@ pub fn fit_parameters(
             break;
         }
         // The held-out part decides which round is kept.
-        let h = within(&agreement_by_ring(
-            &current,
-            &held,
-            cfg.trust_ring,
-            trusted_rings,
-        )?);
+        let h = trusted(&current, &held)?;
         history.push(RoundScore {
             round: rounds,
             fitted_iou: score.iou(),
