@@ -198,6 +198,22 @@ struct Maybe {
     ground: bool,
 }
 
+/// Points per piece of the first passes: several pieces per core, so that a core that
+/// wakes late still finds work.
+const PIECE: usize = 16_384;
+
+/// One piece of the scan in the first passes.
+#[derive(Debug, Default)]
+struct Piece {
+    /// Its ground points: their ground-map cell and height.
+    ground: Vec<(u32, f32)>,
+    /// Its non-ground and uncertain ground points.
+    maybe: Vec<Maybe>,
+    /// Those of them in the height band: to cluster, and to join.
+    candidates: Vec<Maybe>,
+    joiners: Vec<Maybe>,
+}
+
 /// The detector, with scratch reused from scan to scan.
 #[derive(Debug)]
 pub struct Detector {
@@ -207,7 +223,7 @@ pub struct Detector {
     min_range: f32,
     grid: ClusterGrid,
     ground: GroundMap,
-    maybe: Vec<Maybe>,
+    pieces: Vec<Piece>,
     candidates: Vec<Maybe>,
     joiners: Vec<Maybe>,
     xyz: Vec<[f32; 3]>,
@@ -238,7 +254,7 @@ impl Detector {
             frame,
             threshold,
             min_range,
-            maybe: Vec::new(),
+            pieces: Vec::new(),
             candidates: Vec::new(),
             joiners: Vec::new(),
             xyz: Vec::new(),
@@ -291,48 +307,75 @@ impl Detector {
         let (thr, join) = (self.threshold, cfg.join_probability);
         let (min2, max2) = (self.min_range.powi(2), cfg.max_range.powi(2));
 
-        // One pass over the scan: into the ground-aligned frame, ground points into the
-        // local ground map, the others (and uncertain ground) kept for the next step.
-        self.ground.clear();
-        self.maybe.clear();
-        for (i, (p, &prob)) in points.iter().zip(probabilities).enumerate() {
-            let q = self.frame.to_ground(p.xyz());
-            let r2 = q[0] * q[0] + q[1] * q[1];
-            if !(min2..=max2).contains(&r2) {
-                continue;
-            }
-            let ground = prob >= thr;
-            if ground {
-                self.ground.add(q[0], q[1], q[2]);
-            }
-            if !ground || prob < join {
-                self.maybe.push(Maybe {
-                    index: i as u32,
-                    xyz: q,
-                    ground,
-                });
-            }
+        // One pass over the scan, in pieces on all cores: into the ground-aligned frame;
+        // ground points noted for the local ground map, the others (and uncertain ground)
+        // kept for the next step.
+        let pieces = points.len().div_ceil(PIECE);
+        if self.pieces.len() < pieces {
+            self.pieces.resize_with(pieces, Piece::default);
         }
+        let (frame, ground) = (&self.frame, &self.ground);
+        self.pieces[..pieces]
+            .par_iter_mut()
+            .zip(points.par_chunks(PIECE))
+            .zip(probabilities.par_chunks(PIECE))
+            .enumerate()
+            .for_each(|(k, ((piece, points), probabilities))| {
+                piece.ground.clear();
+                piece.maybe.clear();
+                for (i, (p, &prob)) in points.iter().zip(probabilities).enumerate() {
+                    let q = frame.to_ground(p.xyz());
+                    let r2 = q[0] * q[0] + q[1] * q[1];
+                    if !(min2..=max2).contains(&r2) {
+                        continue;
+                    }
+                    let is_ground = prob >= thr;
+                    if is_ground && let Some(c) = ground.cell(q[0], q[1]) {
+                        piece.ground.push((c, q[2]));
+                    }
+                    if !is_ground || prob < join {
+                        piece.maybe.push(Maybe {
+                            index: (k * PIECE + i) as u32,
+                            xyz: q,
+                            ground: is_ground,
+                        });
+                    }
+                }
+            });
+        let lists: Vec<&[(u32, f32)]> = self.pieces[..pieces]
+            .iter()
+            .map(|p| &p.ground[..])
+            .collect();
+        self.ground.fill(&lists);
 
         // Non-ground points within the height band above the local ground are clustered;
         // uncertain ground points there may join a cluster they touch. Where the ground is
         // unknown, the segmenter's word alone decides.
-        self.candidates.clear();
-        self.joiners.clear();
-        for m in &self.maybe {
-            if let Some(g) = self.ground.height(m.xyz[0], m.xyz[1]) {
-                let h = m.xyz[2] - g;
-                if h < cfg.min_height || h > cfg.max_height {
+        let ground = &self.ground;
+        self.pieces[..pieces].par_iter_mut().for_each(|piece| {
+            piece.candidates.clear();
+            piece.joiners.clear();
+            for m in &piece.maybe {
+                if let Some(g) = ground.height(m.xyz[0], m.xyz[1]) {
+                    let h = m.xyz[2] - g;
+                    if h < cfg.min_height || h > cfg.max_height {
+                        continue;
+                    }
+                } else if m.ground {
                     continue;
                 }
-            } else if m.ground {
-                continue;
+                if m.ground {
+                    piece.joiners.push(*m);
+                } else {
+                    piece.candidates.push(*m);
+                }
             }
-            if m.ground {
-                self.joiners.push(*m);
-            } else {
-                self.candidates.push(*m);
-            }
+        });
+        self.candidates.clear();
+        self.joiners.clear();
+        for piece in &self.pieces[..pieces] {
+            self.candidates.extend_from_slice(&piece.candidates);
+            self.joiners.extend_from_slice(&piece.joiners);
         }
         self.xyz.clear();
         self.xyz.extend(self.candidates.iter().map(|m| m.xyz));
