@@ -100,7 +100,7 @@ impl GroundMap {
                 let step = if di.abs() == ring {
                     1
                 } else {
-                    (2 * ring).max(1) as usize
+                    2 * ring as usize // ring ≥ 1 here: at ring 0 the only row is its top
                 };
                 for dj in (-ring..=ring).step_by(step) {
                     let (a, b) = (i + di, j + dj);
@@ -151,7 +151,7 @@ mod tests {
             .iter()
             .map(|&[x, y, z]| (m.cell(x, y).unwrap(), z))
             .collect();
-        // In two lists, split across the map's halves: the same map.
+        // Given in two lists: the same map as in one.
         m.fill(&[&points[..1], &points[1..]]);
         assert!((m.height(0.1, 0.9).unwrap() - 0.3).abs() < 1e-6);
         // Two cells away from the first cell, three from the far one.
