@@ -191,13 +191,20 @@ pub enum MountCheckMode {
     /// The observed mount is kept (`Segmenter::observed_mount`) and a warning is logged,
     /// once, when it disagrees beyond the tolerances.
     Warn,
+    /// As `warn`, and the mount in use follows the observation: once it disagrees beyond
+    /// the tolerances, the mount in use moves towards it by at most `correct_rate_deg` and
+    /// `correct_rate_m` per scan, never further than `correct_max_deg` / `correct_max_m`
+    /// from `sensor.mount`, and locks where it reaches it until the two disagree beyond
+    /// the tolerances again. Outputs change while it moves.
+    Correct,
 }
 
 /// Settings of the mount check (`[mount_check]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MountCheckConfig {
-    /// `off`, or `warn`: log once when the observed mount disagrees beyond the tolerances.
+    /// `off`; `warn`: log once when the observed mount disagrees beyond the tolerances;
+    /// `correct`: also move the mount in use towards the observed one.
     pub mode: MountCheckMode,
     /// Tolerated angle between configured and observed vertical, degrees.
     pub max_tilt_deg: f64,
@@ -209,6 +216,14 @@ pub struct MountCheckConfig {
     pub warmup_scans: u32,
     /// Ground components whose mean lies within this horizontal range are used, metres.
     pub range: f64,
+    /// `correct`: largest turn of the mount in use per scan, degrees.
+    pub correct_rate_deg: f64,
+    /// `correct`: largest change of the mount's height per scan, metres.
+    pub correct_rate_m: f64,
+    /// `correct`: the mount in use stays within this angle of `sensor.mount`, degrees.
+    pub correct_max_deg: f64,
+    /// `correct`: and within this height of it, metres.
+    pub correct_max_m: f64,
 }
 
 impl Default for MountCheckConfig {
@@ -220,6 +235,10 @@ impl Default for MountCheckConfig {
             smoothing: 0.05,
             warmup_scans: 20,
             range: 20.0,
+            correct_rate_deg: 0.1,
+            correct_rate_m: 0.01,
+            correct_max_deg: 10.0,
+            correct_max_m: 1.0,
         }
     }
 }
@@ -895,6 +914,15 @@ impl SegmenterConfig {
         positive("mount_check.max_height", mc.max_height, 100.0, " m")?;
         positive("mount_check.smoothing", mc.smoothing, 1.0, "")?;
         positive("mount_check.range", mc.range, 10_000.0, " m")?;
+        positive(
+            "mount_check.correct_rate_deg",
+            mc.correct_rate_deg,
+            90.0,
+            "°",
+        )?;
+        positive("mount_check.correct_rate_m", mc.correct_rate_m, 100.0, " m")?;
+        positive("mount_check.correct_max_deg", mc.correct_max_deg, 90.0, "°")?;
+        positive("mount_check.correct_max_m", mc.correct_max_m, 100.0, " m")?;
         within(
             "mount_check.warmup_scans",
             f64::from(mc.warmup_scans),

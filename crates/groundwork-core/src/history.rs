@@ -27,6 +27,8 @@ struct PastFrame {
     model: FrameModel,
     /// World from sensor.
     pose: Pose,
+    /// Ground-aligned from sensor: the mount it was fitted on (`correct` mode moves it).
+    mount: Isometry3<f64>,
     anchor: Anchor,
     /// The components in the anchor's frame; `None` if the frame is its own anchor.
     anchored: Option<QueryTable>,
@@ -38,6 +40,8 @@ struct Anchor {
     id: u64,
     /// World from sensor.
     pose: Pose,
+    /// Ground-aligned from sensor.
+    mount: Isometry3<f64>,
 }
 
 /// The past frames, newest first, and the anchor new frames join.
@@ -103,7 +107,7 @@ impl History {
         });
         let (anchor, anchored) = match joins {
             Some((anchor, used)) => {
-                let to_anchor = between(mount, &anchor.pose, &pose);
+                let to_anchor = between((&anchor.mount, &anchor.pose), (&pose, mount));
                 self.current = Some((anchor, used + 1));
                 (anchor, Some(QueryTable::moved(&model, &to_anchor)))
             }
@@ -111,6 +115,7 @@ impl History {
                 let anchor = Anchor {
                     id: self.next_id,
                     pose,
+                    mount: *mount,
                 };
                 self.next_id += 1;
                 self.current = Some((anchor, 1));
@@ -120,19 +125,21 @@ impl History {
         self.frames.push_front(PastFrame {
             model,
             pose,
+            mount: *mount,
             anchor,
             anchored,
         });
     }
 
-    /// The transforms of every stored frame for a query scan at world pose `pose`.
+    /// The transforms of every stored frame for a query scan at world pose `pose`,
+    /// segmented on `mount`.
     pub(crate) fn transforms(&self, mount: &Isometry3<f64>, pose: &Pose) -> Vec<FrameTransforms> {
         self.frames
             .iter()
             .map(|f| {
                 [
-                    between(mount, &f.pose, pose),
-                    between(mount, &f.anchor.pose, pose),
+                    between((&f.mount, &f.pose), (pose, mount)),
+                    between((&f.anchor.mount, &f.anchor.pose), (pose, mount)),
                 ]
             })
             .collect()
@@ -159,10 +166,14 @@ impl History {
     }
 }
 
-/// Maps the ground-aligned frame of the scan at world pose `to` into that of the scan at
-/// `from` (query scan → past frame, as the query needs it).
-fn between(mount: &Isometry3<f64>, from: &Pose, to: &Pose) -> Isometry3<f64> {
-    mount * from.inverse() * to * mount.inverse()
+/// Maps the ground-aligned frame of the scan at world pose `to` (segmented on `to_mount`)
+/// into that of the scan at `from` (on `from_mount`): query scan → past frame, as the query
+/// needs it. The mounts differ only while `correct` mode moves the mount in use.
+fn between(
+    (from_mount, from): (&Isometry3<f64>, &Pose),
+    (to, to_mount): (&Pose, &Isometry3<f64>),
+) -> Isometry3<f64> {
+    from_mount * from.inverse() * to * to_mount.inverse()
 }
 
 #[cfg(test)]
@@ -245,5 +256,32 @@ mod tests {
         let newest = &h.transforms(&mount, &query)[0][0];
         let moved = newest * (mount * nalgebra::Point3::origin());
         assert!((moved - mount * nalgebra::Point3::new(0.8, 0.0, 0.0)).norm() < 1e-9);
+    }
+
+    /// While `correct` mode moves the mount, each frame keeps the one it was fitted on: a
+    /// point fixed in the world, seen in the query's ground-aligned frame (on one mount),
+    /// lands where the past frame saw it (on another), for the past frame and its anchor.
+    #[test]
+    fn frames_fitted_on_other_mounts_map_the_world_consistently() {
+        let mount = |h: f64, pitch: f64| {
+            Isometry3::from_parts(
+                Translation3::new(0.0, 0.0, h),
+                nalgebra::UnitQuaternion::from_euler_angles(0.0, pitch, 0.0),
+            )
+        };
+        let mounts = [mount(1.0, 0.0), mount(1.1, 0.03), mount(1.2, 0.06)];
+        let mut h = History::default();
+        for (k, m) in mounts.iter().enumerate() {
+            h.push(FrameModel::default(), pose(0.8, k), 15, true, m);
+        }
+        let (query, now) = (pose(0.8, 3), mount(1.25, 0.08));
+        let world = nalgebra::Point3::new(12.0, -3.0, 0.4);
+        let seen_now = now * query.inverse() * world;
+        for (f, [to_past, to_anchor]) in h.frames.iter().zip(h.transforms(&now, &query)) {
+            let seen_then = f.mount * f.pose.inverse() * world;
+            assert!((to_past * seen_now - seen_then).norm() < 1e-9);
+            let seen_by_anchor = f.anchor.mount * f.anchor.pose.inverse() * world;
+            assert!((to_anchor * seen_now - seen_by_anchor).norm() < 1e-9);
+        }
     }
 }

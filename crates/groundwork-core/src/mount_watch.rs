@@ -2,12 +2,15 @@
 //! with: a plane through the means of the ground components near the sensor, smoothed over
 //! scans. The height filter tracks height segment by segment; this tracks the whole ground's
 //! height and tilt, so that a mount typed wrong (degrees for radians, a sensor knocked on
-//! its bracket) is reported, once, with numbers. It only observes: no output changes.
+//! its bracket) is reported, once, with numbers. In `warn` mode it only observes: no output
+//! changes. In `correct` mode it also moves the mount in use towards what it observes,
+//! slowly and with a lock (`MountWatch::correct`).
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
+use tracing::{info, warn};
 
-use crate::config::{MountCheckConfig, MountCheckMode, roll_pitch_of};
+use crate::config::{MountCheckConfig, MountCheckMode, roll_pitch_of, vertical_in_sensor};
 use crate::model::FrameModel;
 use crate::point::Pose;
 
@@ -26,79 +29,227 @@ pub struct ObservedMount {
     pub height_from_configured: f64,
     /// Scans that contributed.
     pub scans: u64,
+    /// The mount in use: `sensor.mount` unless `correct` mode moved it. Height, metres.
+    pub applied_height: f64,
+    /// Roll of the mount in use, radians.
+    pub applied_roll: f64,
+    /// Pitch of the mount in use, radians.
+    pub applied_pitch: f64,
+    /// `correct` mode: whether the mount in use is moving (false: locked).
+    pub correcting: bool,
+    /// `correct` mode: scans after which the mount in use moved.
+    pub corrected_scans: u64,
 }
 
-/// The observation over scans.
+/// The observation over scans, in the sensor's own frame: it does not depend on the mount
+/// the scans were segmented with, so it stays valid while `correct` moves that mount.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct MountWatch {
-    /// Smoothed ground normal (ground-aligned frame of the configured mount).
-    normal: Vector3<f64>,
-    /// Smoothed height of the observed ground at the sensor's foot, metres.
-    offset: f64,
+    /// Smoothed ground vertical (unit), sensor frame.
+    up: Vector3<f64>,
+    /// Smoothed height of the sensor above the observed ground, metres.
+    height: f64,
     scans: u64,
     warned: bool,
+    correcting: bool,
+    /// While correcting: the target where it has stayed (within a quarter of the
+    /// tolerances) for `settled` scans, each step reaching it.
+    settle: Option<(Vector3<f64>, f64)>,
+    settled: u32,
+    /// While locked: consecutive scans whose target lay beyond the tolerances.
+    beyond: u32,
+    /// Whether the bound on corrections was reported.
+    bound_warned: bool,
+    corrected_scans: u64,
+}
+
+/// What one observed scan asks of the segmenter.
+#[derive(Debug, Default)]
+pub(crate) struct MountVerdict {
+    /// The observation, the first time it disagrees beyond the tolerances: log it.
+    pub warn: Option<ObservedMount>,
+    /// `correct` mode: the mount to segment the next scan with.
+    pub apply: Option<Pose>,
 }
 
 /// Fewest ground components a scan's plane is fitted to.
 const MIN_COMPONENTS: usize = 12;
 
 impl MountWatch {
-    /// Adds one fitted scan; returns the observation once, the first time it disagrees
-    /// with the configured mount beyond the tolerances (after the warm-up).
+    /// Adds one scan, fitted on the mount `in_use` (`configured` is `sensor.mount`).
     pub(crate) fn observe(
         &mut self,
         model: &FrameModel,
         cfg: &MountCheckConfig,
-        mount: &Pose,
+        (configured, in_use): (&Pose, &Pose),
         threshold: f64,
-    ) -> Option<ObservedMount> {
+    ) -> MountVerdict {
+        let mut verdict = MountVerdict::default();
         if cfg.mode == MountCheckMode::Off {
-            return None;
+            return verdict;
         }
-        let (n, z0) = ground_plane(model, cfg.range, threshold)?;
+        let Some((n, z0)) = ground_plane(model, cfg.range, threshold) else {
+            return verdict;
+        };
+        // The plane n·p = z0·n_z of the ground-aligned frame in the sensor frame: vertical
+        // R⁻¹n, and the sensor (at t) n·t − z0·n_z above it.
+        let up = in_use.rotation.inverse() * n;
+        let height = n.dot(&in_use.translation.vector) - z0 * n.z;
         if self.scans == 0 {
-            (self.normal, self.offset) = (n, z0);
+            (self.up, self.height) = (up, height);
         } else {
             let w = cfg.smoothing;
-            self.normal = ((1.0 - w) * self.normal + w * n).normalize();
-            self.offset = (1.0 - w) * self.offset + w * z0;
+            self.up = ((1.0 - w) * self.up + w * up).normalize();
+            self.height = (1.0 - w) * self.height + w * height;
         }
         self.scans += 1;
-        if self.warned || self.scans < u64::from(cfg.warmup_scans.max(1)) {
-            return None;
+        if self.scans < u64::from(cfg.warmup_scans.max(1)) {
+            return verdict;
         }
-        let seen = self.observed(mount)?;
+        let seen = self.observed(configured, in_use);
         let off = seen.tilt_from_configured.to_degrees() > cfg.max_tilt_deg
             || seen.height_from_configured.abs() > cfg.max_height;
-        if off {
+        if off && !self.warned {
             self.warned = true;
-            return Some(seen);
+            verdict.warn = Some(seen);
         }
-        None
+        if cfg.mode == MountCheckMode::Correct {
+            verdict.apply = self.correct(cfg, configured, in_use);
+        }
+        verdict
     }
 
-    /// The observed mount, once a scan has been observed.
-    pub(crate) fn observed(&self, mount: &Pose) -> Option<ObservedMount> {
-        if self.scans == 0 {
-            return None;
+    /// One step of `correct`. The target is the observation, held within `correct_max_*` of
+    /// the configured mount (a mount further off is a mistake to fix in the configuration,
+    /// not drift to follow). Locked, the mount in use stays until the target has lain
+    /// beyond the tolerances around it (`max_tilt_deg`, `max_height`) for `warmup_scans`
+    /// scans in a row: the observation carries a scene's bias (a road's crown, sidewalks
+    /// above the road: tenths of a degree, centimetres; a car park full of cars: 20 cm for
+    /// a few scans), which is not worth chasing. Unlocked, it turns and lifts towards the
+    /// target by at most the rates per scan (a kerb or a ramp in a few scans moves it
+    /// little), and locks again once the target has stayed within a quarter of the
+    /// tolerances of where it was for `warmup_scans` scans, each step reaching it: the
+    /// observation is an average over scans, and the ground it sees changes with the mount
+    /// in use, so it moves on for a while after the mount has caught up with it.
+    fn correct(
+        &mut self,
+        cfg: &MountCheckConfig,
+        configured: &Pose,
+        in_use: &Pose,
+    ) -> Option<Pose> {
+        let v_cfg = vertical_in_sensor(configured);
+        let up = turn_towards(&v_cfg, &self.up, cfg.correct_max_deg.to_radians());
+        let h_cfg = configured.translation.z;
+        let height = self
+            .height
+            .clamp(h_cfg - cfg.correct_max_m, h_cfg + cfg.correct_max_m);
+        if (up != self.up || height != self.height) && !self.bound_warned {
+            self.bound_warned = true;
+            warn!(
+                tilt_deg = %format!("{:.2}", v_cfg.angle(&self.up).to_degrees()),
+                height_m = %format!("{:+.3}", self.height - h_cfg),
+                "mount_check: the observed mount lies beyond correct_max_deg / correct_max_m \
+                 from sensor.mount; the mount in use stops at the bound: fix sensor.mount \
+                 (`groundwork calibrate` finds it)"
+            );
         }
-        // The observed ground's normal in the sensor frame gives roll and pitch; the
-        // sensor sits (configured height − the ground's height at its foot) above it.
-        let (roll, pitch) = roll_pitch_of(&(mount.rotation.inverse() * self.normal));
-        let height = (mount.translation.z - self.offset) * self.normal.z;
-        Some(ObservedMount {
-            height,
+        let v = vertical_in_sensor(in_use);
+        let (tilt, dh) = (v.angle(&up), height - in_use.translation.z);
+        if !self.correcting {
+            let within = tilt.to_degrees() <= cfg.max_tilt_deg && dh.abs() <= cfg.max_height;
+            self.beyond = if within { 0 } else { self.beyond + 1 };
+            if self.beyond < cfg.warmup_scans.max(1) {
+                return None;
+            }
+            self.correcting = true;
+            self.beyond = 0;
+            (self.settle, self.settled) = (None, 0);
+            info!(
+                tilt_deg = %format!("{:.2}", tilt.to_degrees()),
+                height_m = %format!("{:+.3}", dh),
+                "mount_check: correcting the mount in use towards the observed one"
+            );
+        }
+        let (rate, rate_m) = (cfg.correct_rate_deg.to_radians(), cfg.correct_rate_m);
+        let next_up = turn_towards(&v, &up, rate);
+        let next_height = in_use.translation.z + dh.clamp(-rate_m, rate_m);
+        let reached = tilt <= rate && dh.abs() <= rate_m;
+        let stayed = self.settle.is_some_and(|(u, h)| {
+            u.angle(&up).to_degrees() <= cfg.max_tilt_deg / 4.0
+                && (h - height).abs() <= cfg.max_height / 4.0
+        });
+        (self.settle, self.settled) = match (reached, stayed) {
+            (false, _) => (None, 0),
+            (true, true) => (self.settle, self.settled + 1),
+            (true, false) => (Some((up, height)), 1),
+        };
+        if self.settled >= cfg.warmup_scans.max(1) {
+            self.correcting = false;
+            let (roll, pitch) = roll_pitch_of(&next_up);
+            info!(
+                height_m = %format!("{:.3}", next_height),
+                roll_deg = %format!("{:.2}", roll.to_degrees()),
+                pitch_deg = %format!("{:.2}", pitch.to_degrees()),
+                scans = self.scans,
+                "mount_check: the mount in use reached the observed one and is locked"
+            );
+        }
+        self.corrected_scans += 1;
+        Some(mount_with_vertical(configured, &next_up, next_height))
+    }
+
+    /// The observed mount against `configured`, with the mount `in_use`; once a scan has
+    /// been observed.
+    pub(crate) fn observed(&self, configured: &Pose, in_use: &Pose) -> ObservedMount {
+        let (roll, pitch) = roll_pitch_of(&self.up);
+        let (applied_roll, applied_pitch) = roll_pitch_of(&vertical_in_sensor(in_use));
+        ObservedMount {
+            height: self.height,
             roll,
             pitch,
-            tilt_from_configured: self.normal.angle(&Vector3::z()),
-            height_from_configured: height - mount.translation.z,
+            tilt_from_configured: self.up.angle(&vertical_in_sensor(configured)),
+            height_from_configured: self.height - configured.translation.z,
             scans: self.scans,
-        })
+            applied_height: in_use.translation.z,
+            applied_roll,
+            applied_pitch,
+            correcting: self.correcting,
+            corrected_scans: self.corrected_scans,
+        }
     }
 
+    pub(crate) fn scans(&self) -> u64 {
+        self.scans
+    }
+
+    /// Forgets the observations; the mount in use stays where it is, locked.
     pub(crate) fn reset(&mut self) {
         *self = Self::default();
     }
+}
+
+/// `from` turned towards `to` (unit vectors) by at most `limit` radians.
+fn turn_towards(from: &Vector3<f64>, to: &Vector3<f64>, limit: f64) -> Vector3<f64> {
+    let angle = from.angle(to);
+    if angle <= limit {
+        return *to;
+    }
+    match UnitQuaternion::rotation_between(from, to) {
+        Some(q) => UnitQuaternion::from_scaled_axis(q.scaled_axis() * (limit / angle)) * from,
+        None => *from, // opposite verticals: no defined way to turn; stay
+    }
+}
+
+/// `configured` tilted by the smallest rotation that makes `up` (sensor frame) its
+/// vertical, at `height` above the ground; its yaw and horizontal offset kept.
+fn mount_with_vertical(configured: &Pose, up: &Vector3<f64>, height: f64) -> Pose {
+    let tilt = UnitQuaternion::rotation_between(&(configured.rotation * up), &Vector3::z())
+        .unwrap_or_else(UnitQuaternion::identity);
+    let t = configured.translation.vector;
+    Pose::from_parts(
+        Translation3::new(t.x, t.y, height),
+        tilt * configured.rotation,
+    )
 }
 
 /// A plane z = a + b·x + c·y through the means of the ground components within `range`
@@ -134,4 +285,46 @@ fn ground_plane(model: &FrameModel, range: f64, threshold: f64) -> Option<(Vecto
         }
     }
     Some((Vector3::new(-coef[1], -coef[2], 1.0).normalize(), coef[0]))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
+    use super::*;
+    use crate::config::{MountConfig, mount_transform};
+
+    #[test]
+    fn a_turn_stops_at_its_limit_or_at_the_target() {
+        let from = Vector3::z();
+        let to = Vector3::new(0.3, -0.2, 1.0).normalize();
+        let angle = from.angle(&to);
+        let half = turn_towards(&from, &to, angle / 2.0);
+        assert!((half.angle(&from) - angle / 2.0).abs() < 1e-12);
+        assert!((half.angle(&to) - angle / 2.0).abs() < 1e-12);
+        assert_eq!(turn_towards(&from, &to, angle * 1.01), to);
+    }
+
+    /// The corrected mount has the asked vertical and height, and the configured one's yaw
+    /// (a level sensor's forward axis stays where it pointed).
+    #[test]
+    fn a_corrected_mount_has_the_observed_vertical_and_keeps_the_yaw() {
+        let configured = mount_transform(&MountConfig {
+            height: 1.0,
+            roll: 0.02,
+            pitch: -0.01,
+            yaw: 0.7,
+            matrix: None,
+        })
+        .unwrap();
+        let up = Vector3::new(-0.1, 0.05, 1.0).normalize();
+        let m = mount_with_vertical(&configured, &up, 2.2);
+        assert!(vertical_in_sensor(&m).angle(&up) < 1e-12);
+        assert!((m.translation.z - 2.2).abs() < 1e-15);
+        let heading = |p: &Pose| {
+            let x = p.rotation * Vector3::x();
+            x.y.atan2(x.x)
+        };
+        assert!((heading(&m) - heading(&configured)).abs() < 0.01);
+    }
 }

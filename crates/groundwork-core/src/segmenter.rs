@@ -122,6 +122,10 @@ pub struct Segmenter {
     zones: ZoneModel,
     /// The zone model as SIMD constants, for binning this scan and the query.
     binner: LaneBinner,
+    /// `sensor.mount`.
+    configured_mount: Isometry3<f64>,
+    /// The mount scans are segmented with: `sensor.mount`, unless `mount_check.mode =
+    /// "correct"` moved it.
     mount: Isometry3<f64>,
     height: HeightFilter,
     mount_watch: MountWatch,
@@ -152,6 +156,7 @@ impl Segmenter {
             cfg,
             binner: LaneBinner::new(&zones),
             zones,
+            configured_mount: mount,
             mount,
             height,
             mount_watch: MountWatch::default(),
@@ -203,11 +208,21 @@ impl Segmenter {
         self.reset_history()
     }
 
-    /// The mount observed in the ground fitted so far (`mount_check.mode = "warn"`): height,
-    /// roll and pitch, and how far they are from the configured mount. None before the
-    /// first scan with enough ground, or with the check off.
+    /// The mount observed in the ground fitted so far (`mount_check.mode` `warn` or
+    /// `correct`): height, roll and pitch, how far they are from the configured mount, and
+    /// the mount in use. None before the first scan with enough ground, or with the check
+    /// off.
     pub fn observed_mount(&self) -> Option<ObservedMount> {
-        self.mount_watch.observed(&self.mount)
+        (self.mount_watch.scans() > 0).then(|| {
+            self.mount_watch
+                .observed(&self.configured_mount, &self.mount)
+        })
+    }
+
+    /// The mount scans are segmented with (ground-aligned from sensor): `sensor.mount`,
+    /// unless `mount_check.mode = "correct"` moved it.
+    pub fn mount_in_use(&self) -> &Pose {
+        &self.mount
     }
 
     /// Forgets the multi-frame history (a new producer run, a new sequence); counted as a
@@ -413,16 +428,19 @@ impl Segmenter {
         let (model, stats) = self.fit_grouped();
         self.update_height_filter(&model);
         let threshold = f64::from(self.cfg.ground.ground_threshold);
-        if let Some(seen) =
-            self.mount_watch
-                .observe(&model, &self.cfg.mount_check, &self.mount, threshold)
-        {
+        let verdict = self.mount_watch.observe(
+            &model,
+            &self.cfg.mount_check,
+            (&self.configured_mount, &self.mount),
+            threshold,
+        );
+        if let Some(seen) = verdict.warn {
             // From the pose, not the config's angles: a mount given as a matrix has none.
-            let (roll, pitch) = roll_pitch_of(&vertical_in_sensor(&self.mount));
+            let (roll, pitch) = roll_pitch_of(&vertical_in_sensor(&self.configured_mount));
             warn!(
                 scans = seen.scans,
                 observed_height_m = %format!("{:.3}", seen.height),
-                configured_height_m = %format!("{:.3}", self.mount.translation.z),
+                configured_height_m = %format!("{:.3}", self.configured_mount.translation.z),
                 observed_roll_deg = %format!("{:.2}", seen.roll.to_degrees()),
                 observed_pitch_deg = %format!("{:.2}", seen.pitch.to_degrees()),
                 configured_roll_deg = %format!("{:.2}", roll.to_degrees()),
@@ -484,6 +502,11 @@ impl Segmenter {
                 points = non_finite,
                 "non-finite ground probabilities written as 0 (a defect: please report)"
             );
+        }
+        // The corrected mount from the next scan on: this scan was binned, queried and
+        // stored in the history on the mount it was fitted with.
+        if let Some(m) = verdict.apply {
+            self.mount = m;
         }
         self.counters.scans += 1;
         debug!(

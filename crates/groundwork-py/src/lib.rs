@@ -363,8 +363,10 @@ impl PySegmenter {
     }
 
     /// The mount observed in the ground fitted so far (height m, roll_deg, pitch_deg,
-    /// tilt_from_configured_deg, height_from_configured m, scans), or None before any
-    /// scan with enough ground or with `mount_check={"mode": "off"}`.
+    /// tilt_from_configured_deg, height_from_configured m, scans) and the mount in use
+    /// (applied_height m, applied_roll_deg, applied_pitch_deg: the configured one unless
+    /// `mount_check={"mode": "correct"}` moved it; correcting, corrected_scans), or None
+    /// before any scan with enough ground or with `mount_check={"mode": "off"}`.
     #[getter]
     fn observed_mount<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
         let Some(m) = self.inner.observed_mount() else {
@@ -379,9 +381,14 @@ impl PySegmenter {
                 m.tilt_from_configured.to_degrees(),
             ),
             ("height_from_configured", m.height_from_configured),
+            ("applied_height", m.applied_height),
+            ("applied_roll_deg", m.applied_roll.to_degrees()),
+            ("applied_pitch_deg", m.applied_pitch.to_degrees()),
         ]
         .into_py_dict(py)?;
         d.set_item("scans", m.scans)?;
+        d.set_item("correcting", m.correcting)?;
+        d.set_item("corrected_scans", m.corrected_scans)?;
         Ok(Some(d))
     }
 

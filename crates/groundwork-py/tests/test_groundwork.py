@@ -408,6 +408,17 @@ def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, 
     assert seen["scans"] == len(scans)
     assert abs(seen["pitch_deg"] - mount["pitch_deg"]) < 1.0, seen
     assert seen["tilt_from_configured_deg"] > 3.0, seen
+    # `warn` keeps the mount it was told; `correct` turns it towards the observed one.
+    assert abs(seen["applied_pitch_deg"] - 5.0) < 1e-9 and seen["corrected_scans"] == 0, seen
+    fast = {"mode": "correct", "warmup_scans": 1, "correct_rate_deg": 2.0}
+    seg = groundwork.Segmenter(mount={"height": 1.73, "pitch_deg": 5.0}, mount_check=fast)
+    for s in scans:
+        seg.segment(s)
+    moved = seg.observed_mount
+    assert moved["corrected_scans"] >= 2, moved
+    # Two degrees a scan from the second scan on: at least two of the five taken.
+    before, after = 5.0 - moved["pitch_deg"], moved["applied_pitch_deg"] - moved["pitch_deg"]
+    assert abs(after) < abs(before) - 2.0, moved
     assert groundwork.Segmenter(mount_check={"mode": "off"}).observed_mount is None
 
 

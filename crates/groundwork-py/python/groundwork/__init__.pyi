@@ -63,10 +63,12 @@ class Segmenter:
         dropped."""
 
     @property
-    def observed_mount(self) -> dict[str, float] | None:
+    def observed_mount(self) -> dict[str, float | bool] | None:
         """The mount observed in the ground fitted so far: height (m), roll_deg, pitch_deg,
-        tilt_from_configured_deg, height_from_configured (m), scans. None before a scan with
-        enough ground, or with mount_check={"mode": "off"}."""
+        tilt_from_configured_deg, height_from_configured (m), scans; and the mount in use:
+        applied_height (m), applied_roll_deg, applied_pitch_deg (the configured mount unless
+        mount_check={"mode": "correct"} moved it), correcting, corrected_scans. None before a
+        scan with enough ground, or with mount_check={"mode": "off"}."""
     @property
     def threshold(self) -> float:
         """Probability at or above which a point is ground."""
