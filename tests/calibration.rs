@@ -537,8 +537,8 @@ fn kitti_parameters_fitted_to_pseudo_labels_keep_the_accuracy() {
     assert!(iou >= 97.6 && precision >= 99.3, "{iou:.2} {precision:.2}");
 }
 
-/// `mount_check.mode = "correct"`: a sensor mounted 2.2 m high and pitched 6° up (the
-/// issue's VLP-16), segmented on its preset's mount, with the true poses (history on). The
+/// `mount_check.mode = "correct"`: a sensor mounted 2.2 m high and pitched 6° nose down,
+/// segmented on its preset's mount, with the true poses (history on). The
 /// mount in use turns towards the observed one at its rate and locks there; from then on
 /// the segmentation is as good as with the true mount and better than `warn`'s, which keeps
 /// the configured mount. Told the true mount, `correct` never moves it: the output is

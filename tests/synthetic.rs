@@ -8,7 +8,8 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
-use groundwork_core::config::MountConfig;
+use groundwork_core::SegmenterConfig;
+use groundwork_core::config::{MountConfig, SensorConfig};
 use groundwork_core::{Point, Segmenter};
 use groundwork_io::{SENSOR_PRESETS, sensor_preset};
 use groundwork_synth::{Generator, SceneKind, SynthConfig};
@@ -361,3 +362,135 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("livox", Parking, 98.95),
     ("livox", Hill, 98.50),
 ];
+
+/// Every preset's parameters on every sensor's synthetic scans: the urban, off-road and
+/// car-park scenes, seeds 0–2, each on a mount drawn at random (height 0.5–2.5 m, roll ±5°,
+/// pitch ±10°) that every preset is told, with the scans' own sensor section (ego radius,
+/// most points). Prints the mean pooled IoU per scans × preset (docs/sensors.md). About
+/// 10 minutes: `cargo test -p groundwork-tests --test synthetic -- --ignored
+/// presets_across_sensors --nocapture`.
+#[test]
+#[ignore = "slow: every preset on every sensor's scans, for docs/sensors.md"]
+fn presets_across_sensors() {
+    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
+    let mut table = Vec::new();
+    for (si, &sensor) in names.iter().enumerate() {
+        let mut sums = vec![0.0; names.len()];
+        let mut runs = 0;
+        for scene in [Urban, Offroad, Parking] {
+            for seed in 0..3u64 {
+                let own = sensor_preset(sensor).unwrap().sensor;
+                let truth = random_mount(si, seed, own.mount.yaw);
+                let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
+                let mut line = format!("{sensor:9} {:8} seed {seed}:", scene.name());
+                for (pi, &preset) in names.iter().enumerate() {
+                    let mut cfg = sensor_preset(preset).unwrap();
+                    cfg.sensor = own.clone();
+                    cfg.sensor.mount = truth.clone();
+                    let iou = synthetic_run(&g, cfg, Poses::True).iou();
+                    sums[pi] += iou;
+                    line += &format!(" {iou:6.2}");
+                }
+                eprintln!("{line}");
+                runs += 1;
+            }
+        }
+        let means: Vec<f64> = sums.iter().map(|s| s / runs as f64).collect();
+        table.push((sensor, means));
+    }
+    eprintln!("scans \\ preset | {}", names.join(" | "));
+    for (sensor, means) in &table {
+        let best = means.iter().cloned().fold(f64::MIN, f64::max);
+        let cells: Vec<String> = means
+            .iter()
+            .map(|m| {
+                if *m == best {
+                    format!("**{m:.2}**")
+                } else {
+                    format!("{m:.2}")
+                }
+            })
+            .collect();
+        eprintln!("TABLE {sensor} | {}", cells.join(" | "));
+    }
+}
+
+/// The zones' near edge as `groundwork calibrate` moves it (`groundwork_calibrate::zones`),
+/// on the scans and mounts of [`presets_across_sensors`]: each sensor's preset told the
+/// true mount, the same with the near edge found in the four scans, and the best of every
+/// preset told the true mount (docs/calibration.md). About 4 minutes:
+/// `cargo test -p groundwork-tests --test synthetic -- --ignored near_edge --nocapture`.
+#[test]
+#[ignore = "slow: every preset on every sensor's scans, for docs/calibration.md"]
+fn near_edge_against_every_preset() {
+    use groundwork_calibrate::{NearEdgeConfig, near_ground, zones_with_near_edge};
+    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
+    let near_cfg = NearEdgeConfig::default();
+    for (si, &sensor) in names.iter().enumerate() {
+        let own = sensor_preset(sensor).unwrap();
+        let (mut own_sum, mut near_sum, mut best_sum, mut wins) = (0.0, 0.0, 0.0, 0);
+        for scene in [Urban, Offroad, Parking] {
+            for seed in 0..3u64 {
+                let truth = random_mount(si, seed, own.sensor.mount.yaw);
+                let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
+                let run = |mut cfg: groundwork_core::SegmenterConfig| {
+                    cfg.sensor = SensorConfig {
+                        mount: truth.clone(),
+                        ..own.sensor.clone()
+                    };
+                    synthetic_run(&g, cfg, Poses::True).iou()
+                };
+                let best = names
+                    .iter()
+                    .map(|p| run(sensor_preset(p).unwrap()))
+                    .fold(f64::MIN, f64::max);
+                let scans: Vec<Vec<[f32; 3]>> = (0..g.frames())
+                    .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
+                    .collect();
+                let pose = groundwork_core::mount_transform(&truth).unwrap();
+                let ego = own.sensor.ego_radius;
+                let zones = near_ground(&scans, &pose, ego, &near_cfg)
+                    .and_then(|n| zones_with_near_edge(&own.zones, &n, ego, &near_cfg));
+                let plain = run(own.clone());
+                let near = match &zones {
+                    Some(z) => run(SegmenterConfig {
+                        zones: z.clone(),
+                        ..own.clone()
+                    }),
+                    None => plain,
+                };
+                eprintln!(
+                    "{sensor:9} {:8} seed {seed} h {:.2} pitch {:5.1}°: preset {plain:6.2}, \
+                     near edge {near:6.2} (at {:?}), best preset {best:6.2}",
+                    scene.name(),
+                    truth.height,
+                    truth.pitch.to_degrees(),
+                    zones.map(|z| z.min_range)
+                );
+                own_sum += plain;
+                near_sum += near;
+                best_sum += best;
+                wins += usize::from(near >= best);
+            }
+        }
+        eprintln!(
+            "NEAR {sensor} | {:.2} | {:.2} | {:.2} | {wins} of 9",
+            own_sum / 9.0,
+            near_sum / 9.0,
+            best_sum / 9.0
+        );
+    }
+}
+
+/// The random mount of [`presets_across_sensors`] for sensor `si`'s scans, seed `seed`.
+fn random_mount(si: usize, seed: u64, yaw: f64) -> MountConfig {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(1000 * si as u64 + seed);
+    MountConfig {
+        height: rng.random_range(0.5..2.5),
+        roll: rng.random_range(-5f64..5.0).to_radians(),
+        pitch: rng.random_range(-10f64..10.0).to_radians(),
+        yaw,
+        matrix: None,
+    }
+}

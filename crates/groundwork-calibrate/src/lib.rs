@@ -5,6 +5,8 @@
 //!   refusal (with the reason) when the scans cannot determine it.
 //! - [`params`]: with the mount fixed, the segmenter's likelihood parameters and ground
 //!   threshold fitted to reference labels (the PseudoLabeler's), judged on held-out scans.
+//! - [`zones`]: the zone model's near edge, from where the sensor first sees ground on the
+//!   mount found.
 //!
 //! Pure algorithm: the caller reads the scans (the `groundwork calibrate` command).
 
@@ -13,10 +15,15 @@
 pub mod mount;
 pub mod params;
 pub mod plane;
+pub mod zones;
 
 pub use mount::{MountEstimate, MountSearchConfig, combine, estimate_mount, frame_mount};
 pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
+pub use zones::{
+    NearEdgeConfig, NearGround, combine_near_ground, near_ground, scan_near_ground,
+    zones_with_near_edge,
+};
 
 /// Why a calibration could not be done.
 #[derive(Debug, thiserror::Error)]

@@ -535,6 +535,11 @@ pub struct CalibrateArgs {
     /// (ground IoU, %, in 10 m rings from the sensor): beyond, neither can be taken as truth.
     #[arg(long, default_value_t = 90.0)]
     pub param_trust: f64,
+    /// Keep the preset's zone model as it is. By default its near edge (`zones.min_range`)
+    /// moves in to where the scans first see ground on the mount found, if that is nearer
+    /// (a lower or pitched mount; docs/calibration.md).
+    #[arg(long)]
+    pub keep_zones: bool,
     /// Scan files, folders of scans or recordings of one sensor on one mount.
     #[arg(required = true)]
     pub inputs: Vec<PathBuf>,

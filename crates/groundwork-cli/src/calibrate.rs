@@ -14,11 +14,12 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
-    LabeledScan, MountEstimate, MountSearchConfig, NoGround, ParamFit, ParamSearchConfig, combine,
-    fit_parameters, frame_mount,
+    LabeledScan, MountEstimate, MountSearchConfig, NearEdgeConfig, NearGround, NoGround, ParamFit,
+    ParamSearchConfig, combine, combine_near_ground, fit_parameters, frame_mount, scan_near_ground,
+    zones_with_near_edge,
 };
 use groundwork_core::SegmenterConfig;
-use groundwork_core::config::MountConfig;
+use groundwork_core::config::{MountConfig, ZoneConfig};
 use groundwork_core::mount_transform;
 use groundwork_eval::MethodsConfig;
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler};
@@ -43,12 +44,26 @@ struct ScanReport {
 }
 
 /// One scan looked at: its place, its report line, its view of the mount (None: unreadable),
-/// and its points if it is in the parameter fit's sample.
+/// where it first sees ground on that view, and its points if it is in the parameter fit's
+/// sample.
 struct Looked {
     k: usize,
     line: ScanReport,
     view: Option<Result<FrameMount, NoGround>>,
+    near: Option<f64>,
     points: Option<Vec<[f32; 3]>>,
+}
+
+/// The zone model's near edge, moved (`--keep-zones` not given).
+#[derive(Debug, Serialize)]
+struct NearEdge {
+    /// Where the scans first see ground.
+    ground: NearGround,
+    /// `zones.min_range` of the preset, metres.
+    was: f64,
+    /// And written, if it moved.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    min_range: Option<f64>,
 }
 
 /// The report `--report` writes.
@@ -70,6 +85,10 @@ struct Report {
     per_scan: Vec<ScanReport>,
     /// The search's settings.
     settings: MountSearchConfig,
+    /// Where the scans first see ground and the zone model's near edge (absent with
+    /// `--keep-zones`, or when too few scans show ground near the sensor).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    near_edge: Option<NearEdge>,
     /// The parameter fit (`--fit-params`), if it ran.
     #[serde(skip_serializing_if = "Option::is_none")]
     parameters: Option<ParamFit>,
@@ -120,6 +139,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         "calibrate",
     );
     let max_points = cfg.sensor.max_points;
+    let (ego_radius, near_cfg) = (cfg.sensor.ego_radius, NearEdgeConfig::default());
     // Every `keep`-th scan looked at is kept for the parameter fit's sample.
     let looked = total.map_or(a.max_scans, |n| n.div_ceil(stride).min(a.max_scans));
     let keep = a
@@ -140,10 +160,16 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .take(a.max_scans)
         .par_bridge()
         .map(|(k, item)| {
-            let mut points = None;
+            let (mut points, mut near) = (None, None);
             let result = item.scan.as_ref().map(|scan| {
                 let xyz: Vec<[f32; 3]> = scan.points.iter().map(|p| [p.x, p.y, p.z]).collect();
                 let m = frame_mount(&xyz, &prior, &settings, k as u64);
+                // On the scan's own view of the mount: the ground near the sensor is what
+                // that plane fits best.
+                if let (Ok(view), false) = (&m, a.keep_zones) {
+                    near = view_pose(view)
+                        .and_then(|pose| scan_near_ground(&xyz, &pose, ego_radius, &near_cfg));
+                }
                 if keep.is_some_and(|e| (k / stride).is_multiple_of(e)) {
                     points = Some(xyz);
                 }
@@ -167,6 +193,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
                 k,
                 line,
                 view,
+                near,
                 points,
             }
         })
@@ -177,6 +204,20 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let frames: Vec<Result<FrameMount, NoGround>> =
         views.iter_mut().filter_map(|v| v.view.take()).collect();
     let result = combine(&frames, &prior, &settings);
+    let near_edge =
+        combine_near_ground(views.iter().filter_map(|v| v.near).collect()).map(|ground| NearEdge {
+            min_range: zones_with_near_edge(&cfg.zones, &ground, ego_radius, &near_cfg)
+                .map(|z| z.min_range),
+            was: cfg.zones.min_range,
+            ground,
+        });
+    let zones = near_edge
+        .as_ref()
+        .and_then(|n| zones_with_near_edge(&cfg.zones, &n.ground, ego_radius, &near_cfg));
+    let mut methods = methods;
+    if let Some(z) = &zones {
+        methods.segmenter.zones = z.clone();
+    }
     let sample: Vec<Vec<[f32; 3]>> = views
         .iter_mut()
         .filter_map(|v| v.points.take())
@@ -201,6 +242,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         unreadable,
         per_scan: views.into_iter().map(|v| v.line).collect(),
         settings,
+        near_edge,
         parameters,
         parameters_refused,
         seconds: t.elapsed().as_secs_f64(),
@@ -219,6 +261,9 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .file_stem()
         .map_or_else(|| "calibrated".into(), |s| s.to_string_lossy().into_owned());
     let mut text = preset_text(&base, &name, &prior_mount, &est, &a.inputs);
+    if let (Some(z), Some(n)) = (&zones, &report.near_edge) {
+        text += &zones_text(z, n);
+    }
     if let Some(fit) = &report.parameters {
         text += &params_text(&cfg, fit);
         print!("{}", params_summary(fit));
@@ -227,6 +272,21 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     }
     std::fs::write(&a.out, &text).with_context(|| format!("{}: cannot write", a.out.display()))?;
     print!("{}", summary(&base, &prior_mount, &est));
+    match &report.near_edge {
+        Some(NearEdge {
+            ground,
+            was,
+            min_range: Some(m),
+        }) => println!(
+            "  near edge of the zones {m:.2} m  was {was:.2} m (ground from {:.2} m)",
+            ground.range
+        ),
+        Some(NearEdge { ground, was, .. }) => println!(
+            "  near edge of the zones kept at {was:.2} m (ground from {:.2} m)",
+            ground.range
+        ),
+        None => {}
+    }
     println!(
         "wrote {} (use: --sensor {base} --config {}) in {:.1} s",
         a.out.display(),
@@ -239,6 +299,41 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         } else {
             ExitCode::SUCCESS
         },
+    )
+}
+
+/// The mount of one scan's own view (yaw 0: ranges and heights do not depend on it).
+fn view_pose(view: &FrameMount) -> Option<groundwork_core::Pose> {
+    mount_transform(&MountConfig {
+        height: view.height,
+        roll: view.roll,
+        pitch: view.pitch,
+        ..Default::default()
+    })
+    .ok()
+}
+
+/// The `[zones]` section: the near edge moved in, the other boundaries written out as the
+/// preset had them.
+fn zones_text(z: &ZoneConfig, n: &NearEdge) -> String {
+    let b: Vec<String> = z
+        .boundaries
+        .iter()
+        .flatten()
+        .map(|v| format!("{v:?}"))
+        .collect();
+    format!(
+        "\n[zones]\n\
+         # Moved in to where the scans first see ground on the mount found: {:.2} m (the\n\
+         # median over {} scans of the 1st percentile of the range of points within 15 cm of\n\
+         # the ground), times 0.9. The other boundaries are the preset's.\n\
+         min_range = {:?}  # was {}\n\
+         boundaries = [{}]\n",
+        n.ground.range,
+        n.ground.scans,
+        z.min_range,
+        n.was,
+        b.join(", ")
     )
 }
 

@@ -993,6 +993,85 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
     assert!(text(&installed).contains("2 masks"), "{}", text(&installed));
 }
 
+/// An OS1-64 0.8 m up and pitched 6° nose down sees the road from about 1.6 m, inside its
+/// preset's 2.5 m near edge: `calibrate` moves the zones' near edge in, the file loads over
+/// the preset, and the labels (used here only to score) say it segments better than the
+/// mount alone (`--keep-zones`).
+#[test]
+fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
+    let tmp = tempfile::tempdir().unwrap();
+    let low = tmp.path().join("low.toml");
+    fs::write(
+        &low,
+        "[sensor]\nmount = { height = 0.8, pitch_deg = 6.0 }\n",
+    )
+    .unwrap();
+    let seq = tmp.path().join("seq");
+    let o = bin()
+        .args([
+            "synth", "--sensor", "os1-64", "--scene", "urban", "--frames", "6",
+        ])
+        .arg("--config")
+        .arg(&low)
+        .arg("--out")
+        .arg(&seq)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let eval = |config: &Path| {
+        let o = bin()
+            .args([
+                "eval", "--json", "--sensor", "os1-64", "--frames", "1", "--config",
+            ])
+            .arg(config)
+            .arg(&seq)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        v["pooled_metrics"]["iou_ground"].as_f64().unwrap()
+    };
+    let mut iou = Vec::new();
+    for (name, extra) in [("zones.toml", None), ("mount.toml", Some("--keep-zones"))] {
+        let out = tmp.path().join(name);
+        let o = bin()
+            .args(["calibrate", "--sensor", "os1-64", "--out"])
+            .arg(&out)
+            .args(extra)
+            .arg(&seq)
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let cfg = groundwork_io::load_config_over(Some("os1-64"), Some(&out)).unwrap();
+        let text = fs::read_to_string(&out).unwrap();
+        if extra.is_none() {
+            assert!(
+                text.contains("[zones]") && text.contains("# was 2.5"),
+                "{text}"
+            );
+            let edge = cfg.zones.min_range;
+            assert!((1.2..2.0).contains(&edge), "{edge} {text}");
+            assert!(stdout.contains("near edge of the zones"), "{stdout}");
+            // The other boundaries are the preset's.
+            let preset = groundwork_io::sensor_preset("os1-64").unwrap();
+            let (b, p) = (
+                cfg.zones.resolved_boundaries().unwrap(),
+                preset.zones.resolved_boundaries().unwrap(),
+            );
+            assert_eq!((b[0], &b[1..]), (edge, &p[1..]));
+        } else {
+            assert!(!text.contains("[zones]"), "{text}");
+        }
+        iou.push(eval(&out));
+    }
+    eprintln!(
+        "single-frame IoU: near edge moved {:.2}, mount only {:.2}",
+        iou[0], iou[1]
+    );
+    assert!(iou[0] > iou[1] + 3.0, "{iou:?}");
+}
+
 #[test]
 fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_overwrites() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1036,6 +1115,13 @@ fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_
     );
     let json: serde_json::Value = serde_json::from_slice(&fs::read(&report).unwrap()).unwrap();
     assert_eq!(json["per_scan"].as_array().unwrap().len(), 7, "{json}");
+    // KITTI's lowest beam meets the road beyond the preset's 2.7 m: the zones stay.
+    let near = &json["near_edge"];
+    assert!(near["ground"]["range"].as_f64().unwrap() > 3.0, "{near}");
+    assert!(
+        near["min_range"].is_null() && !text.contains("[zones]"),
+        "{near}"
+    );
     assert_eq!(json["unreadable"], 1);
     assert!(
         json["mount"]["height"]["spread"].as_f64().unwrap() < 0.05,
