@@ -22,7 +22,7 @@ pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 pub use zones::{
     NearEdgeConfig, NearGround, combine_near_ground, near_ground, scan_near_ground,
-    zones_with_near_edge,
+    view_near_ground, zones_with_near_edge,
 };
 
 /// Why a calibration could not be done.

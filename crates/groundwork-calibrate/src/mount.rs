@@ -76,6 +76,20 @@ pub struct FrameMount {
     pub plane: PlaneFit,
 }
 
+impl FrameMount {
+    /// This view as a mount (ground-aligned from sensor), yaw 0: the ground does not show
+    /// yaw, and ranges and heights above the ground do not depend on it.
+    pub fn pose(&self) -> Option<Pose> {
+        groundwork_core::mount_transform(&MountConfig {
+            height: self.height,
+            roll: self.roll,
+            pitch: self.pitch,
+            ..Default::default()
+        })
+        .ok()
+    }
+}
+
 /// Median and spread of one mount parameter over the frames.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Estimate {

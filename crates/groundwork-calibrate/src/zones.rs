@@ -7,6 +7,8 @@
 //! ground near the sensor is plain to see: the points within a band of the ground plane.
 
 use groundwork_core::config::ZoneConfig;
+
+use crate::mount::FrameMount;
 use groundwork_core::point::Pose;
 use nalgebra::Point3;
 use serde::Serialize;
@@ -66,6 +68,17 @@ pub fn scan_near_ground(
     }
     let k = ((ranges.len() as f64 * cfg.quantile) as usize).min(ranges.len() - 1);
     Some(*ranges.select_nth_unstable_by(k, f64::total_cmp).1)
+}
+
+/// [`scan_near_ground`] on the scan's own view of the mount ([`crate::frame_mount`]): the
+/// ground near the sensor is what that plane fits best.
+pub fn view_near_ground(
+    points: &[[f32; 3]],
+    view: &FrameMount,
+    ego_radius: f64,
+    cfg: &NearEdgeConfig,
+) -> Option<f64> {
+    scan_near_ground(points, &view.pose()?, ego_radius, cfg)
 }
 
 /// The median of the scans' near edges; `None` with fewer than three.

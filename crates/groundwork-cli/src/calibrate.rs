@@ -15,7 +15,7 @@ use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
     LabeledScan, MountEstimate, MountSearchConfig, NearEdgeConfig, NearGround, NoGround, ParamFit,
-    ParamSearchConfig, combine, combine_near_ground, fit_parameters, frame_mount, scan_near_ground,
+    ParamSearchConfig, combine, combine_near_ground, fit_parameters, frame_mount, view_near_ground,
     zones_with_near_edge,
 };
 use groundwork_core::SegmenterConfig;
@@ -164,11 +164,8 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
             let result = item.scan.as_ref().map(|scan| {
                 let xyz: Vec<[f32; 3]> = scan.points.iter().map(|p| [p.x, p.y, p.z]).collect();
                 let m = frame_mount(&xyz, &prior, &settings, k as u64);
-                // On the scan's own view of the mount: the ground near the sensor is what
-                // that plane fits best.
                 if let (Ok(view), false) = (&m, a.keep_zones) {
-                    near = view_pose(view)
-                        .and_then(|pose| scan_near_ground(&xyz, &pose, ego_radius, &near_cfg));
+                    near = view_near_ground(&xyz, view, ego_radius, &near_cfg);
                 }
                 if keep.is_some_and(|e| (k / stride).is_multiple_of(e)) {
                     points = Some(xyz);
@@ -300,17 +297,6 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
             ExitCode::SUCCESS
         },
     )
-}
-
-/// The mount of one scan's own view (yaw 0: ranges and heights do not depend on it).
-fn view_pose(view: &FrameMount) -> Option<groundwork_core::Pose> {
-    mount_transform(&MountConfig {
-        height: view.height,
-        roll: view.roll,
-        pitch: view.pitch,
-        ..Default::default()
-    })
-    .ok()
 }
 
 /// The `[zones]` section: the near edge moved in, the other boundaries written out as the

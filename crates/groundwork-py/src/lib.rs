@@ -744,20 +744,25 @@ fn evaluate<'py>(
 /// The sensor's mount from raw scans, no labels (`groundwork calibrate`): ground-plane
 /// consensus over the scans, starting from the preset's mount. Returns the configuration
 /// to lay over the preset (a dict like the keyword arguments: `{"mount": {...}}`, angles in
-/// degrees) and a report (each parameter's median, spread and standard error over the
-/// scans; each scan's view or why it showed no usable ground). Raises ValueError when the
-/// scans cannot determine the mount, with the reason.
+/// degrees, and `"zones"` where the zone model's near edge moved in to where the scans
+/// first see ground, unless `keep_zones`) and a report (each parameter's median, spread and
+/// standard error over the scans; each scan's view or why it showed no usable ground; the
+/// near edge). Raises ValueError when the scans cannot determine the mount, with the reason.
 #[pyfunction]
-#[pyo3(signature = (scans, sensor=None, config=None, seed=0, **overrides))]
+#[pyo3(signature = (scans, sensor=None, config=None, seed=0, keep_zones=false, **overrides))]
 fn calibrate<'py>(
     py: Python<'py>,
     scans: Vec<Bound<'py, PyAny>>,
     sensor: Option<&str>,
     config: Option<PathBuf>,
     seed: u64,
+    keep_zones: bool,
     overrides: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
-    use groundwork_calibrate::{MountSearchConfig, estimate_mount};
+    use groundwork_calibrate::{
+        MountSearchConfig, NearEdgeConfig, combine_near_ground, estimate_mount, view_near_ground,
+        zones_with_near_edge,
+    };
     let cfg = load_config(sensor, config, None, overrides)?;
     let prior =
         groundwork_core::mount_transform(&cfg.segmenter.sensor.mount).map_err(value_error)?;
@@ -778,6 +783,21 @@ fn calibrate<'py>(
         .collect::<PyResult<_>>()?;
     let (views, est) = py.detach(|| estimate_mount(&xyz, &prior, &settings));
     let est = est.map_err(value_error)?;
+    let (zones, ego) = (&cfg.segmenter.zones, cfg.segmenter.sensor.ego_radius);
+    let near_cfg = NearEdgeConfig::default();
+    let near = (!keep_zones)
+        .then(|| {
+            combine_near_ground(
+                xyz.iter()
+                    .zip(&views)
+                    .filter_map(|(p, v)| view_near_ground(p, v.as_ref().ok()?, ego, &near_cfg))
+                    .collect(),
+            )
+        })
+        .flatten();
+    let moved = near
+        .as_ref()
+        .and_then(|n| zones_with_near_edge(zones, n, ego, &near_cfg));
     let deg =
         |e: &groundwork_calibrate::mount::Estimate, scale: f64| -> PyResult<Bound<'py, PyDict>> {
             [
@@ -798,6 +818,12 @@ fn calibrate<'py>(
     .into_py_dict(py)?;
     let preset = PyDict::new(py);
     preset.set_item("mount", mount)?;
+    if let Some(z) = &moved {
+        let section = PyDict::new(py);
+        section.set_item("min_range", z.min_range)?;
+        section.set_item("boundaries", z.boundaries.clone())?;
+        preset.set_item("zones", section)?;
+    }
     let report = PyDict::new(py);
     report.set_item("height", deg(&est.height, 1.0)?)?;
     report.set_item("roll_deg", deg(&est.roll, d)?)?;
@@ -819,6 +845,14 @@ fn calibrate<'py>(
         per_scan.append(item)?;
     }
     report.set_item("per_scan", per_scan)?;
+    if let Some(n) = &near {
+        let item = PyDict::new(py);
+        item.set_item("ground_from", n.range)?;
+        item.set_item("scans", n.scans)?;
+        item.set_item("was", zones.min_range)?;
+        item.set_item("min_range", moved.as_ref().map(|z| z.min_range))?;
+        report.set_item("near_edge", item)?;
+    }
     Ok((preset, report))
 }
 

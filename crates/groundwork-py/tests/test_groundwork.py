@@ -376,6 +376,11 @@ def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, 
     assert report["frames_used"] == report["frames"] == len(SCANS)
     assert abs(mount["height"] - 1.775) < 0.02
     assert report["height"]["spread"] < 0.05
+    # KITTI's road starts beyond the preset's 2.7 m near edge: the zones stay.
+    near = report["near_edge"]
+    assert near["ground_from"] > 3.0 and near["min_range"] is None, near
+    assert "zones" not in preset and near["was"] == 2.7
+    assert "near_edge" not in groundwork.calibrate(scans, sensor="hdl64e", keep_zones=True)[1]
     out = tmp_path / "mine.toml"
     subprocess.run(
         [str(cli), "calibrate", "--sensor", "hdl64e", "--out", str(out), str(SEQ)],

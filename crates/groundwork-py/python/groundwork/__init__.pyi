@@ -191,10 +191,14 @@ def calibrate(
     sensor: str | None = None,
     config: _Path | None = None,
     seed: int = 0,
+    keep_zones: bool = False,
     **overrides: Any,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The sensor's mount from raw scans, no labels (`groundwork calibrate`): the
     configuration to lay over the preset ({"mount": {"height", "roll_deg", "pitch_deg",
-    "yaw_deg"}}, usable as keyword arguments) and a report (median, spread and standard
-    error of each over the scans; each scan's view or why it showed no usable ground).
-    Raises ValueError, with the reason, when the scans cannot determine the mount."""
+    "yaw_deg"}}, and {"zones": {"min_range", "boundaries"}} where the zone model's near
+    edge moved in to where the scans first see ground, unless keep_zones; usable as keyword
+    arguments) and a report (median, spread and standard error of each over the scans; each
+    scan's view or why it showed no usable ground; "near_edge": ground_from, scans, was,
+    min_range). Raises ValueError, with the reason, when the scans cannot determine the
+    mount."""
