@@ -131,7 +131,6 @@ pub fn run<S: Stage>(
 ) -> anyhow::Result<S::Report> {
     signals::die_with_launcher()?;
     check_shared_memory(cfg)?;
-    let mut stage = make()?;
     let wiring = S::WIRING;
     let node = if wiring.unique {
         transport::unique_node(cfg, S::NAME)?
@@ -139,6 +138,9 @@ pub fn run<S: Stage>(
         transport::node(cfg, S::NAME)?
     };
     signals::install(&node)?;
+    // Built once the stop handlers are in: a stage that shows itself while it starts (the
+    // view's server takes connections at once) must not die of a SIGINT sent on seeing it.
+    let mut stage = make()?;
     let inputs = Inputs::open(&node, cfg, &wiring)?;
     let mut out = Outbox::open(&node, cfg, wiring.publishes)?;
     let listener = wiring
