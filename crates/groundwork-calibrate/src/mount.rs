@@ -240,7 +240,7 @@ pub fn estimate_mount<S: AsRef<[[f32; 3]]> + Sync>(
 }
 
 /// Median of a non-empty slice (reorders it; the mean of the middle two for even lengths).
-fn median(v: &mut [f64]) -> f64 {
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
     let n = v.len();
     if n == 0 {

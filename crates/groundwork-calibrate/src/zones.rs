@@ -7,11 +7,11 @@
 //! ground near the sensor is plain to see: the points within a band of the ground plane.
 
 use groundwork_core::config::ZoneConfig;
-
-use crate::mount::FrameMount;
 use groundwork_core::point::Pose;
 use nalgebra::Point3;
 use serde::Serialize;
+
+use crate::mount::{FrameMount, median};
 
 /// Settings of the near-edge fit.
 #[derive(Debug, Clone, PartialEq)]
@@ -87,14 +87,10 @@ pub fn combine_near_ground(mut edges: Vec<f64>) -> Option<NearGround> {
     if edges.len() < 3 {
         return None;
     }
-    edges.sort_by(f64::total_cmp);
-    let n = edges.len();
-    let range = if n % 2 == 1 {
-        edges[n / 2]
-    } else {
-        0.5 * (edges[n / 2 - 1] + edges[n / 2])
-    };
-    Some(NearGround { range, scans: n })
+    Some(NearGround {
+        range: median(&mut edges),
+        scans: edges.len(),
+    })
 }
 
 /// [`scan_near_ground`] of every scan on one mount, combined.

@@ -201,16 +201,15 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let frames: Vec<Result<FrameMount, NoGround>> =
         views.iter_mut().filter_map(|v| v.view.take()).collect();
     let result = combine(&frames, &prior, &settings);
-    let near_edge =
-        combine_near_ground(views.iter().filter_map(|v| v.near).collect()).map(|ground| NearEdge {
-            min_range: zones_with_near_edge(&cfg.zones, &ground, ego_radius, &near_cfg)
-                .map(|z| z.min_range),
-            was: cfg.zones.min_range,
-            ground,
-        });
-    let zones = near_edge
+    let near = combine_near_ground(views.iter().filter_map(|v| v.near).collect());
+    let zones = near
         .as_ref()
-        .and_then(|n| zones_with_near_edge(&cfg.zones, &n.ground, ego_radius, &near_cfg));
+        .and_then(|n| zones_with_near_edge(&cfg.zones, n, ego_radius, &near_cfg));
+    let near_edge = near.map(|ground| NearEdge {
+        min_range: zones.as_ref().map(|z| z.min_range),
+        was: cfg.zones.min_range,
+        ground,
+    });
     let mut methods = methods;
     if let Some(z) = &zones {
         methods.segmenter.zones = z.clone();

@@ -219,12 +219,6 @@ impl Segmenter {
         })
     }
 
-    /// The mount scans are segmented with (ground-aligned from sensor): `sensor.mount`,
-    /// unless `mount_check.mode = "correct"` moved it.
-    pub fn mount_in_use(&self) -> &Pose {
-        &self.mount
-    }
-
     /// Forgets the multi-frame history (a new producer run, a new sequence); counted as a
     /// requested reset if there was one. Returns whether frames were dropped.
     pub fn reset_history(&mut self) -> bool {
