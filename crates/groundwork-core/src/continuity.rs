@@ -35,9 +35,10 @@ pub(crate) struct ContinuityScratch {
     /// Per node: Σ weight, Σ weight · height (fixed point); all zero between scans.
     /// One grid of sums per part of the scan splatted in parallel.
     sums: Vec<Vec<[i64; 2]>>,
-    /// Per part: its uncertain points inside the grid (index in the scan, cell), listed
-    /// while splatting so that raising reads only them.
-    candidates: Vec<Vec<[u32; 2]>>,
+    /// Per part: its uncertain points inside the grid (index in the scan, cell, height as
+    /// f32 bits), listed while splatting so that raising reads only them, and screens them
+    /// without a scattered load of their heights.
+    candidates: Vec<Vec<[u32; 3]>>,
     /// Per node: the confident ground's height (m) and how far the node is trusted (0: no
     /// confident point reaches it).
     nodes: Vec<[f32; 2]>,
@@ -198,13 +199,13 @@ pub(crate) fn raise_continuous_ground(
         .map(|(k, (out, candidates))| {
             let first = k * part;
             let mut lifted = 0;
-            for &[i, cell] in candidates {
-                let i = i as usize;
+            for &[i, cell, h] in candidates {
                 let [lo, up] = bounds[cell as usize];
-                let h = z[i] as f32;
+                let h = f32::from_bits(h);
                 if !(h > lo && h < up) {
                     continue;
                 }
+                let i = i as usize;
                 let p = &mut out[i - first];
                 let raised = rule.raised(&grid, nodes, (x[i], y[i], z[i]), *p, || {
                     elevation.likelihood(i, z[i])
@@ -276,7 +277,7 @@ fn splat_confident(
     cfg: &ContinuityConfig,
     rule: &RaiseRule,
     grid: &Grid,
-    (sums, candidates): (&mut [[i64; 2]], &mut Vec<[u32; 2]>),
+    (sums, candidates): (&mut [[i64; 2]], &mut Vec<[u32; 3]>),
     first: usize,
     (x, y, z): (&[f64], &[f64], &[f64]),
     out: &[f32],
@@ -336,7 +337,11 @@ fn splat_confident(
         }
         for k in 0..bp.len() {
             if uncertain[k] {
-                candidates.push([(first + b * BLOCK + k) as u32, cells[k]]);
+                candidates.push([
+                    (first + b * BLOCK + k) as u32,
+                    cells[k],
+                    (bz[k] as f32).to_bits(),
+                ]);
             }
             if nodes[k] == u32::MAX {
                 continue;

@@ -162,16 +162,30 @@ impl RangeProfile {
     const BAND: f64 = 0.25;
 
     fn new(xs: &[f64], ys: &[f64], zs: &[f64], cut: f64) -> Self {
-        // The extremes on squared ranges: one square root per point (in the binning pass),
-        // and the same bits, a correctly rounded root being monotonic.
-        let (lo2, hi2) = xs
-            .iter()
-            .zip(ys)
-            .map(|(&x, &y)| x * x + y * y)
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r2| {
-                (a.min(r2), b.max(r2))
-            });
-        let (lo, hi) = (lo2.sqrt(), hi2.sqrt());
+        // Blocks of points: squared ranges and then bands in straight loops that vectorise
+        // (one square root per point, a correctly rounded root being monotonic: the
+        // extremes on squared ranges give the same bits), the lows in a scalar pass that
+        // keeps the current band's low in a register (points come band after band, and a
+        // min through memory serialised on store-to-load forwarding).
+        const BLOCK: usize = 64;
+        let mut r2 = [0.0f64; BLOCK];
+        let (mut lo2, mut hi2) = ([f64::INFINITY; 4], [f64::NEG_INFINITY; 4]);
+        for (bx, by) in xs.chunks(BLOCK).zip(ys.chunks(BLOCK)) {
+            for (r, (&x, &y)) in r2.iter_mut().zip(bx.iter().zip(by)) {
+                *r = x * x + y * y;
+            }
+            // A last, partial block repeats its first point: the extremes stay.
+            let first = r2[0];
+            r2[bx.len()..].fill(first);
+            for four in r2.chunks_exact(4) {
+                for l in 0..4 {
+                    lo2[l] = if four[l] < lo2[l] { four[l] } else { lo2[l] };
+                    hi2[l] = if four[l] > hi2[l] { four[l] } else { hi2[l] };
+                }
+            }
+        }
+        let lo = lo2.into_iter().fold(f64::INFINITY, f64::min).sqrt();
+        let hi = hi2.into_iter().fold(f64::NEG_INFINITY, f64::max).sqrt();
         if !(lo.is_finite() && hi.is_finite()) {
             return Self {
                 r0: 0.0,
@@ -183,13 +197,31 @@ impl RangeProfile {
         // against an absurd configuration.
         let bands = (((hi - lo) / Self::BAND) as usize + 1).min(1 << 16);
         let mut lows = vec![f64::INFINITY; bands];
-        let ranges = xs.iter().zip(ys).map(|(&x, &y)| range(x, y));
-        for (r, &z) in ranges.zip(zs) {
-            if z >= cut {
-                let b = (((r - lo) / Self::BAND) as usize).min(bands - 1);
-                lows[b] = lows[b].min(z);
+        let last = (bands - 1) as f64;
+        let mut band = [0u32; BLOCK];
+        let (mut current, mut low) = (0usize, f64::INFINITY);
+        for ((bx, by), bz) in xs.chunks(BLOCK).zip(ys.chunks(BLOCK)).zip(zs.chunks(BLOCK)) {
+            for (b, (&x, &y)) in band.iter_mut().zip(bx.iter().zip(by)) {
+                // r ≥ lo, so the band is at least 0, and below 2¹⁶: its floor's integer is
+                // the low bits of floor + 1.5·2⁵² (a plain add that vectorises, where `as`
+                // saturates lane by lane).
+                const MAGIC: f64 = 6_755_399_441_055_744.0;
+                let v = ((range(x, y) - lo) / Self::BAND).min(last).floor();
+                *b = (v + MAGIC).to_bits() as u32;
+            }
+            for (&b, &z) in band[..bz.len()].iter().zip(bz) {
+                if z < cut {
+                    continue;
+                }
+                let b = b as usize;
+                if b != current {
+                    lows[current] = lows[current].min(low);
+                    (current, low) = (b, lows[b]);
+                }
+                low = if z < low { z } else { low };
             }
         }
+        lows[current] = lows[current].min(low);
         let line = Self::envelope(&lows);
         Self { r0: lo, lows, line }
     }
