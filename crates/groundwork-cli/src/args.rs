@@ -535,6 +535,11 @@ pub struct CalibrateArgs {
     /// (ground IoU, %, in 10 m rings from the sensor): beyond, neither can be taken as truth.
     #[arg(long, default_value_t = 90.0)]
     pub param_trust: f64,
+    /// With --fit-params, also fit the layout of the two inner zones (their boundary,
+    /// rings and sectors) to the labels. Off by default: it can fit the labeler's own
+    /// mistakes (docs/calibration.md).
+    #[arg(long, requires = "fit_params")]
+    pub fit_zones: bool,
     /// Keep the preset's zone model as it is. By default its near edge (`zones.min_range`)
     /// moves in to where the scans first see ground on the mount found, if that is nearer
     /// (a lower or pitched mount; docs/calibration.md).

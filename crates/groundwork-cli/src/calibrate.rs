@@ -220,7 +220,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .take(a.param_scans)
         .collect();
     let (parameters, parameters_refused) = match (&result, a.fit_params) {
-        (Ok(est), true) => match fit_params(&methods, est, &sample, a.param_trust) {
+        (Ok(est), true) => match fit_params(&methods, est, &sample, a.param_trust, a.fit_zones) {
             Ok(fit) => (Some(fit), None),
             Err(e) => {
                 error!("parameters not fitted: {e:#}");
@@ -257,8 +257,20 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .file_stem()
         .map_or_else(|| "calibrated".into(), |s| s.to_string_lossy().into_owned());
     let mut text = preset_text(&base, &name, &prior_mount, &est, &a.inputs);
-    if let (Some(z), Some(n)) = (&zones, &report.near_edge) {
-        text += &zones_text(z, n);
+    // The zones in use: the parameter fit's (it started from the moved near edge), else
+    // the moved near edge's.
+    let fitted = report.parameters.as_ref().filter(|f| !f.kept_preset);
+    let final_zones = fitted.map(|f| &f.config.zones).or(zones.as_ref());
+    let layout = |z: &ZoneConfig| {
+        (
+            z.resolved_boundaries().ok(),
+            z.rings.clone(),
+            z.sectors.clone(),
+        )
+    };
+    if let Some(z) = final_zones.filter(|z| layout(z) != layout(&cfg.zones)) {
+        let moved = report.near_edge.as_ref().filter(|n| n.min_range.is_some());
+        text += &zones_text(&cfg.zones, z, moved);
     }
     if let Some(fit) = &report.parameters {
         text += &params_text(&cfg, fit);
@@ -298,28 +310,55 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     )
 }
 
-/// The `[zones]` section: the near edge moved in, the other boundaries written out as the
-/// preset had them.
-fn zones_text(z: &ZoneConfig, n: &NearEdge) -> String {
-    let b: Vec<String> = z
-        .boundaries
-        .iter()
-        .flatten()
-        .map(|v| format!("{v:?}"))
-        .collect();
-    format!(
-        "\n[zones]\n\
-         # Moved in to where the scans first see ground on the mount found: {:.2} m (the\n\
-         # median over {} scans of the 1st percentile of the range of points within 15 cm of\n\
-         # the ground), times 0.9. The other boundaries are the preset's.\n\
-         min_range = {:?}  # was {}\n\
-         boundaries = [{}]\n",
-        n.ground.range,
-        n.ground.scans,
-        z.min_range,
-        n.was,
-        b.join(", ")
-    )
+/// The `[zones]` section: the near edge moved in (`near`) and the inner zones' layout as
+/// the parameter fit left it, each changed value's old one in a comment.
+fn zones_text(preset: &ZoneConfig, z: &ZoneConfig, near: Option<&NearEdge>) -> String {
+    let list = |v: &[f64]| {
+        let v: Vec<String> = v.iter().map(|v| format!("{v:?}")).collect();
+        format!("[{}]", v.join(", "))
+    };
+    let whole = |v: &[u32]| format!("{v:?}");
+    let was = |new: &str, old: &str| {
+        if new == old {
+            String::new()
+        } else {
+            format!("  # was {old}")
+        }
+    };
+    let mut s = String::from("\n[zones]\n");
+    if let Some(n) = near {
+        let _ = write!(
+            s,
+            "# The near edge moved in to where the scans first see ground on the mount found:\n\
+             # {:.2} m (the median over {} scans of the 1st percentile of the range of points\n\
+             # within 15 cm of the ground), times 0.9.\n",
+            n.ground.range, n.ground.scans
+        );
+    }
+    let (old_b, new_b) = (
+        preset.resolved_boundaries().unwrap_or_default(),
+        z.resolved_boundaries().unwrap_or_default(),
+    );
+    if new_b[1..] != old_b[1..] || z.rings != preset.rings || z.sectors != preset.sectors {
+        s += "# The inner zones' layout fitted to the PseudoLabeler's labels (see the parameters\n\
+              # below).\n";
+    }
+    let (min_new, min_old) = (
+        format!("{:?}", z.min_range),
+        format!("{}", preset.min_range),
+    );
+    let _ = writeln!(s, "min_range = {min_new}{}", was(&min_new, &min_old));
+    let (b_new, b_old) = (list(&new_b), list(&old_b));
+    let _ = writeln!(s, "boundaries = {b_new}{}", was(&b_new, &b_old));
+    for (key, new, old) in [
+        ("rings", &z.rings, &preset.rings),
+        ("sectors", &z.sectors, &preset.sectors),
+    ] {
+        if new != old {
+            let _ = writeln!(s, "{key} = {}{}", whole(new), was(&whole(new), &whole(old)));
+        }
+    }
+    s
 }
 
 /// The parameter fit: the sample pseudo-labelled with the mount found, then the search.
@@ -328,6 +367,7 @@ fn fit_params(
     est: &MountEstimate,
     sample: &[Vec<[f32; 3]>],
     trust: f64,
+    fit_zones: bool,
 ) -> Result<ParamFit> {
     let mut cfg = methods.segmenter.clone();
     cfg.sensor.mount = est.mount();
@@ -355,6 +395,7 @@ fn fit_params(
         .collect();
     let search = ParamSearchConfig {
         trust_agreement: trust,
+        fit_zones,
         ..ParamSearchConfig::default()
     };
     info!(
@@ -401,8 +442,10 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
         s += "# No change agreed better with the held-out scans: the preset's parameters are kept.\n";
         return s;
     }
-    s += "[ground]\n";
     let (new, old) = (&fit.config.ground, &base.ground);
+    if new != old {
+        s += "[ground]\n";
+    }
     for (key, n, o) in [
         ("flatness", new.flatness, old.flatness),
         ("orientation", new.orientation, old.orientation),

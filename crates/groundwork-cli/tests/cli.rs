@@ -1209,8 +1209,8 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
             .unwrap()
     };
     // The labels trusted at every range (on KITTI the PseudoLabeler is right far out too),
-    // so that parameters change and are written.
-    let o = run("a.toml", &["--param-trust", "0"]);
+    // so that parameters change and are written; the inner zones' layout fitted too.
+    let o = run("a.toml", &["--param-trust", "0", "--fit-zones"]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     assert!(
@@ -1237,6 +1237,13 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
     let cfg =
         groundwork_io::load_config_over(Some("hdl64e"), Some(&tmp.path().join("a.toml"))).unwrap();
     assert!(!p["changed"].as_array().unwrap().is_empty(), "{p}");
+    // The layout moved here (KITTI: the first zone's sectors), and is in the file's [zones].
+    let zones_moved = p["changed"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|c| c["name"].as_str().unwrap().starts_with("zones."));
+    assert!(zones_moved && written.contains("[zones]"), "{p}\n{written}");
     for change in p["changed"].as_array().unwrap() {
         let name = change["name"].as_str().unwrap();
         let new = change["new"].as_f64().unwrap();
@@ -1250,6 +1257,11 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
             "ground.elevation_window" => cfg.ground.elevation_window,
             "ground.outlier_threshold" => cfg.ground.outlier_threshold,
             "ground.ground_threshold" => f64::from(cfg.ground.ground_threshold),
+            "zones.boundaries[1]" => cfg.zones.resolved_boundaries().unwrap()[1],
+            "zones.rings[0]" => f64::from(cfg.zones.rings[0]),
+            "zones.rings[1]" => f64::from(cfg.zones.rings[1]),
+            "zones.sectors[0]" => f64::from(cfg.zones.sectors[0]),
+            "zones.sectors[1]" => f64::from(cfg.zones.sectors[1]),
             other => panic!("unexpected parameter {other}"),
         };
         assert!(
@@ -1259,7 +1271,7 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
         assert!(written.contains("# was "), "{written}");
     }
     // Deterministic: the same scans give the same file.
-    let o = run("b.toml", &["--param-trust", "0"]);
+    let o = run("b.toml", &["--param-trust", "0", "--fit-zones"]);
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     let again = fs::read_to_string(tmp.path().join("b.toml")).unwrap();
     // The name is the file's stem; everything else is the same.
