@@ -31,13 +31,12 @@ impl GroundFrame {
     /// within `ego_radius` metres horizontally belong to the vehicle, and which never sends
     /// more than `max_points`.
     pub fn new(mount: &Pose, ego_radius: f64, max_points: usize) -> Self {
-        let h = mount.to_homogeneous();
-        let col = |c: usize| Vec3A::new(h[(0, c)] as f32, h[(1, c)] as f32, h[(2, c)] as f32);
         Self {
-            mount: Affine3A::from_cols(col(0), col(1), col(2), col(3)),
+            mount: Affine3A::IDENTITY,
             ego_radius_sq: (ego_radius * ego_radius) as f32,
             max_points,
         }
+        .with_mount(mount)
     }
 
     /// The frame a segmenter configuration describes: its mount, ego radius and maximum.
@@ -48,6 +47,16 @@ impl GroundFrame {
             cfg.sensor.ego_radius,
             cfg.sensor.max_points,
         ))
+    }
+
+    /// The same frame for a sensor mounted by `mount` (ego radius and maximum kept).
+    pub fn with_mount(&self, mount: &Pose) -> Self {
+        let h = mount.to_homogeneous();
+        let col = |c: usize| Vec3A::new(h[(0, c)] as f32, h[(1, c)] as f32, h[(2, c)] as f32);
+        Self {
+            mount: Affine3A::from_cols(col(0), col(1), col(2), col(3)),
+            ..*self
+        }
     }
 
     /// Largest scan accepted.

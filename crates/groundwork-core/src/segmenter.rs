@@ -208,6 +208,12 @@ impl Segmenter {
         self.reset_history()
     }
 
+    /// The mount the next scan is segmented with (ground-aligned frame from sensor):
+    /// `sensor.mount`, or where `mount_check.mode = "correct"` has moved it.
+    pub fn mount_in_use(&self) -> Pose {
+        self.mount
+    }
+
     /// The mount observed in the ground fitted so far (`mount_check.mode` `warn` or
     /// `correct`): height, roll and pitch, how far they are from the configured mount, and
     /// the mount in use. None before the first scan with enough ground, or with the check

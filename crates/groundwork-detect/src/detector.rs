@@ -235,6 +235,12 @@ pub struct Detector {
 }
 
 impl Detector {
+    /// Works from now on in the ground-aligned frame of a sensor mounted by `mount` (the
+    /// segmenter's mount in use, where it corrects `sensor.mount`).
+    pub fn set_mount(&mut self, mount: &groundwork_core::Pose) {
+        self.frame = self.frame.with_mount(mount);
+    }
+
     /// A detector for the sensor and segmenter `segmenter` describes (mount, ego radius,
     /// threshold and minimum range where `cfg` leaves them open).
     pub fn new(cfg: DetectorConfig, segmenter: &SegmenterConfig) -> Result<Self, ConfigError> {

@@ -34,7 +34,7 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Bumped on every incompatible change of a header or payload layout.
-pub const SCHEMA_VERSION: u32 = 3;
+pub const SCHEMA_VERSION: u32 = 4;
 
 /// One LiDAR return, 16 bytes, the KITTI `.bin` layout.
 #[repr(C)]
@@ -267,6 +267,14 @@ pub struct MaskHeader {
     pub mask_sequence: u64,
     /// The scan's coordinate frame.
     pub frame_id: FrameId,
+    /// 1 if `mount` holds the mount the scan was segmented with, 0 for none (a writer
+    /// that does not know it): a stage that works in the ground-aligned frame follows it,
+    /// so that it stays with a segmenter that corrects its mount (`mount_check.mode`).
+    pub has_mount: u32,
+    /// Zero (keeps `mount` 8-byte aligned).
+    pub reserved: u32,
+    /// Ground-aligned frame from sensor, 4×4 row-major.
+    pub mount: [f64; 16],
 }
 
 impl Default for MaskHeader {
@@ -288,6 +296,9 @@ impl Default for MaskHeader {
             segmenter_epoch: 0,
             mask_sequence: 0,
             frame_id: FrameId::default(),
+            has_mount: 0,
+            reserved: 0,
+            mount: IDENTITY,
         }
     }
 }
@@ -464,8 +475,8 @@ mod tests {
         // 4 + 4 + 8 × 4 + 32 + 4 + 4 + 128 + 64 (frame id)
         assert_eq!(std::mem::size_of::<ScanHeader>(), 272);
         assert_eq!(ScanHeader::default().schema_version, SCHEMA_VERSION);
-        // 4 + 4 + 8 × 4 + 32 + 4 × 6 + 8 × 2 + 64 (frame id)
-        assert_eq!(std::mem::size_of::<MaskHeader>(), 176);
+        // 4 + 4 + 8 × 4 + 32 + 4 × 6 + 8 × 2 + 64 (frame id) + 4 + 4 + 128 (mount)
+        assert_eq!(std::mem::size_of::<MaskHeader>(), 312);
         assert_eq!(std::mem::size_of::<ProposalRecord>(), 56);
         assert_eq!(
             std::mem::size_of::<ProposalsHeader>(),

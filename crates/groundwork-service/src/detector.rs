@@ -8,7 +8,7 @@
 
 use std::collections::BTreeMap;
 
-use groundwork_core::SegmenterConfig;
+use groundwork_core::{SegmenterConfig, mount_transform, pose_from_matrix};
 use groundwork_detect::{Detections, Detector, DetectorConfig};
 use groundwork_msg::{
     MAX_PROPOSALS, MaskHeader, MaskStatus, ProposalRecord, ProposalsHeader, ScanHeader, ScanPoint,
@@ -49,11 +49,15 @@ pub struct DetectorStage {
     count: Option<u64>,
     rejection: Option<String>,
     report: DetectorReport,
+    /// The mount the detector works in (row-major, as masks carry it): `sensor.mount`
+    /// until a mask carries another.
+    mount: [f64; 16],
 }
 
 impl DetectorStage {
     /// A stage for the sensor and segmenter `segmenter` describes.
     pub fn new(segmenter: &SegmenterConfig, detector: DetectorConfig) -> anyhow::Result<Self> {
+        let mount = mount_transform(&segmenter.sensor.mount)?.to_homogeneous();
         Ok(Self {
             detector: Detector::new(detector, segmenter)?,
             window: ScanWindow::default(),
@@ -62,6 +66,7 @@ impl DetectorStage {
             count: None,
             rejection: None,
             report: DetectorReport::default(),
+            mount: std::array::from_fn(|k| mount[(k / 4, k % 4)]),
         })
     }
 
@@ -130,6 +135,23 @@ impl DetectorStage {
                     points.len()
                 ),
             );
+        }
+        // The ground-aligned frame the segmenter used: it moves where the segmenter
+        // corrects its mount, and the detector's ground map and boxes move with it.
+        if m.has_mount == 1 && self.mount != m.mount {
+            let rows = std::array::from_fn(|r| std::array::from_fn(|c| m.mount[4 * r + c]));
+            match pose_from_matrix(&rows) {
+                Ok(mount) => {
+                    self.detector.set_mount(&mount);
+                    self.mount = m.mount;
+                }
+                Err(e) => {
+                    return self.skip(
+                        "bad_mask",
+                        format!("mask of scan {}: its mount: {e}", m.scan_sequence),
+                    );
+                }
+            }
         }
         let report = match self.detector.detect(&points, probabilities, &mut self.out) {
             Ok(r) => r,
@@ -341,6 +363,50 @@ mod tests {
         // The scan left the window with its mask: the same mask again finds nothing.
         assert!(s.detect(&mh, &probs, 43).is_none());
         assert_eq!(s.report().skipped["scan_missing"], 1);
+    }
+
+    /// A stage told `sensor.mount` 1.73 m up follows the mount a mask carries (a segmenter
+    /// that corrected its own): the same proposals as a stage configured with that mount;
+    /// a mask without one leaves the frame as it is, and a mount that is not rigid is
+    /// refused and counted.
+    #[test]
+    fn the_mount_a_mask_carries_is_the_one_detected_in() {
+        let pts = scan();
+        let tilted = {
+            let mut c = SegmenterConfig::default();
+            c.sensor.mount.height = 1.9;
+            c.sensor.mount.pitch = 0.05;
+            c
+        };
+        let mut seg = groundwork_core::Segmenter::new(tilted.clone()).unwrap();
+        let mut probs = vec![0.0; pts.len()];
+        seg.segment(&pts, None, &mut probs).unwrap();
+        let mount = seg.mount_in_use().to_homogeneous();
+        let run = |s: &mut DetectorStage, seq: u64, with_mount: bool| {
+            let (sh, mut mh) = headers(seq, pts.len());
+            if with_mount {
+                mh.has_mount = 1;
+                mh.mount = std::array::from_fn(|k| mount[(k / 4, k % 4)]);
+            }
+            s.on_scan(&sh, &pts);
+            let h = s.detect(&mh, &probs, 1).expect("answered");
+            h.proposals().to_vec()
+        };
+        let mut told = DetectorStage::new(&tilted, DetectorConfig::default()).unwrap();
+        let expected = run(&mut told, 1, false);
+        let mut s = stage();
+        let before = run(&mut s, 1, false);
+        assert_ne!(before, expected, "the mount must matter for this scene");
+        assert_eq!(run(&mut s, 2, true), expected);
+        // Kept for masks that carry none.
+        assert_eq!(run(&mut s, 3, false), expected);
+        let (sh, mut mh) = headers(4, pts.len());
+        s.on_scan(&sh, &pts);
+        mh.has_mount = 1;
+        mh.mount[0] = 2.0; // scaled: not a rotation
+        assert!(s.detect(&mh, &probs, 1).is_none());
+        assert!(s.last_rejection().unwrap().contains("its mount"));
+        assert_eq!(s.report().skipped["bad_mask"], 1);
     }
 
     #[test]

@@ -210,6 +210,9 @@ impl SegmenterStage {
                 );
             }
         }
+        // The mount this scan is segmented with (a correcting mount check moves it after the
+        // scan, for the next one).
+        let mount = self.seg.mount_in_use().to_homogeneous();
         let outcome = validate(h, points, self.max_points).and_then(|()| {
             if out.len() != points.len() {
                 return Err((
@@ -243,6 +246,8 @@ impl SegmenterStage {
                     header.fit_us = r.fit_time.as_micros() as u32;
                     header.query_us = r.query_time.as_micros() as u32;
                     header.out_of_bounds_points = r.out_of_bounds_points as u32;
+                    header.has_mount = 1;
+                    header.mount = std::array::from_fn(|k| mount[(k / 4, k % 4)]);
                     self.report.out_of_bounds_points += r.out_of_bounds_points as u64;
                 }
             }
@@ -425,7 +430,14 @@ mod tests {
             m
         };
         for i in 0..3 {
-            run(&mut s, header(1, i, pts.len(), i as f64 * 0.5, i * 100));
+            let m = run(&mut s, header(1, i, pts.len(), i as f64 * 0.5, i * 100));
+            // The mask carries the mount the scan was segmented with: sensor.mount here.
+            assert_eq!(m.has_mount, 1);
+            assert_eq!(
+                m.mount[11], 1.73,
+                "the ground lies 1.73 m below: {:?}",
+                m.mount
+            );
         }
         assert_eq!(s.segmenter().history_len(), 2);
         // A restarted driver on the same drive: pose and clock continue. History kept.
@@ -452,6 +464,7 @@ mod tests {
         assert_eq!(s.mask_len(&h, &pts), 0);
         let m = s.segment(&h, &pts, 1, &mut []);
         assert_eq!((m.status, m.point_count), (MaskStatus::COUNT_MISMATCH, 0));
+        assert_eq!(m.has_mount, 0, "no mount for a scan not segmented");
         assert!(s.last_rejection().unwrap().contains("11"));
         h.point_count = 10;
         h.pose[0] = 2.0; // not a rotation
