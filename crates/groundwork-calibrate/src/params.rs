@@ -182,50 +182,39 @@ fn knobs(zones: bool) -> Vec<Knob> {
 
 /// The layout of the two inner zones (`ParamSearchConfig::fit_zones`).
 fn zone_knobs() -> Vec<Knob> {
-    vec![
-        // The layout of the two inner zones, where the labels are trusted: the sensor's
-        // density decides how small a segment can be and still hold enough ground to fit.
-        // The outer zones are left alone: the labels seldom hold that far.
+    // The layout of the two inner zones, where the labels are trusted: the sensor's
+    // density decides how small a segment can be and still hold enough ground to fit.
+    // The outer zones are left alone: the labels seldom hold that far.
+    std::iter::once(Knob {
+        name: "zones.boundaries[1]",
+        get: |c| boundary(c, 1),
+        set: |c, v| set_boundary(c, 1, v),
+        unit: 1.25,
+        log: true,
+        lo: 1.0,
+        hi: 100.0,
+    })
+    .chain(zone_layout_knobs::<0>("zones.rings[0]", "zones.sectors[0]"))
+    .chain(zone_layout_knobs::<1>("zones.rings[1]", "zones.sectors[1]"))
+    .collect()
+}
+
+/// The rings (±1, 1–8) and sectors (×/÷1.5, 4–360) of zone `Z`, named `rings` and `sectors`.
+fn zone_layout_knobs<const Z: usize>(rings: &'static str, sectors: &'static str) -> [Knob; 2] {
+    [
         Knob {
-            name: "zones.boundaries[1]",
-            get: |c| boundary(c, 1),
-            set: |c, v| set_boundary(c, 1, v),
-            unit: 1.25,
-            log: true,
-            lo: 1.0,
-            hi: 100.0,
-        },
-        Knob {
-            name: "zones.rings[0]",
-            get: |c| layout(c, |z| &z.rings, 0),
-            set: |c, v| set_layout(c, |z| &mut z.rings, 0, v),
+            name: rings,
+            get: |c| layout(c, |z| &z.rings, Z),
+            set: |c, v| set_layout(c, |z| &mut z.rings, Z, v),
             unit: 1.0,
             log: false,
             lo: 1.0,
             hi: 8.0,
         },
         Knob {
-            name: "zones.sectors[0]",
-            get: |c| layout(c, |z| &z.sectors, 0),
-            set: |c, v| set_layout(c, |z| &mut z.sectors, 0, v),
-            unit: 1.5,
-            log: true,
-            lo: 4.0,
-            hi: 360.0,
-        },
-        Knob {
-            name: "zones.rings[1]",
-            get: |c| layout(c, |z| &z.rings, 1),
-            set: |c, v| set_layout(c, |z| &mut z.rings, 1, v),
-            unit: 1.0,
-            log: false,
-            lo: 1.0,
-            hi: 8.0,
-        },
-        Knob {
-            name: "zones.sectors[1]",
-            get: |c| layout(c, |z| &z.sectors, 1),
-            set: |c, v| set_layout(c, |z| &mut z.sectors, 1, v),
+            name: sectors,
+            get: |c| layout(c, |z| &z.sectors, Z),
+            set: |c, v| set_layout(c, |z| &mut z.sectors, Z, v),
             unit: 1.5,
             log: true,
             lo: 4.0,

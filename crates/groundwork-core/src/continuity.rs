@@ -17,6 +17,7 @@
 use rayon::prelude::*;
 
 use crate::config::{ContinuityConfig, Sigmoid};
+use crate::fastmath::round_i32;
 use crate::likelihood::inverted_sigmoid;
 use crate::model::FrameModel;
 use crate::zones::{BEYOND, NEAR};
@@ -257,15 +258,6 @@ fn height_bounds(
             }
         }
     }
-}
-
-/// Rounds to the nearest integer (ties to even) for |v| < 2³¹: adding 1.5·2⁵² leaves the
-/// integer in the low mantissa bits, a plain add that vectorises where `as` saturates
-/// lane by lane.
-#[inline(always)]
-fn round_i32(v: f64) -> i32 {
-    const MAGIC: f64 = 6_755_399_441_055_744.0;
-    (v + MAGIC).to_bits() as u32 as i32
 }
 
 /// Adds every confident point's height to its four nodes, weighted by its confidence and

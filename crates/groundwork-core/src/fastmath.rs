@@ -7,6 +7,15 @@
 use crate::simd::{Vf, Vi};
 use wide::bytemuck::cast;
 
+/// Rounds to the nearest integer (ties to even) for |v| < 2³¹ (beyond, the result wraps):
+/// adding 1.5·2⁵² leaves the integer in the low mantissa bits (two's complement for
+/// negatives), a plain add that vectorises where `as` saturates lane by lane.
+#[inline(always)]
+pub(crate) fn round_i32(v: f64) -> i32 {
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    (v + MAGIC).to_bits() as u32 as i32
+}
+
 /// What the exponential needs of its lanes: `f32` itself or the query's vector of them. One
 /// body serves the EM (scalar code that the compiler vectorises) and the query (16 lanes),
 /// so their bits agree.

@@ -17,7 +17,7 @@ use wide::bytemuck::cast;
 use wide::{f32x8, i32x8};
 
 use crate::config::GmmConfig;
-use crate::fastmath::{exp_nonpositive, ln_positive};
+use crate::fastmath::{exp_nonpositive, ln_positive, round_i32};
 
 const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
@@ -266,13 +266,10 @@ fn cube_hash(ix: i32, iy: i32, iz: i32) -> u32 {
 /// Cube index and place in the cube (in [0, 1)) of one coordinate.
 #[inline(always)]
 fn cube_coordinate(v: f64) -> (i32, f64) {
-    // Adding 1.5·2⁵² to an integer-valued f64 puts the integer in the low mantissa bits
-    // (two's complement for negatives): a conversion that vectorises, where `as i32`
-    // saturates lane by lane. Beyond ±2³¹ cubes (43,000 km) the index wraps, harmlessly.
-    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    // Beyond ±2³¹ cubes (43,000 km) the index wraps, harmlessly.
     let q = v * (1.0 / CUBE_EDGE);
     let f = q.floor();
-    ((f + MAGIC).to_bits() as u32 as i32, q - f)
+    (round_i32(f), q - f)
 }
 
 /// Share of the own cube (vs the neighbour `step` away) for a place `t` in the cube:

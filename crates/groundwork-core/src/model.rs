@@ -3,6 +3,7 @@
 use rayon::prelude::*;
 
 use crate::config::SegmenterConfig;
+use crate::fastmath::round_i32;
 use crate::gmm::{EmScratch, Evaluator, Gaussian, fit_segment_with};
 use crate::grouping::SegmentedPoints;
 use crate::likelihood::{flatness, inverted_sigmoid};
@@ -202,12 +203,8 @@ impl RangeProfile {
         let (mut current, mut low) = (0usize, f64::INFINITY);
         for ((bx, by), bz) in xs.chunks(BLOCK).zip(ys.chunks(BLOCK)).zip(zs.chunks(BLOCK)) {
             for (b, (&x, &y)) in band.iter_mut().zip(bx.iter().zip(by)) {
-                // r ≥ lo, so the band is at least 0, and below 2¹⁶: its floor's integer is
-                // the low bits of floor + 1.5·2⁵² (a plain add that vectorises, where `as`
-                // saturates lane by lane).
-                const MAGIC: f64 = 6_755_399_441_055_744.0;
-                let v = ((range(x, y) - lo) / Self::BAND).min(last).floor();
-                *b = (v + MAGIC).to_bits() as u32;
+                // r ≥ lo, so the band is at least 0, and below 2¹⁶.
+                *b = round_i32(((range(x, y) - lo) / Self::BAND).min(last).floor()) as u32;
             }
             for (&b, &z) in band[..bz.len()].iter().zip(bz) {
                 if z < cut {

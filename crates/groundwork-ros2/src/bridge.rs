@@ -27,6 +27,7 @@ use groundwork_msg::{
     ScanPoint, ScanSource, monotonic_ns, new_epoch, wall_clock_ns,
 };
 use groundwork_service::ServiceConfig;
+use groundwork_service::producer::pose_matrix;
 use groundwork_service::stage::{self, Input, Inputs, Outbox, Stage, Topic, Wiring};
 
 use crate::msg::{
@@ -35,7 +36,7 @@ use crate::msg::{
     PoseWithCovariance, Quaternion, TFMessage, Time, Transform, TransformStamped, Vector3,
 };
 use crate::odom::OdomTrack;
-use crate::pose::{Pose as Isometry, row_major};
+use crate::pose::Pose as Isometry;
 use crate::tf::TfTree;
 
 /// Reliability of the input subscription.
@@ -364,7 +365,7 @@ impl CloudsIn {
             match o.pose(frame, header.sensor_timestamp_ns) {
                 Ok(p) => {
                     header.has_pose = 1;
-                    header.pose = row_major(&p);
+                    header.pose = pose_matrix(&p);
                 }
                 Err(reason) => {
                     let mut s = lock(&self.shared);

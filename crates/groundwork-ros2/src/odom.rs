@@ -4,7 +4,7 @@
 use crate::msg::Odometry;
 use crate::pose::{PoseTrack, pose_of, stamp_ns};
 
-pub use crate::pose::{HOLD_NS, Pose, row_major};
+pub use crate::pose::{HOLD_NS, Pose};
 
 /// The odometry samples seen, in stamp order.
 #[derive(Debug)]

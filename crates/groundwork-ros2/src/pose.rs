@@ -124,12 +124,6 @@ fn between((ta, pa): (u64, Pose), (tb, pb): (u64, Pose), t: u64) -> Pose {
     pa * scaled
 }
 
-/// A pose as the scan header's row-major 4×4 matrix.
-pub fn row_major(p: &Pose) -> [f64; 16] {
-    let m = p.to_homogeneous();
-    std::array::from_fn(|i| m[(i / 4, i % 4)])
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -207,12 +201,5 @@ mod tests {
             .is_err()
         );
         assert_eq!(stamp_ns(&Time { sec: 2, nanosec: 5 }), Ok(2 * S + 5));
-    }
-
-    #[test]
-    fn row_major_is_the_header_layout() {
-        let p = Pose::from_parts(Translation3::new(1.0, 2.0, 3.0), UnitQuaternion::identity());
-        let m = row_major(&p);
-        assert_eq!([m[3], m[7], m[11], m[15]], [1.0, 2.0, 3.0, 1.0]);
     }
 }

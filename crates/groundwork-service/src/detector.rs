@@ -8,7 +8,7 @@
 
 use std::collections::BTreeMap;
 
-use groundwork_core::{SegmenterConfig, mount_transform, pose_from_matrix};
+use groundwork_core::{SegmenterConfig, mount_transform};
 use groundwork_detect::{Detections, Detector, DetectorConfig};
 use groundwork_msg::{
     MAX_PROPOSALS, MaskHeader, MaskStatus, ProposalRecord, ProposalsHeader, ScanHeader, ScanPoint,
@@ -18,6 +18,8 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::ServiceConfig;
+use crate::producer::pose_matrix;
+use crate::segmenter::pose_from_row_major;
 use crate::stage::{Input, Inputs, Outbox, Stage, Topic, Wiring};
 use crate::window::ScanWindow;
 
@@ -57,7 +59,7 @@ pub struct DetectorStage {
 impl DetectorStage {
     /// A stage for the sensor and segmenter `segmenter` describes.
     pub fn new(segmenter: &SegmenterConfig, detector: DetectorConfig) -> anyhow::Result<Self> {
-        let mount = mount_transform(&segmenter.sensor.mount)?.to_homogeneous();
+        let mount = pose_matrix(&mount_transform(&segmenter.sensor.mount)?);
         Ok(Self {
             detector: Detector::new(detector, segmenter)?,
             window: ScanWindow::default(),
@@ -66,7 +68,7 @@ impl DetectorStage {
             count: None,
             rejection: None,
             report: DetectorReport::default(),
-            mount: std::array::from_fn(|k| mount[(k / 4, k % 4)]),
+            mount,
         })
     }
 
@@ -139,8 +141,7 @@ impl DetectorStage {
         // The ground-aligned frame the segmenter used: it moves where the segmenter
         // corrects its mount, and the detector's ground map and boxes move with it.
         if m.has_mount == 1 && self.mount != m.mount {
-            let rows = std::array::from_fn(|r| std::array::from_fn(|c| m.mount[4 * r + c]));
-            match pose_from_matrix(&rows) {
+            match pose_from_row_major(&m.mount) {
                 Ok(mount) => {
                     self.detector.set_mount(&mount);
                     self.mount = m.mount;
@@ -381,12 +382,12 @@ mod tests {
         let mut seg = groundwork_core::Segmenter::new(tilted.clone()).unwrap();
         let mut probs = vec![0.0; pts.len()];
         seg.segment(&pts, None, &mut probs).unwrap();
-        let mount = seg.mount_in_use().to_homogeneous();
+        let mount = pose_matrix(&seg.mount_in_use());
         let run = |s: &mut DetectorStage, seq: u64, with_mount: bool| {
             let (sh, mut mh) = headers(seq, pts.len());
             if with_mount {
                 mh.has_mount = 1;
-                mh.mount = std::array::from_fn(|k| mount[(k / 4, k % 4)]);
+                mh.mount = mount;
             }
             s.on_scan(&sh, &pts);
             let h = s.detect(&mh, &probs, 1).expect("answered");

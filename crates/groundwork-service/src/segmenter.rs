@@ -15,6 +15,7 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::ServiceConfig;
+use crate::producer::pose_matrix;
 use crate::stage::{Input, Inputs, Outbox, Stage, Topic, Wiring};
 
 /// Segmenter options beyond the shared configuration.
@@ -93,12 +94,16 @@ pub fn validate<P>(
 /// The pose a scan header carries, if any (an invalid one is an error).
 pub fn decode_pose(h: &ScanHeader) -> Result<Option<Pose>, SegmentError> {
     (h.has_pose == 1)
-        .then(|| {
-            pose_from_matrix(&std::array::from_fn(|r| {
-                std::array::from_fn(|c| h.pose[4 * r + c])
-            }))
-        })
+        .then(|| pose_from_row_major(&h.pose))
         .transpose()
+}
+
+/// A pose from a header's 4×4 row-major matrix (the inverse of
+/// [`crate::producer::pose_matrix`]), refused if it is not rigid.
+pub fn pose_from_row_major(m: &[f64; 16]) -> Result<Pose, SegmentError> {
+    pose_from_matrix(&std::array::from_fn(|r| {
+        std::array::from_fn(|c| m[4 * r + c])
+    }))
 }
 
 /// Scans missing between sequence numbers `last` and `next` of one producer run (0 if
@@ -212,7 +217,7 @@ impl SegmenterStage {
         }
         // The mount this scan is segmented with (a correcting mount check moves it after the
         // scan, for the next one).
-        let mount = self.seg.mount_in_use().to_homogeneous();
+        let mount = pose_matrix(&self.seg.mount_in_use());
         let outcome = validate(h, points, self.max_points).and_then(|()| {
             if out.len() != points.len() {
                 return Err((
@@ -247,7 +252,7 @@ impl SegmenterStage {
                     header.query_us = r.query_time.as_micros() as u32;
                     header.out_of_bounds_points = r.out_of_bounds_points as u32;
                     header.has_mount = 1;
-                    header.mount = std::array::from_fn(|k| mount[(k / 4, k % 4)]);
+                    header.mount = mount;
                     self.report.out_of_bounds_points += r.out_of_bounds_points as u64;
                 }
             }
@@ -454,6 +459,22 @@ mod tests {
         run(&mut s, header(3, u64::MAX, pts.len(), 500.0, 600));
         run(&mut s, header(3, 0, pts.len(), 500.0, 700));
         assert_eq!(s.report().dropped, 4 + (u64::MAX - 6));
+    }
+
+    #[test]
+    fn a_pose_in_a_header_is_row_major_and_reads_back() {
+        let (s, c) = 0.3f64.sin_cos();
+        let p = pose_from_matrix(&[
+            [c, -s, 0.0, 1.0],
+            [s, c, 0.0, 2.0],
+            [0.0, 0.0, 1.0, 3.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ])
+        .unwrap();
+        let m = pose_matrix(&p);
+        assert_eq!([m[3], m[7], m[11], m[15]], [1.0, 2.0, 3.0, 1.0]);
+        let back = pose_from_row_major(&m).unwrap();
+        assert!((back.to_homogeneous() - p.to_homogeneous()).abs().max() < 1e-12);
     }
 
     #[test]
