@@ -75,13 +75,20 @@ impl GroundFrame {
 
     /// Checks a scan: finite coordinates, at most the maximum.
     pub fn check<P: PointXyz + Sync>(&self, points: &[P]) -> Result<(), SegmentError> {
+        self.check_size(points)?;
+        check_finite(points)
+    }
+
+    /// Checks a scan's size alone (at most the maximum), for a caller that tests the
+    /// coordinates in a pass of its own.
+    pub fn check_size<P>(&self, points: &[P]) -> Result<(), SegmentError> {
         if points.len() > self.max_points {
             return Err(SegmentError::TooManyPoints {
                 points: points.len(),
                 max: self.max_points,
             });
         }
-        check_finite(points)
+        Ok(())
     }
 
     /// A point (sensor frame) in the ground-aligned frame.

@@ -3,7 +3,9 @@
 
 use std::time::{Duration, Instant};
 
-use groundwork_core::{ConfigError, GroundFrame, PointXyz, SegmentError, SegmenterConfig};
+use groundwork_core::{
+    ConfigError, GroundFrame, PointXyz, SegmentError, SegmenterConfig, check_finite,
+};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use thiserror::Error;
 
@@ -212,6 +214,8 @@ struct Piece {
     /// Those of them in the height band: to cluster, and to join.
     candidates: Vec<Maybe>,
     joiners: Vec<Maybe>,
+    /// Every point of the piece finite, every probability in [0, 1].
+    valid: bool,
 }
 
 /// The detector, with scratch reused from scan to scan.
@@ -297,18 +301,7 @@ impl Detector {
                 got: probabilities.len(),
             });
         }
-        // A branch-free pass first; the search for the culprit only when there is one.
-        if !probabilities
-            .iter()
-            .fold(true, |ok, p| ok & (0.0..=1.0).contains(p))
-            && let Some((index, &value)) = probabilities
-                .iter()
-                .enumerate()
-                .find(|(_, p)| !(0.0..=1.0).contains(*p))
-        {
-            return Err(DetectError::BadProbability { index, value });
-        }
-        self.frame.check(points)?;
+        self.frame.check_size(points)?;
         let cfg = &self.cfg;
         let (thr, join) = (self.threshold, cfg.join_probability);
         let (min2, max2) = (self.min_range.powi(2), cfg.max_range.powi(2));
@@ -329,8 +322,14 @@ impl Detector {
             .for_each(|(k, ((piece, points), probabilities))| {
                 piece.ground.clear();
                 piece.maybe.clear();
+                // The input's checks in the same pass, branch-free: a bad value only
+                // marks the piece, and the culprit is looked for after the pass.
+                let mut valid = true;
                 for (i, (p, &prob)) in points.iter().zip(probabilities).enumerate() {
-                    let q = frame.to_ground(p.xyz());
+                    let xyz = p.xyz();
+                    valid &= xyz[0].is_finite() & xyz[1].is_finite() & xyz[2].is_finite();
+                    valid &= (0.0..=1.0).contains(&prob);
+                    let q = frame.to_ground(xyz);
                     let r2 = q[0] * q[0] + q[1] * q[1];
                     if !(min2..=max2).contains(&r2) {
                         continue;
@@ -347,7 +346,20 @@ impl Detector {
                         });
                     }
                 }
+                piece.valid = valid;
             });
+        if self.pieces[..pieces].iter().any(|p| !p.valid) {
+            // The culprit, probabilities before coordinates: pieces are scratch, nothing
+            // else was touched yet.
+            if let Some((index, &value)) = probabilities
+                .iter()
+                .enumerate()
+                .find(|(_, p)| !(0.0..=1.0).contains(*p))
+            {
+                return Err(DetectError::BadProbability { index, value });
+            }
+            check_finite(points)?;
+        }
         let lists: Vec<&[(u32, f32)]> = self.pieces[..pieces]
             .iter()
             .map(|p| &p.ground[..])
@@ -652,6 +664,40 @@ mod tests {
         assert!(e.to_string().contains("point 1"), "{e}");
         let e = d.detect(&pts, &[0.0, 1.5], &mut out).unwrap_err();
         assert!(matches!(e, DetectError::BadProbability { index: 1, .. }));
+        // Checked inside the parallel pass: a bad value in a later piece is still named,
+        // probabilities before coordinates, and a rejected scan changes nothing.
+        let n = 3 * PIECE;
+        let mut pts: Vec<Point> = (0..n)
+            .map(|k| {
+                pt(
+                    5.0 + (k % 200) as f32 * 0.1,
+                    (k / 200) as f32 * 0.1 - 12.0,
+                    0.5,
+                )
+            })
+            .collect();
+        let mut probs = vec![0.0f32; n];
+        let mut fresh =
+            Detector::new(DetectorConfig::default(), &SegmenterConfig::default()).unwrap();
+        let mut expected = Detections::default();
+        fresh.detect(&pts, &probs, &mut expected).unwrap();
+        assert!(!expected.proposals.is_empty());
+        pts[2 * PIECE + 7].z = f32::INFINITY;
+        probs[PIECE + 3] = 2.0;
+        let e = d.detect(&pts, &probs, &mut out).unwrap_err();
+        assert!(
+            matches!(e, DetectError::BadProbability { index, .. } if index == PIECE + 3),
+            "{e}"
+        );
+        probs[PIECE + 3] = 0.0;
+        let e = d.detect(&pts, &probs, &mut out).unwrap_err();
+        assert!(
+            matches!(e, DetectError::Points(SegmentError::NonFinitePoint { index, .. }) if index == 2 * PIECE + 7),
+            "{e}"
+        );
+        pts[2 * PIECE + 7].z = 0.5;
+        d.detect(&pts, &probs, &mut out).unwrap();
+        assert_eq!(out, expected);
         // An empty scan is no error: nothing to propose.
         d.detect::<Point>(&[], &[], &mut out).unwrap();
         assert!(out.proposals.is_empty() && out.clusters.is_empty());
