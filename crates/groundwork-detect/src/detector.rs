@@ -17,8 +17,9 @@ use crate::config::DetectorConfig;
 use crate::ground_map::GroundMap;
 
 thread_local! {
-    /// The boxes' scratch, one per thread that fits boxes, kept from scan to scan.
-    static RECT_SCRATCH: std::cell::RefCell<RectScratch> = Default::default();
+    /// The boxes' scratch (a cluster's footprint, the hull's buffers), one per thread that
+    /// fits boxes, kept from scan to scan.
+    static RECT_SCRATCH: std::cell::RefCell<(Vec<[f32; 2]>, RectScratch)> = Default::default();
 }
 
 /// Why a scan could not be processed (the detector's state is unchanged).
@@ -181,7 +182,7 @@ pub struct DetectionReport {
     pub time: Duration,
 }
 
-/// A cluster being measured.
+/// A cluster's measures.
 #[derive(Debug, Clone, Copy)]
 struct Extent {
     count: u32,
@@ -192,8 +193,31 @@ struct Extent {
     first: u32,
 }
 
+impl Extent {
+    /// The measures of a cluster's members (sums in their order).
+    fn of(members: &[Maybe]) -> Self {
+        let mut e = Self {
+            count: 0,
+            sum: [0.0; 3],
+            z_min: f32::MAX,
+            z_max: f32::MIN,
+            first: u32::MAX,
+        };
+        for m in members {
+            e.count += 1;
+            for (sum, v) in e.sum.iter_mut().zip(m.xyz) {
+                *sum += f64::from(v);
+            }
+            e.z_min = e.z_min.min(m.xyz[2]);
+            e.z_max = e.z_max.max(m.xyz[2]);
+            e.first = e.first.min(m.index);
+        }
+        e
+    }
+}
+
 /// A point that may belong to a cluster: its index, where it is, whether it is ground.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct Maybe {
     index: u32,
     xyz: [f32; 3],
@@ -234,8 +258,11 @@ pub struct Detector {
     labels: Vec<u32>,
     touched: Vec<Option<u32>>,
     members: Vec<(u32, Maybe)>,
-    footprint: Vec<[f32; 2]>,
-    rects: Vec<Rect>,
+    /// The members in cluster order.
+    grouped: Vec<Maybe>,
+    /// The clusters kept, in cluster order, and their measures and boxes.
+    live: Vec<u32>,
+    measured: Vec<(Extent, Rect)>,
 }
 
 impl Detector {
@@ -271,8 +298,9 @@ impl Detector {
             labels: Vec::new(),
             touched: Vec::new(),
             members: Vec::new(),
-            footprint: Vec::new(),
-            rects: Vec::new(),
+            grouped: Vec::new(),
+            live: Vec::new(),
+            measured: Vec::new(),
         })
     }
 
@@ -426,75 +454,62 @@ impl Detector {
         }
         let joined = self.members.len() - before;
 
-        // Measure each kept cluster, then number them nearest first (ties: the first point).
-        let mut extents: Vec<Option<Extent>> = vec![None; found];
-        for &(c, m) in &self.members {
-            let e = extents[c as usize].get_or_insert(Extent {
-                count: 0,
-                sum: [0.0; 3],
-                z_min: f32::MAX,
-                z_max: f32::MIN,
-                first: m.index,
-            });
-            e.count += 1;
-            for (sum, v) in e.sum.iter_mut().zip(m.xyz) {
-                *sum += f64::from(v);
-            }
-            e.z_min = e.z_min.min(m.xyz[2]);
-            e.z_max = e.z_max.max(m.xyz[2]);
-            e.first = e.first.min(m.index);
+        // The members grouped by cluster (a stable counting sort: within a cluster, in the
+        // order above), then each cluster measured and boxed on all cores.
+        let mut start = vec![0usize; found + 1];
+        for &(c, _) in &self.members {
+            start[c as usize + 1] += 1;
         }
-        let mut order: Vec<(f32, u32, u32)> = extents
+        for k in 1..start.len() {
+            start[k] += start[k - 1];
+        }
+        self.grouped.clear();
+        self.grouped.resize(self.members.len(), Maybe::default());
+        let mut slot = start.clone();
+        for &(c, m) in &self.members {
+            self.grouped[slot[c as usize]] = m;
+            slot[c as usize] += 1;
+        }
+        self.live.clear();
+        self.live
+            .extend((0..found as u32).filter(|&c| start[c as usize + 1] > start[c as usize]));
+        let grouped = &self.grouped;
+        self.live
+            .par_iter()
+            .map(|&c| {
+                let members = &grouped[start[c as usize]..start[c as usize + 1]];
+                RECT_SCRATCH.with_borrow_mut(|(footprint, s)| {
+                    footprint.clear();
+                    footprint.extend(members.iter().map(|m| [m.xyz[0], m.xyz[1]]));
+                    (Extent::of(members), min_area_rect(footprint, s))
+                })
+            })
+            .collect_into_vec(&mut self.measured);
+
+        // Numbered nearest first (ties: the first point).
+        let mut order: Vec<(f32, u32, u32)> = self
+            .measured
             .iter()
             .enumerate()
-            .filter_map(|(c, e)| {
-                let e = e.as_ref()?;
+            .map(|(k, (e, _))| {
                 let n = f64::from(e.count);
                 let (x, y) = (e.sum[0] / n, e.sum[1] / n);
-                let r = (x * x + y * y).sqrt() as f32;
-                Some((r, e.first, c as u32))
+                ((x * x + y * y).sqrt() as f32, e.first, k as u32)
             })
             .collect();
         order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         let mut id_of = vec![0u32; found];
-        for (k, &(_, _, c)) in order.iter().enumerate() {
-            id_of[c as usize] = k as u32 + 1;
+        for (id, &(_, _, k)) in order.iter().enumerate() {
+            id_of[self.live[k as usize] as usize] = id as u32 + 1;
         }
         out.clusters.clear();
         out.clusters.resize(points.len(), 0);
         for &(c, m) in &self.members {
             out.clusters[m.index as usize] = id_of[c as usize];
         }
-
-        // Footprints: the members' (x, y) grouped by id (a counting sort), one box each.
-        let mut start = vec![0usize; order.len() + 2];
-        for &(c, _) in &self.members {
-            start[id_of[c as usize] as usize + 1] += 1;
-        }
-        for k in 1..start.len() {
-            start[k] += start[k - 1];
-        }
-        self.footprint.clear();
-        self.footprint.resize(self.members.len(), [0.0; 2]);
-        for &(c, m) in &self.members {
-            let slot = &mut start[id_of[c as usize] as usize];
-            self.footprint[*slot] = [m.xyz[0], m.xyz[1]];
-            *slot += 1;
-        }
-        // `start[id]` is now the end of id's group (and the start of id + 1's).
-        let footprint = &self.footprint;
-        (0..order.len())
-            .into_par_iter()
-            .map(|k| {
-                RECT_SCRATCH
-                    .with_borrow_mut(|s| min_area_rect(&footprint[start[k]..start[k + 1]], s))
-            })
-            .collect_into_vec(&mut self.rects);
         out.proposals.clear();
-        for (k, (&(_, _, c), rect)) in order.iter().zip(&self.rects).enumerate() {
-            let Some(e) = extents[c as usize] else {
-                continue;
-            };
+        for (k, &(_, _, c)) in order.iter().enumerate() {
+            let (e, rect) = self.measured[c as usize];
             // Unknown ground: the cluster stands on its lowest point.
             let ground_z = self
                 .ground
