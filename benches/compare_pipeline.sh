@@ -5,8 +5,8 @@
 # Patchwork++'s in-process per-scan median (benches/patchwork_time.py) on the same scans,
 # alternating, --rounds times. Prints the medians of the segment stage's p50 (the consumer's
 # table) and the ratios, the CPU time per scan of the segmenter and detector processes (the
-# consumer's report) against Patchwork++'s CPU time per scan, and, to show where the stage's time goes beyond the bench's, the same
-# streaming in one process (time-scans --sequence) back to back and paced at the sensor's
+# consumer's report) against Patchwork++'s CPU time per scan, and, to show where the stage's
+# time goes beyond the bench's, the same streaming in one process (time-scans --sequence) back to back and paced at the sensor's
 # 10 Hz (--period-ms 100: the cores idle between scans as they do in the service), and the
 # pipeline once more with the stages' workers kept awake (keep_awake_ms = 10, see config/service.toml).
 #   bash benches/compare_pipeline.sh [--rounds N] [--count N]
@@ -29,7 +29,9 @@ seq_dir="$root/tests/data/semantickitti-00"
 scans=("$root"/tests/data/semantickitti-00/velodyne/*.bin)
 # p50 of the consumer's "segment" row, in ms.
 segment_p50() { awk '$1 == "segment" && $2 ~ /^[0-9]+$/ { printf "%.3f\n", $3 / 1000 }' | tail -n 1; }
-median_of() { python3 -c 'import json,sys; print(json.load(sys.stdin)["median_ms"])'; }
+# Field $1 of a JSON object on stdin; median_of: the time-scans / patchwork_time.py median.
+json_field() { python3 -c 'import json,sys; print(json.load(sys.stdin)[sys.argv[1]])' "$1"; }
+median_of() { json_field median_ms; }
 # The consumer's "CPU per scan, ms: ... segmenter X" line: process $1's figure.
 cpu_of() { awk -v p="$1" '/^CPU per scan, ms:/ { for (i = 1; i < NF; i++) if ($i == p) { v = $(i + 1); sub(",", "", v); print v } }' | tail -n 1; }
 awake_cfg=$(mktemp --suffix=.toml)
@@ -45,7 +47,7 @@ for round in $(seq "$rounds"); do
   awake+=("$(RUST_LOG=warn "$gw" pipeline --count "$count" --service "$awake_cfg" --prefix "gw-bench-$$-c$round" 2>&1 | segment_p50)")
   pw_json=$("$venv/bin/python" "$here/patchwork_time.py" --repeat 10 "${scans[@]}" | tail -n 1)
   pw+=("$(median_of <<< "$pw_json")")
-  pw_cpu+=("$(python3 -c 'import json,sys; print(json.load(sys.stdin)["cpu_median_ms"])' <<< "$pw_json")")
+  pw_cpu+=("$(json_field cpu_median_ms <<< "$pw_json")")
   bench+=("$("$ts" --repeat 6 --sequence "$seq_dir" | median_of)")
   paced+=("$("$ts" --repeat 6 --sequence "$seq_dir" --period-ms 100 | median_of)")
 done
