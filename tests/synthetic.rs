@@ -415,20 +415,24 @@ fn presets_across_sensors() {
     }
 }
 
-/// The zones' near edge as `groundwork calibrate` moves it (`groundwork_calibrate::zones`),
-/// on the scans and mounts of [`presets_across_sensors`]: each sensor's preset told the
-/// true mount, the same with the near edge found in the four scans, and the best of every
-/// preset told the true mount (docs/calibration.md). About 4 minutes:
+/// The zones as `groundwork calibrate` moves them (`groundwork_calibrate::zones`), on the
+/// scans and mounts of [`presets_across_sensors`]: each sensor's preset told the true
+/// mount, the same with the near edge found in the four scans, then with the inner
+/// boundaries scaled by the true height over the preset's too, and the best of every preset
+/// told the true mount (docs/calibration.md). About 5 minutes:
 /// `cargo test -p groundwork-tests --test synthetic -- --ignored near_edge --nocapture`.
 #[test]
 #[ignore = "slow: every preset on every sensor's scans, for docs/calibration.md"]
 fn near_edge_against_every_preset() {
-    use groundwork_calibrate::{NearEdgeConfig, near_ground, zones_with_near_edge};
+    use groundwork_calibrate::{
+        NearEdgeConfig, near_ground, zones_scaled_to_height, zones_with_near_edge,
+    };
     let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
     let near_cfg = NearEdgeConfig::default();
     for (si, &sensor) in names.iter().enumerate() {
         let own = sensor_preset(sensor).unwrap();
-        let (mut own_sum, mut near_sum, mut best_sum, mut wins) = (0.0, 0.0, 0.0, 0);
+        let (mut own_sum, mut near_sum, mut scaled_sum, mut best_sum) = (0.0, 0.0, 0.0, 0.0);
+        let (mut near_wins, mut scaled_wins) = (0, 0);
         for scene in [Urban, Offroad, Parking] {
             for seed in 0..3u64 {
                 let truth = random_mount(si, seed, own.sensor.mount.yaw);
@@ -451,17 +455,27 @@ fn near_edge_against_every_preset() {
                 let ego = own.sensor.ego_radius;
                 let zones = near_ground(&scans, &pose, ego, &near_cfg)
                     .and_then(|n| zones_with_near_edge(&own.zones, &n, ego, &near_cfg));
-                let plain = run(own.clone());
-                let near = match &zones {
+                let scaled = zones_scaled_to_height(
+                    zones.as_ref().unwrap_or(&own.zones),
+                    truth.height,
+                    &own.sensor.mount,
+                )
+                .map(|(z, _)| z)
+                .or(zones.clone());
+                let with = |z: &Option<groundwork_core::config::ZoneConfig>, plain: f64| match z {
                     Some(z) => run(SegmenterConfig {
                         zones: z.clone(),
                         ..own.clone()
                     }),
                     None => plain,
                 };
+                let plain = run(own.clone());
+                let near = with(&zones, plain);
+                let both = with(&scaled, plain);
                 eprintln!(
                     "{sensor:9} {:8} seed {seed} h {:.2} pitch {:5.1}°: preset {plain:6.2}, \
-                     near edge {near:6.2} (at {:?}), best preset {best:6.2}",
+                     near edge {near:6.2} (at {:?}), inner scaled {both:6.2}, best preset \
+                     {best:6.2}",
                     scene.name(),
                     truth.height,
                     truth.pitch.to_degrees(),
@@ -469,14 +483,17 @@ fn near_edge_against_every_preset() {
                 );
                 own_sum += plain;
                 near_sum += near;
+                scaled_sum += both;
                 best_sum += best;
-                wins += usize::from(near >= best);
+                near_wins += usize::from(near >= best);
+                scaled_wins += usize::from(both >= best);
             }
         }
         eprintln!(
-            "NEAR {sensor} | {:.2} | {:.2} | {:.2} | {wins} of 9",
+            "NEAR {sensor} | {:.2} | {:.2} | {:.2} | {:.2} | {near_wins} of 9 | {scaled_wins} of 9",
             own_sum / 9.0,
             near_sum / 9.0,
+            scaled_sum / 9.0,
             best_sum / 9.0
         );
     }

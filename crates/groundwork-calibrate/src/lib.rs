@@ -6,7 +6,7 @@
 //! - [`params`]: with the mount fixed, the segmenter's likelihood parameters and ground
 //!   threshold fitted to reference labels (the PseudoLabeler's), judged on held-out scans.
 //! - [`zones`]: the zone model's near edge, from where the sensor first sees ground on the
-//!   mount found.
+//!   mount found, and its inner boundaries scaled with the height found.
 //!
 //! Pure algorithm: the caller reads the scans (the `groundwork calibrate` command).
 
@@ -21,8 +21,8 @@ pub use mount::{MountEstimate, MountSearchConfig, combine, estimate_mount, frame
 pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 pub use zones::{
-    NearEdgeConfig, NearGround, combine_near_ground, near_ground, scan_near_ground,
-    view_near_ground, zones_with_near_edge,
+    HEIGHT_SCALE_DEAD_BAND, HeightScale, NearEdgeConfig, NearGround, combine_near_ground,
+    near_ground, scan_near_ground, view_near_ground, zones_scaled_to_height, zones_with_near_edge,
 };
 
 /// Why a calibration could not be done.

@@ -1,4 +1,5 @@
-//! The zone model's near edge, from where the sensor first sees ground.
+//! The zone model's near edge, from where the sensor first sees ground, and its inner
+//! boundaries, scaled with the sensor's height.
 //!
 //! A preset's near edge (`zones.min_range`) is set for its own mount: the HDL-64E's 2.7 m
 //! keeps the KITTI car's roof out and lies inside the 3.7 m where its lowest beam meets the
@@ -6,7 +7,7 @@
 //! ground point inside the near edge is called non-ground. With the mount found, the
 //! ground near the sensor is plain to see: the points within a band of the ground plane.
 
-use groundwork_core::config::ZoneConfig;
+use groundwork_core::config::{MountConfig, ZoneConfig, mount_transform};
 use groundwork_core::point::Pose;
 use nalgebra::Point3;
 use serde::Serialize;
@@ -131,12 +132,82 @@ pub fn zones_with_near_edge(
     })
 }
 
+/// The inner zones' boundaries follow the height: beams meet flat ground at ranges in
+/// proportion to the sensor's height, so a preset's inner boundaries, set for the beams on
+/// its own mount, are scaled by the height found over the preset's. How far, and where.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HeightScale {
+    /// Height found over the preset's height, as applied (clamped to [0.25, 2]).
+    pub ratio: f64,
+    /// The boundaries before (after the near edge moved, if it did) and after, metres.
+    pub was: Vec<f64>,
+    /// The boundaries written.
+    pub boundaries: Vec<f64>,
+}
+
+/// Heights within this share of the preset's leave the layout alone: a calibrated height
+/// is good to a few centimetres, and a layout moved for that is noise.
+pub const HEIGHT_SCALE_DEAD_BAND: f64 = 0.05;
+
+/// `zones` with every inner boundary but the outermost one (for four zones: the first two
+/// beyond the near edge) multiplied by `height` over the height of `preset_mount` (the
+/// mount the preset's layout was made for), clamped to [0.25, 2],
+/// rounded to the centimetre and kept at least a metre apart and below the next
+/// boundary; the near edge, the outermost inner boundary and `max_range` stay. `None`
+/// when the ratio is within [`HEIGHT_SCALE_DEAD_BAND`] of 1 (or not a number), or the
+/// zones have fewer than three zones or no boundaries.
+///
+/// Why not the outermost inner boundary: measured on synthetic scans of eight sensors on
+/// random mounts (docs/calibration.md), scaling it too gained less on six of them. Far
+/// out the beams are nearly level, and their ranges follow the pitch more than the height.
+pub fn zones_scaled_to_height(
+    zones: &ZoneConfig,
+    height: f64,
+    preset_mount: &MountConfig,
+) -> Option<(ZoneConfig, HeightScale)> {
+    // The sensor's origin in the ground-aligned frame (whose origin is on the ground):
+    // `height`, or a matrix mount's translation.
+    let preset_height = mount_transform(preset_mount).ok()?.translation.vector.z;
+    let ratio = height / preset_height;
+    if !ratio.is_finite() || ratio <= 0.0 || (ratio - 1.0).abs() < HEIGHT_SCALE_DEAD_BAND {
+        return None;
+    }
+    let ratio = ratio.clamp(0.25, 2.0);
+    let was = zones.resolved_boundaries().ok()?;
+    let n = was.len();
+    if n < 4 {
+        return None;
+    }
+    let mut b = was.clone();
+    // Outwards: scaled, at least a metre beyond the one before; then inwards: at least a
+    // metre inside the one after (the outermost inner boundary and max_range stay).
+    for i in 1..n - 2 {
+        b[i] = ((was[i] * ratio).max(b[i - 1] + 1.0) * 100.0).round() / 100.0;
+    }
+    for i in (1..n - 2).rev() {
+        b[i] = b[i].min(b[i + 1] - 1.0);
+    }
+    if b.windows(2).any(|w| w[1] <= w[0]) {
+        return None; // zones too narrow to hold a metre each: leave them
+    }
+    Some((
+        ZoneConfig {
+            boundaries: Some(b.clone()),
+            ..zones.clone()
+        },
+        HeightScale {
+            ratio,
+            was,
+            boundaries: b,
+        },
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
     use super::*;
-    use groundwork_core::config::{MountConfig, mount_transform};
 
     /// Flat ground from 1.2 m out seen by a sensor 0.6 m up, a wall 3 m high at 5 m and
     /// hits on the vehicle inside 0.5 m: the near edge is the ground's, not the wall's or
@@ -185,5 +256,60 @@ mod tests {
         assert!(zones_with_near_edge(&zones, &close, 0.5, &cfg).is_none());
         // Two scans cannot tell.
         assert!(near_ground(&scans[..2], &mount, 0.5, &cfg).is_none());
+    }
+
+    #[test]
+    fn inner_boundaries_follow_the_height() {
+        let at = |height| MountConfig {
+            height,
+            pitch: 0.1, // the angles do not matter
+            ..Default::default()
+        };
+        // The HDL-64E preset's layout (2.7, 12.36, 22.03, 41.35, 80) on a sensor 0.8 m up
+        // instead of 1.73 m: the first two inner boundaries move in by 0.8 / 1.73.
+        let zones = ZoneConfig::default();
+        let (scaled, how) = zones_scaled_to_height(&zones, 0.8, &at(1.73)).unwrap();
+        let b = scaled.resolved_boundaries().unwrap();
+        let was = zones.resolved_boundaries().unwrap();
+        let r = 0.8 / 1.73;
+        assert!((how.ratio - r).abs() < 1e-12);
+        assert_eq!(how.was, was);
+        assert_eq!(how.boundaries, b);
+        for i in [1, 2] {
+            assert!((b[i] - was[i] * r).abs() <= 0.005, "{b:?}");
+        }
+        assert_eq!((b[0], b[3], b[4]), (was[0], was[3], was[4]));
+        assert_eq!(scaled.min_range, zones.min_range);
+        assert_eq!(scaled.rings, zones.rings);
+        // A higher sensor: outwards, in order, below the outermost inner boundary.
+        let (high, _) = zones_scaled_to_height(&zones, 3.4, &at(1.73)).unwrap();
+        let b = high.resolved_boundaries().unwrap();
+        assert!(
+            b[1] > was[1] && b[2] > was[2] && b[2] <= b[3] - 1.0,
+            "{b:?}"
+        );
+        // Far beyond: clamped at twice, and still a metre apart below 41.35 m.
+        let (huge, how) = zones_scaled_to_height(&zones, 20.0, &at(1.73)).unwrap();
+        let b = huge.resolved_boundaries().unwrap();
+        assert_eq!(how.ratio, 2.0);
+        assert!(b.windows(2).all(|w| w[1] >= w[0] + 1.0 - 1e-9), "{b:?}");
+        // Within the dead band, or not a height: nothing moves.
+        assert!(zones_scaled_to_height(&zones, 1.70, &at(1.73)).is_none());
+        assert!(zones_scaled_to_height(&zones, f64::NAN, &at(1.73)).is_none());
+        assert!(zones_scaled_to_height(&zones, 1.0, &at(0.0)).is_none());
+        // Fewer than three zones: nothing to scale without touching the edges.
+        let two = ZoneConfig {
+            boundaries: Some(vec![2.0, 10.0, 50.0]),
+            rings: vec![1, 1],
+            sectors: vec![8, 8],
+            ..ZoneConfig::default()
+        };
+        assert!(zones_scaled_to_height(&two, 0.8, &at(1.73)).is_none());
+        // Zones a metre wide at most are left alone rather than squeezed.
+        let tight = ZoneConfig {
+            boundaries: Some(vec![2.0, 2.5, 3.0, 3.5, 50.0]),
+            ..ZoneConfig::default()
+        };
+        assert!(zones_scaled_to_height(&tight, 3.0, &at(1.0)).is_none());
     }
 }

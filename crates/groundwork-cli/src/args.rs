@@ -542,7 +542,8 @@ pub struct CalibrateArgs {
     pub fit_zones: bool,
     /// Keep the preset's zone model as it is. By default its near edge (`zones.min_range`)
     /// moves in to where the scans first see ground on the mount found, if that is nearer
-    /// (a lower or pitched mount; docs/calibration.md).
+    /// (a lower or pitched mount), and its inner boundaries scale with the height found
+    /// over the preset's, if more than 5 % apart (docs/calibration.md).
     #[arg(long)]
     pub keep_zones: bool,
     /// Scan files, folders of scans or recordings of one sensor on one mount.

@@ -14,9 +14,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
-    LabeledScan, MountEstimate, MountSearchConfig, NearEdgeConfig, NearGround, NoGround, ParamFit,
-    ParamSearchConfig, combine, combine_near_ground, fit_parameters, frame_mount, view_near_ground,
-    zones_with_near_edge,
+    HeightScale, LabeledScan, MountEstimate, MountSearchConfig, NearEdgeConfig, NearGround,
+    NoGround, ParamFit, ParamSearchConfig, combine, combine_near_ground, fit_parameters,
+    frame_mount, view_near_ground, zones_scaled_to_height, zones_with_near_edge,
 };
 use groundwork_core::SegmenterConfig;
 use groundwork_core::config::{MountConfig, ZoneConfig};
@@ -89,6 +89,10 @@ struct Report {
     /// `--keep-zones`, or when too few scans show ground near the sensor).
     #[serde(skip_serializing_if = "Option::is_none")]
     near_edge: Option<NearEdge>,
+    /// The inner boundaries scaled with the height found (absent with `--keep-zones`, a
+    /// refused mount, or a height within 5 % of the preset's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    height_scale: Option<HeightScale>,
     /// The parameter fit (`--fit-params`), if it ran.
     #[serde(skip_serializing_if = "Option::is_none")]
     parameters: Option<ParamFit>,
@@ -205,8 +209,24 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let zones = near
         .as_ref()
         .and_then(|n| zones_with_near_edge(&cfg.zones, n, ego_radius, &near_cfg));
+    // The inner boundaries follow the height found (not with --keep-zones), against the
+    // height the preset's layout was made for.
+    let height_scale = match (&result, a.keep_zones) {
+        (Ok(est), false) => groundwork_io::sensor_preset(&base).ok().and_then(|p| {
+            let z = zones.as_ref().unwrap_or(&cfg.zones);
+            zones_scaled_to_height(z, est.mount().height, &p.sensor.mount)
+        }),
+        _ => None,
+    };
+    let (zones, height_scale) = match height_scale {
+        Some((z, how)) => (Some(z), Some(how)),
+        None => (zones, None),
+    };
     let near_edge = near.map(|ground| NearEdge {
-        min_range: zones.as_ref().map(|z| z.min_range),
+        min_range: zones
+            .as_ref()
+            .map(|z| z.min_range)
+            .filter(|&m| m != cfg.zones.min_range),
         was: cfg.zones.min_range,
         ground,
     });
@@ -239,6 +259,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         per_scan: views.into_iter().map(|v| v.line).collect(),
         settings,
         near_edge,
+        height_scale,
         parameters,
         parameters_refused,
         seconds: t.elapsed().as_secs_f64(),
@@ -270,7 +291,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     };
     if let Some(z) = final_zones.filter(|z| layout(z) != layout(&cfg.zones)) {
         let moved = report.near_edge.as_ref().filter(|n| n.min_range.is_some());
-        text += &zones_text(&cfg.zones, z, moved);
+        text += &zones_text(&cfg.zones, z, moved, report.height_scale.as_ref());
     }
     if let Some(fit) = &report.parameters {
         text += &params_text(&cfg, fit);
@@ -295,6 +316,12 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         ),
         None => {}
     }
+    if let Some(h) = &report.height_scale {
+        println!(
+            "  inner zone boundaries scaled by {:.3} with the height: {:?}  was {:?}",
+            h.ratio, h.boundaries, h.was
+        );
+    }
     println!(
         "wrote {} (use: --sensor {base} --config {}) in {:.1} s",
         a.out.display(),
@@ -310,9 +337,15 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     )
 }
 
-/// The `[zones]` section: the near edge moved in (`near`) and the inner zones' layout as
-/// the parameter fit left it, each changed value's old one in a comment.
-fn zones_text(preset: &ZoneConfig, z: &ZoneConfig, near: Option<&NearEdge>) -> String {
+/// The `[zones]` section: the near edge moved in (`near`), the inner boundaries scaled
+/// with the height (`scale`) and the inner zones' layout as the parameter fit left it,
+/// each changed value's old one in a comment.
+fn zones_text(
+    preset: &ZoneConfig,
+    z: &ZoneConfig,
+    near: Option<&NearEdge>,
+    scale: Option<&HeightScale>,
+) -> String {
     let list = |v: &[f64]| {
         let v: Vec<String> = v.iter().map(|v| format!("{v:?}")).collect();
         format!("[{}]", v.join(", "))
@@ -335,11 +368,23 @@ fn zones_text(preset: &ZoneConfig, z: &ZoneConfig, near: Option<&NearEdge>) -> S
             n.ground.range, n.ground.scans
         );
     }
+    if let Some(h) = scale {
+        let _ = write!(
+            s,
+            "# The inner boundaries scaled by {:.3}, the height found over the preset's (beams\n\
+             # meet the ground at ranges in proportion to the height); before: {:?}.\n",
+            h.ratio, h.was
+        );
+    }
     let (old_b, new_b) = (
         preset.resolved_boundaries().unwrap_or_default(),
         z.resolved_boundaries().unwrap_or_default(),
     );
-    if new_b[1..] != old_b[1..] || z.rings != preset.rings || z.sectors != preset.sectors {
+    let scaled_b = scale.map(|h| h.boundaries.as_slice());
+    if (new_b[1..] != old_b[1..] && scaled_b.is_none_or(|b| b[1..] != new_b[1..]))
+        || z.rings != preset.rings
+        || z.sectors != preset.sectors
+    {
         s += "# The inner zones' layout fitted to the PseudoLabeler's labels (see the parameters\n\
               # below).\n";
     }

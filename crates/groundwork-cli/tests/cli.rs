@@ -994,9 +994,9 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
 }
 
 /// An OS1-64 0.8 m up and pitched 6° nose down sees the road from about 1.6 m, inside its
-/// preset's 2.5 m near edge: `calibrate` moves the zones' near edge in, the file loads over
-/// the preset, and the labels (used here only to score) say it segments better than the
-/// mount alone (`--keep-zones`).
+/// preset's 2.5 m near edge: `calibrate` moves the zones' near edge in and scales the inner
+/// boundaries with the height, the file loads over the preset, and the labels (used here
+/// only to score) say it segments better than the mount alone (`--keep-zones`).
 #[test]
 fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1053,13 +1053,21 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
             let edge = cfg.zones.min_range;
             assert!((1.2..2.0).contains(&edge), "{edge} {text}");
             assert!(stdout.contains("near edge of the zones"), "{stdout}");
-            // The other boundaries are the preset's.
+            // The first two inner boundaries follow the height found (about 0.8 m against
+            // the preset's 1.5 m); the outermost inner one and max_range are the preset's.
             let preset = groundwork_io::sensor_preset("os1-64").unwrap();
             let (b, p) = (
                 cfg.zones.resolved_boundaries().unwrap(),
                 preset.zones.resolved_boundaries().unwrap(),
             );
-            assert_eq!((b[0], &b[1..]), (edge, &p[1..]));
+            let ratio = cfg.sensor.mount.height / 1.5;
+            assert!((ratio - 0.8 / 1.5).abs() < 0.05, "{ratio} {text}");
+            assert_eq!((b[0], &b[3..]), (edge, &p[3..]));
+            for i in [1, 2] {
+                assert!((b[i] - p[i] * ratio).abs() < 0.02, "{b:?} {p:?} {text}");
+            }
+            assert!(text.contains("inner boundaries scaled by"), "{text}");
+            assert!(stdout.contains("inner zone boundaries scaled"), "{stdout}");
         } else {
             assert!(!text.contains("[zones]"), "{text}");
         }

@@ -745,9 +745,10 @@ fn evaluate<'py>(
 /// consensus over the scans, starting from the preset's mount. Returns the configuration
 /// to lay over the preset (a dict like the keyword arguments: `{"mount": {...}}`, angles in
 /// degrees, and `"zones"` where the zone model's near edge moved in to where the scans
-/// first see ground, unless `keep_zones`) and a report (each parameter's median, spread and
-/// standard error over the scans; each scan's view or why it showed no usable ground; the
-/// near edge). Raises ValueError when the scans cannot determine the mount, with the reason.
+/// first see ground or its inner boundaries were scaled with the height found, unless
+/// `keep_zones`) and a report (each parameter's median, spread and standard error over the
+/// scans; each scan's view or why it showed no usable ground; the near edge; the height
+/// scale). Raises ValueError when the scans cannot determine the mount, with the reason.
 #[pyfunction]
 #[pyo3(signature = (scans, sensor=None, config=None, seed=0, keep_zones=false, **overrides))]
 fn calibrate<'py>(
@@ -761,7 +762,7 @@ fn calibrate<'py>(
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
     use groundwork_calibrate::{
         MountSearchConfig, NearEdgeConfig, combine_near_ground, estimate_mount, view_near_ground,
-        zones_with_near_edge,
+        zones_scaled_to_height, zones_with_near_edge,
     };
     let cfg = load_config(sensor, config, None, overrides)?;
     let prior =
@@ -798,6 +799,18 @@ fn calibrate<'py>(
     let moved = near
         .as_ref()
         .and_then(|n| zones_with_near_edge(zones, n, ego, &near_cfg));
+    // The inner boundaries follow the height found, against the preset's own.
+    let scaled = (!keep_zones)
+        .then(|| groundwork_io::sensor_preset(sensor.unwrap_or(groundwork_io::DEFAULT_SENSOR)))
+        .and_then(Result::ok)
+        .and_then(|p| {
+            let z = moved.as_ref().unwrap_or(zones);
+            zones_scaled_to_height(z, est.mount().height, &p.sensor.mount)
+        });
+    let (moved, scaled) = match scaled {
+        Some((z, how)) => (Some(z), Some(how)),
+        None => (moved, None),
+    };
     let deg =
         |e: &groundwork_calibrate::mount::Estimate, scale: f64| -> PyResult<Bound<'py, PyDict>> {
             [
@@ -850,8 +863,16 @@ fn calibrate<'py>(
         item.set_item("ground_from", n.range)?;
         item.set_item("scans", n.scans)?;
         item.set_item("was", zones.min_range)?;
-        item.set_item("min_range", moved.as_ref().map(|z| z.min_range))?;
+        let edge = moved.as_ref().map(|z| z.min_range);
+        item.set_item("min_range", edge.filter(|&m| m != zones.min_range))?;
         report.set_item("near_edge", item)?;
+    }
+    if let Some(h) = &scaled {
+        let item = PyDict::new(py);
+        item.set_item("ratio", h.ratio)?;
+        item.set_item("was", h.was.clone())?;
+        item.set_item("boundaries", h.boundaries.clone())?;
+        report.set_item("height_scale", item)?;
     }
     Ok((preset, report))
 }

@@ -197,8 +197,9 @@ def calibrate(
     """The sensor's mount from raw scans, no labels (`groundwork calibrate`): the
     configuration to lay over the preset ({"mount": {"height", "roll_deg", "pitch_deg",
     "yaw_deg"}}, and {"zones": {"min_range", "boundaries"}} where the zone model's near
-    edge moved in to where the scans first see ground, unless keep_zones; usable as keyword
-    arguments) and a report (median, spread and standard error of each over the scans; each
-    scan's view or why it showed no usable ground; "near_edge": ground_from, scans, was,
-    min_range). Raises ValueError, with the reason, when the scans cannot determine the
-    mount."""
+    edge moved in to where the scans first see ground or its inner boundaries were scaled
+    with the height found, unless keep_zones; usable as keyword arguments) and a report
+    (median, spread and standard error of each over the scans; each scan's view or why it
+    showed no usable ground; "near_edge": ground_from, scans, was, min_range;
+    "height_scale": ratio, was, boundaries, where they were scaled). Raises ValueError,
+    with the reason, when the scans cannot determine the mount."""
