@@ -158,7 +158,7 @@ pub const HEIGHT_SCALE_DEAD_BAND: f64 = 0.05;
 /// zones have fewer than three zones or no boundaries.
 ///
 /// Why not the outermost inner boundary: measured on synthetic scans of eight sensors on
-/// random mounts (docs/calibration.md), scaling it too gained less on six of them. Far
+/// random mounts (docs/calibration.md), scaling it too gained less on five of them. Far
 /// out the beams are nearly level, and their ranges follow the pitch more than the height.
 pub fn zones_scaled_to_height(
     zones: &ZoneConfig,
