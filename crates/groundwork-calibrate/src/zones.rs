@@ -151,11 +151,11 @@ pub const HEIGHT_SCALE_DEAD_BAND: f64 = 0.05;
 
 /// `zones` with every inner boundary but the outermost one (for four zones: the first two
 /// beyond the near edge) multiplied by `height` over the height of `preset_mount` (the
-/// mount the preset's layout was made for), clamped to [0.25, 2],
-/// rounded to the centimetre and kept at least a metre apart and below the next
-/// boundary; the near edge, the outermost inner boundary and `max_range` stay. `None`
-/// when the ratio is within [`HEIGHT_SCALE_DEAD_BAND`] of 1 (or not a number), or the
-/// zones have fewer than three zones or no boundaries.
+/// mount the preset's layout was made for), clamped to [0.25, 2], rounded to the
+/// centimetre and kept at least a metre apart; the near edge, the outermost inner boundary
+/// and `max_range` stay. `None` when the ratio is within [`HEIGHT_SCALE_DEAD_BAND`] of 1
+/// (or not a number), the zones have fewer than three zones or no boundaries, or they are
+/// too narrow to keep a metre between every two.
 ///
 /// Why not the outermost inner boundary: measured on synthetic scans of eight sensors on
 /// random mounts (docs/calibration.md), scaling it too gained less on five of them. Far
@@ -187,7 +187,7 @@ pub fn zones_scaled_to_height(
     for i in (1..n - 2).rev() {
         b[i] = b[i].min(b[i + 1] - 1.0);
     }
-    if b.windows(2).any(|w| w[1] <= w[0]) {
+    if b.windows(2).any(|w| w[1] - w[0] < 1.0 - 1e-6) {
         return None; // zones too narrow to hold a metre each: leave them
     }
     Some((
