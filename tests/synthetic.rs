@@ -424,9 +424,7 @@ fn presets_across_sensors() {
 #[test]
 #[ignore = "slow: every preset on every sensor's scans, for docs/calibration.md"]
 fn near_edge_against_every_preset() {
-    use groundwork_calibrate::{
-        NearEdgeConfig, near_ground, zones_scaled_to_height, zones_with_near_edge,
-    };
+    use groundwork_calibrate::{NearEdgeConfig, near_ground, zones_for_mount};
     let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
     let near_cfg = NearEdgeConfig::default();
     for (si, &sensor) in names.iter().enumerate() {
@@ -453,15 +451,12 @@ fn near_edge_against_every_preset() {
                     .collect();
                 let pose = groundwork_core::mount_transform(&truth).unwrap();
                 let ego = own.sensor.ego_radius;
-                let zones = near_ground(&scans, &pose, ego, &near_cfg)
-                    .and_then(|n| zones_with_near_edge(&own.zones, &n, ego, &near_cfg));
-                let scaled = zones_scaled_to_height(
-                    zones.as_ref().unwrap_or(&own.zones),
-                    truth.height,
-                    &own.sensor.mount,
-                )
-                .map(|(z, _)| z)
-                .or(zones.clone());
+                let ground = near_ground(&scans, &pose, ego, &near_cfg);
+                let fit = |height| {
+                    zones_for_mount(&own.zones, ground.as_ref(), height, ego, &near_cfg).zones
+                };
+                let zones = fit(None);
+                let scaled = fit(Some((truth.height, &own.sensor.mount)));
                 let with = |z: &Option<groundwork_core::config::ZoneConfig>, plain: f64| match z {
                     Some(z) => run(SegmenterConfig {
                         zones: z.clone(),

@@ -21,8 +21,9 @@ pub use mount::{MountEstimate, MountSearchConfig, combine, estimate_mount, frame
 pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 pub use zones::{
-    HEIGHT_SCALE_DEAD_BAND, HeightScale, NearEdgeConfig, NearGround, combine_near_ground,
-    near_ground, scan_near_ground, view_near_ground, zones_scaled_to_height, zones_with_near_edge,
+    HEIGHT_SCALE_DEAD_BAND, HeightScale, MountZones, NearEdgeConfig, NearGround,
+    combine_near_ground, near_ground, scan_near_ground, view_near_ground, zones_for_mount,
+    zones_scaled_to_height, zones_with_near_edge,
 };
 
 /// Why a calibration could not be done.

@@ -203,6 +203,48 @@ pub fn zones_scaled_to_height(
     ))
 }
 
+/// The zones `calibrate` writes for the mount it found: the near edge moved in
+/// ([`zones_with_near_edge`], given where the scans first see ground), then the inner
+/// boundaries scaled ([`zones_scaled_to_height`], given the height found and the preset's
+/// mount). One place for the CLI, Python and the tests to compose the two.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MountZones {
+    /// The zones to write; `None` when neither step moved anything.
+    pub zones: Option<ZoneConfig>,
+    /// The near edge, if it moved.
+    pub near_edge: Option<f64>,
+    /// How the inner boundaries were scaled, if they were.
+    pub height_scale: Option<HeightScale>,
+}
+
+/// See [`MountZones`]. `near`: where the scans first see ground (`None`: the edge stays);
+/// `height`: the height found and the mount the preset's layout was made for (`None`: the
+/// inner boundaries stay).
+pub fn zones_for_mount(
+    zones: &ZoneConfig,
+    near: Option<&NearGround>,
+    height: Option<(f64, &MountConfig)>,
+    ego_radius: f64,
+    cfg: &NearEdgeConfig,
+) -> MountZones {
+    let moved = near.and_then(|n| zones_with_near_edge(zones, n, ego_radius, cfg));
+    let near_edge = moved.as_ref().map(|z| z.min_range);
+    let scaled = height
+        .and_then(|(h, preset)| zones_scaled_to_height(moved.as_ref().unwrap_or(zones), h, preset));
+    match scaled {
+        Some((z, how)) => MountZones {
+            zones: Some(z),
+            near_edge,
+            height_scale: Some(how),
+        },
+        None => MountZones {
+            zones: moved,
+            near_edge,
+            height_scale: None,
+        },
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
@@ -311,5 +353,47 @@ mod tests {
             ..ZoneConfig::default()
         };
         assert!(zones_scaled_to_height(&tight, 3.0, &at(1.0)).is_none());
+    }
+
+    #[test]
+    fn the_mount_moves_the_edge_then_scales_from_it() {
+        let zones = ZoneConfig::default();
+        let cfg = NearEdgeConfig::default();
+        let preset = MountConfig {
+            height: 1.73,
+            ..Default::default()
+        };
+        let near = NearGround {
+            range: 1.2,
+            scans: 3,
+        };
+        let h0 = preset.height;
+        let both = zones_for_mount(&zones, Some(&near), Some((h0 / 2.0, &preset)), 0.0, &cfg);
+        let edge = zones_with_near_edge(&zones, &near, 0.0, &cfg).unwrap();
+        let scaled = zones_scaled_to_height(&edge, h0 / 2.0, &preset).unwrap();
+        assert_eq!(both.near_edge, Some(edge.min_range));
+        assert_eq!(both.zones, Some(scaled.0));
+        assert_eq!(both.height_scale, Some(scaled.1));
+        // Either step alone, and neither.
+        let edge_only = zones_for_mount(&zones, Some(&near), None, 0.0, &cfg);
+        assert_eq!(
+            (edge_only.zones, edge_only.height_scale),
+            (Some(edge), None)
+        );
+        let height_only = zones_for_mount(&zones, None, Some((h0 / 2.0, &preset)), 0.0, &cfg);
+        assert_eq!(height_only.near_edge, None);
+        assert_eq!(
+            height_only.zones,
+            zones_scaled_to_height(&zones, h0 / 2.0, &preset).map(|s| s.0)
+        );
+        let none = zones_for_mount(&zones, None, Some((h0, &preset)), 0.0, &cfg);
+        assert_eq!(
+            none,
+            MountZones {
+                zones: None,
+                near_edge: None,
+                height_scale: None
+            }
+        );
     }
 }

@@ -14,9 +14,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
-    HeightScale, LabeledScan, MountEstimate, MountSearchConfig, NearEdgeConfig, NearGround,
-    NoGround, ParamFit, ParamSearchConfig, combine, combine_near_ground, fit_parameters,
-    frame_mount, view_near_ground, zones_scaled_to_height, zones_with_near_edge,
+    HeightScale, LabeledScan, MountEstimate, MountSearchConfig, MountZones, NearEdgeConfig,
+    NearGround, NoGround, ParamFit, ParamSearchConfig, combine, combine_near_ground,
+    fit_parameters, frame_mount, view_near_ground, zones_for_mount,
 };
 use groundwork_core::SegmenterConfig;
 use groundwork_core::config::{MountConfig, ZoneConfig};
@@ -206,27 +206,29 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         views.iter_mut().filter_map(|v| v.view.take()).collect();
     let result = combine(&frames, &prior, &settings);
     let near = combine_near_ground(views.iter().filter_map(|v| v.near).collect());
-    let zones = near
+    // The zones follow the mount found (not with --keep-zones): the near edge where the
+    // scans first see ground, the inner boundaries the height against the preset's.
+    let preset_mount = groundwork_io::sensor_preset(&base)
+        .ok()
+        .map(|p| p.sensor.mount);
+    let height = result
         .as_ref()
-        .and_then(|n| zones_with_near_edge(&cfg.zones, n, ego_radius, &near_cfg));
-    // The inner boundaries follow the height found (not with --keep-zones), against the
-    // height the preset's layout was made for.
-    let height_scale = match (&result, a.keep_zones) {
-        (Ok(est), false) => groundwork_io::sensor_preset(&base).ok().and_then(|p| {
-            let z = zones.as_ref().unwrap_or(&cfg.zones);
-            zones_scaled_to_height(z, est.mount().height, &p.sensor.mount)
-        }),
-        _ => None,
-    };
-    let (zones, height_scale) = match height_scale {
-        Some((z, how)) => (Some(z), Some(how)),
-        None => (zones, None),
-    };
+        .ok()
+        .filter(|_| !a.keep_zones)
+        .map(|e| e.mount().height);
+    let MountZones {
+        zones,
+        near_edge: min_range,
+        height_scale,
+    } = zones_for_mount(
+        &cfg.zones,
+        near.as_ref(),
+        height.zip(preset_mount.as_ref()),
+        ego_radius,
+        &near_cfg,
+    );
     let near_edge = near.map(|ground| NearEdge {
-        min_range: zones
-            .as_ref()
-            .map(|z| z.min_range)
-            .filter(|&m| m != cfg.zones.min_range),
+        min_range,
         was: cfg.zones.min_range,
         ground,
     });

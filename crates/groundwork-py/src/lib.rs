@@ -762,7 +762,7 @@ fn calibrate<'py>(
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
     use groundwork_calibrate::{
         MountSearchConfig, NearEdgeConfig, combine_near_ground, estimate_mount, view_near_ground,
-        zones_scaled_to_height, zones_with_near_edge,
+        zones_for_mount,
     };
     let cfg = load_config(sensor, config, None, overrides)?;
     let prior =
@@ -796,21 +796,19 @@ fn calibrate<'py>(
             )
         })
         .flatten();
-    let moved = near
-        .as_ref()
-        .and_then(|n| zones_with_near_edge(zones, n, ego, &near_cfg));
-    // The inner boundaries follow the height found, against the preset's own.
-    let scaled = (!keep_zones)
+    // The zones follow the mount found: the near edge, and the inner boundaries the height
+    // against the preset's (`near` is None with keep_zones).
+    let preset_mount = (!keep_zones)
         .then(|| groundwork_io::sensor_preset(sensor.unwrap_or(groundwork_io::DEFAULT_SENSOR)))
         .and_then(Result::ok)
-        .and_then(|p| {
-            let z = moved.as_ref().unwrap_or(zones);
-            zones_scaled_to_height(z, est.mount().height, &p.sensor.mount)
-        });
-    let (moved, scaled) = match scaled {
-        Some((z, how)) => (Some(z), Some(how)),
-        None => (moved, None),
-    };
+        .map(|p| p.sensor.mount);
+    let fitted = zones_for_mount(
+        zones,
+        near.as_ref(),
+        preset_mount.as_ref().map(|m| (est.mount().height, m)),
+        ego,
+        &near_cfg,
+    );
     let deg =
         |e: &groundwork_calibrate::mount::Estimate, scale: f64| -> PyResult<Bound<'py, PyDict>> {
             [
@@ -831,7 +829,7 @@ fn calibrate<'py>(
     .into_py_dict(py)?;
     let preset = PyDict::new(py);
     preset.set_item("mount", mount)?;
-    if let Some(z) = &moved {
+    if let Some(z) = &fitted.zones {
         let section = PyDict::new(py);
         section.set_item("min_range", z.min_range)?;
         section.set_item("boundaries", z.boundaries.clone())?;
@@ -863,11 +861,10 @@ fn calibrate<'py>(
         item.set_item("ground_from", n.range)?;
         item.set_item("scans", n.scans)?;
         item.set_item("was", zones.min_range)?;
-        let edge = moved.as_ref().map(|z| z.min_range);
-        item.set_item("min_range", edge.filter(|&m| m != zones.min_range))?;
+        item.set_item("min_range", fitted.near_edge)?;
         report.set_item("near_edge", item)?;
     }
-    if let Some(h) = &scaled {
+    if let Some(h) = &fitted.height_scale {
         let item = PyDict::new(py);
         item.set_item("ratio", h.ratio)?;
         item.set_item("was", h.was.clone())?;
