@@ -6,9 +6,10 @@
 # alternating, --rounds times. Prints the medians of the segment stage's p50 (the consumer's
 # table) and the ratios, the CPU time per scan of the segmenter and detector processes (the
 # consumer's report) against Patchwork++'s CPU time per scan, and, to show where the stage's
-# time goes beyond the bench's, the same streaming in one process (time-scans --sequence) back to back and paced at the sensor's
-# 10 Hz (--period-ms 100: the cores idle between scans as they do in the service), and the
-# pipeline once more with the stages' workers kept awake (keep_awake_ms = 10, see config/service.toml).
+# time goes beyond the bench's, the same streaming in one process (time-scans --sequence)
+# back to back and paced at the sensor's 10 Hz (--period-ms 100: the cores idle between
+# scans as they do in the service), and the pipeline once more with the stages' workers
+# kept awake (keep_awake_ms = 10, see config/service.toml).
 #   bash benches/compare_pipeline.sh [--rounds N] [--count N]
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)

@@ -2,10 +2,11 @@
 
 Each scan is loaded once, segmented --repeat times after --warmup untimed runs; prints JSON
 with the median time per scan (wall, and the process's CPU time) and the pooled metrics on
-scans that have a labels/<stem>.label beside velodyne/, in both protocols (the classes of config/labels/semantickitti.toml): gmm
-(vegetation ignored) and terraseg (vegetation is non-ground). A scan is scored on its last
-run: Patchwork++ adapts its thresholds from run to run, so accuracy figures come from
---repeat 1 --warmup 0 over the sequence in order (benches/compare_methods.sh).
+scans that have a labels/<stem>.label beside velodyne/, in both protocols (the classes of
+config/labels/semantickitti.toml): gmm (vegetation ignored) and terraseg (vegetation is
+non-ground). A scan is scored on its last run: Patchwork++ adapts its thresholds from run
+to run, so accuracy figures come from --repeat 1 --warmup 0 over the sequence in order
+(benches/compare_methods.sh).
 """
 import argparse
 import json
