@@ -33,6 +33,11 @@ pub struct PseudoLabelerConfig {
     pub min_improvement: f64,
     /// Reduce-on-plateau: iterations without EMA improvement before the rate drops.
     pub plateau_patience: u32,
+    /// Reduce-on-plateau: the EMA counts as improved for the schedule when below its best
+    /// × (1 − this). The same 1 % as `min_improvement` by default; on hills a smaller one
+    /// with a longer `plateau_patience` keeps the rate up while the map is still following
+    /// the terrain (docs/offline-labels.md, "Hills").
+    pub plateau_min_improvement: f64,
     /// Reduce-on-plateau: factor the learning rate is multiplied by.
     pub plateau_factor: f64,
     /// Reduce-on-plateau: the learning rate never drops below this.
@@ -75,6 +80,7 @@ impl Default for PseudoLabelerConfig {
             early_stop_patience: 150,
             min_improvement: 0.01,
             plateau_patience: 10,
+            plateau_min_improvement: 0.01,
             plateau_factor: 0.1,
             min_learning_rate: 1e-4,
             max_iterations: 2000,
@@ -147,11 +153,12 @@ impl PseudoLabelerConfig {
             &f("min_learning_rate"),
             "must be ≥ 0",
         )?;
-        check(
-            (0.0..1.0).contains(&self.min_improvement),
-            &f("min_improvement"),
-            "must be in [0, 1)",
-        )?;
+        for (v, n) in [
+            (self.min_improvement, "min_improvement"),
+            (self.plateau_min_improvement, "plateau_min_improvement"),
+        ] {
+            check((0.0..1.0).contains(&v), &f(n), "must be in [0, 1)")?;
+        }
         check(
             self.max_iterations >= 1,
             &f("max_iterations"),

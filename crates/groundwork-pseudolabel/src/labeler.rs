@@ -252,7 +252,7 @@ impl PseudoLabeler {
             };
             // Reduce-on-plateau and early stopping both watch the EMA, not the raw loss:
             // Adam's early overshoot would otherwise collapse the rate.
-            if ema < best_plateau * (1.0 - cfg.min_improvement) {
+            if ema < best_plateau * (1.0 - cfg.plateau_min_improvement) {
                 best_plateau = ema;
                 since_plateau = 0;
             } else {
