@@ -13,6 +13,15 @@ pub fn kitti_sequence() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/semantickitti-00")
 }
 
+/// The vendored real solid-state scans (no labels): tests/data/livox-g3reg/README.md.
+pub fn livox_scans() -> Vec<PathBuf> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/livox-g3reg");
+    ["source.pcd", "target.pcd"]
+        .iter()
+        .map(|f| dir.join(f))
+        .collect()
+}
+
 /// The HDL-64E preset.
 pub fn hdl64e_preset() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../config/sensors/hdl64e.toml")
