@@ -29,7 +29,8 @@ pub struct PseudoLabelerConfig {
     pub ema_decay: f64,
     /// Stop when the loss EMA has not improved for this many iterations (paper: 150).
     pub early_stop_patience: u32,
-    /// An EMA counts as improved when below best × (1 − this).
+    /// Early stopping: the EMA counts as improved when below its best × (1 − this)
+    /// (the schedule has its own, `plateau_min_improvement`).
     pub min_improvement: f64,
     /// Reduce-on-plateau: iterations without EMA improvement before the rate drops.
     pub plateau_patience: u32,
