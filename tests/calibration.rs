@@ -303,6 +303,21 @@ fn labeled<'a>(
         .collect()
 }
 
+/// The PseudoLabeler's ground decision for every point of `scans` (sensor frame).
+fn pseudo_ground(
+    labeler: &groundwork_pseudolabel::PseudoLabeler,
+    scans: &[Vec<[f32; 3]>],
+) -> Vec<Vec<bool>> {
+    scans
+        .iter()
+        .map(|s| {
+            let mut p = vec![0.0f32; s.len()];
+            labeler.label(s, &mut p).unwrap();
+            p.iter().map(|&p| p >= 0.5).collect()
+        })
+        .collect()
+}
+
 /// Eight scans of a synthetic VLP-16 street with their exact labels as the reference.
 fn synthetic_street() -> (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>) {
     let g = groundwork_tests::synthetic("vlp16", SceneKind::Urban, 40, None);
@@ -511,14 +526,7 @@ fn kitti_parameters_fitted_to_pseudo_labels_keep_the_accuracy() {
     let hdl64e = sensor_preset("hdl64e").unwrap().sensor.mount;
     let kitti = kitti_seen_from(&hdl64e);
     let scans = xyz(&kitti);
-    let ground: Vec<Vec<bool>> = scans
-        .iter()
-        .map(|s| {
-            let mut p = vec![0.0f32; s.len()];
-            labeler.label(s, &mut p).unwrap();
-            p.iter().map(|&p| p >= 0.5).collect()
-        })
-        .collect();
+    let ground = pseudo_ground(&labeler, &scans);
     let sample = labeled(&scans, &ground);
     let search = groundwork_calibrate::ParamSearchConfig::default();
     let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
@@ -547,8 +555,8 @@ fn kitti_parameters_fitted_to_pseudo_labels_keep_the_accuracy() {
 /// exists for these scans; the threshold guards against the preset drifting from it.
 #[test]
 fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_labeler() {
+    use groundwork_calibrate::frame_mount;
     use groundwork_calibrate::params::agreement;
-    use groundwork_calibrate::{LabeledScan, frame_mount};
     use groundwork_core::config::SensorConfig;
     use groundwork_io::SENSOR_PRESETS;
     let scans: Vec<Vec<[f32; 3]>> = livox_scans()
@@ -609,19 +617,8 @@ fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_la
         groundwork_pseudolabel::GroundFrame::from_config(&labeling).unwrap(),
     )
     .unwrap();
-    let ground: Vec<Vec<bool>> = scans
-        .iter()
-        .map(|s| {
-            let mut p = vec![0.0f32; s.len()];
-            labeler.label(s, &mut p).unwrap();
-            p.iter().map(|&p| p >= 0.5).collect()
-        })
-        .collect();
-    let sample: Vec<LabeledScan> = scans
-        .iter()
-        .zip(&ground)
-        .map(|(points, ground)| LabeledScan { points, ground })
-        .collect();
+    let ground = pseudo_ground(&labeler, &scans);
+    let sample = labeled(&scans, &ground);
     let mut table = Vec::new();
     for (name, _) in SENSOR_PRESETS {
         let mut cfg = sensor_preset(name).unwrap();
