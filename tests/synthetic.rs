@@ -532,6 +532,84 @@ fn near_edge_against_every_preset() {
     }
 }
 
+/// Layouts of the zone model (`zones.layouts`) on the scans and mounts of
+/// [`presets_across_sensors`]: each sensor's preset with its zones moved for the true mount
+/// as `groundwork calibrate` moves them, with 1, 2, 3 and 4 layouts, against the best of
+/// every preset told the true mount (docs/algorithm.md, "Layouts"). About 8 minutes:
+/// `cargo test --release -p groundwork-tests --test synthetic -- --ignored layouts
+/// --nocapture`.
+#[test]
+#[ignore = "slow: every preset on every sensor's scans, for docs/algorithm.md"]
+fn layouts_against_every_preset() {
+    use groundwork_calibrate::{NearEdgeConfig, near_ground, zones_for_mount};
+    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
+    let near_cfg = NearEdgeConfig::default();
+    let counts = [1u32, 2, 3, 4];
+    let (mut sums, mut wins, mut runs) = ([0.0; 4], [0usize; 4], 0);
+    for (si, &sensor) in names.iter().enumerate() {
+        let own = sensor_preset(sensor).unwrap();
+        for scene in [Urban, Offroad, Parking] {
+            for seed in 0..3u64 {
+                let truth = random_mount(si, seed, own.sensor.mount.yaw);
+                let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
+                let sensor_cfg = SensorConfig {
+                    mount: truth.clone(),
+                    ..own.sensor.clone()
+                };
+                let run = |cfg: SegmenterConfig| {
+                    synthetic_run(
+                        &g,
+                        SegmenterConfig {
+                            sensor: sensor_cfg.clone(),
+                            ..cfg
+                        },
+                        Poses::True,
+                    )
+                    .iou()
+                };
+                let best = names
+                    .iter()
+                    .map(|p| run(sensor_preset(p).unwrap()))
+                    .fold(f64::MIN, f64::max);
+                let scans: Vec<Vec<[f32; 3]>> = (0..g.frames())
+                    .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
+                    .collect();
+                let pose = groundwork_core::mount_transform(&truth).unwrap();
+                let ego = own.sensor.ego_radius;
+                let ground = near_ground(&scans, &pose, ego, &near_cfg);
+                let moved = zones_for_mount(
+                    &own.zones,
+                    ground.as_ref(),
+                    Some((truth.height, &own.sensor.mount)),
+                    ego,
+                    &near_cfg,
+                )
+                .zones
+                .unwrap_or_else(|| own.zones.clone());
+                let mut line = format!("{sensor:9} {:8} seed {seed}:", scene.name());
+                for (j, &n) in counts.iter().enumerate() {
+                    let mut cfg = own.clone();
+                    cfg.zones = moved.clone();
+                    cfg.zones.layouts = n;
+                    let iou = run(cfg);
+                    sums[j] += iou;
+                    wins[j] += usize::from(iou >= best);
+                    line += &format!(" {n} layout(s) {iou:6.2}");
+                }
+                eprintln!("{line}, best preset {best:6.2}");
+                runs += 1;
+            }
+        }
+    }
+    for (j, n) in counts.iter().enumerate() {
+        eprintln!(
+            "LAYOUTS {n}: mean {:.2}, {} of {runs} runs at least the best preset",
+            sums[j] / f64::from(runs),
+            wins[j]
+        );
+    }
+}
+
 /// The random mount of [`presets_across_sensors`] for sensor `si`'s scans, seed `seed`.
 fn random_mount(si: usize, seed: u64, yaw: f64) -> MountConfig {
     use rand::{Rng, SeedableRng};

@@ -271,6 +271,11 @@ pub struct ZoneConfig {
     pub sectors: Vec<u32>,
     /// Treatment of points beyond `max_range`.
     pub beyond_max_range: BeyondRangePolicy,
+    /// How many times the zone model is laid over each scan (1–8), each layout fitted and
+    /// queried on its own and the probabilities averaged: a point whose segment border
+    /// falls badly in one layout is outvoted by the others. Costs the fit and the query
+    /// once per layout. See [`SegmenterConfig::layout`].
+    pub layouts: u32,
 }
 
 impl Default for ZoneConfig {
@@ -282,6 +287,7 @@ impl Default for ZoneConfig {
             rings: vec![2, 4, 4, 4],
             sectors: vec![16, 32, 54, 32],
             beyond_max_range: BeyondRangePolicy::OuterRing,
+            layouts: 1,
         }
     }
 }
@@ -924,6 +930,20 @@ impl SegmenterConfig {
         positive("mount_check.correct_max_deg", mc.correct_max_deg, 90.0, "°")?;
         positive("mount_check.correct_max_m", mc.correct_max_m, 100.0, " m")?;
         within(
+            "zones.layouts",
+            f64::from(z.layouts),
+            1.0,
+            f64::from(MAX_LAYOUTS),
+            "",
+        )?;
+        if z.layouts > 1 && mc.mode == MountCheckMode::Correct {
+            return Err(ConfigError::invalid(
+                "zones.layouts",
+                "more than one layout needs mount_check.mode = \"off\" or \"warn\": the \
+                 layouts are laid on the configured mount, which \"correct\" would move",
+            ));
+        }
+        within(
             "mount_check.warmup_scans",
             f64::from(mc.warmup_scans),
             1.0,
@@ -949,6 +969,72 @@ pub fn mount_transform(mount: &MountConfig) -> Result<Pose, ConfigError> {
     ))
 }
 
+/// The most layouts of the zone model (`zones.layouts`).
+pub const MAX_LAYOUTS: u32 = 8;
+
+/// How far the layouts' inner boundaries spread: layout k's are scaled by
+/// 1 + LAYOUT_SPREAD · (frac(k · φ⁻¹) − ½), φ the golden ratio (an even spread for any count).
+const LAYOUT_SPREAD: f64 = 0.15;
+
+impl SegmenterConfig {
+    /// The configuration of layout `k` (0 ≤ k < `zones.layouts`) of the zone model: layout
+    /// 0 is this one; layout k is turned about the ground vertical by k / layouts of the
+    /// narrowest sector, and its inner zone boundaries (all but the first and the last) are
+    /// scaled by a factor in [0.925, 1.075) (`LAYOUT_SPREAD`), so that segment borders fall
+    /// elsewhere in azimuth and in range. Each is a whole configuration of one layout
+    /// (`layouts = 1`); the mount check runs on layout 0 only (`mount_check.mode = "off"`).
+    pub fn layout(&self, k: u32) -> Result<Self, ConfigError> {
+        let mut c = self.clone();
+        c.zones.layouts = 1;
+        if k == 0 {
+            return Ok(c);
+        }
+        c.mount_check.mode = MountCheckMode::Off;
+        let n = f64::from(self.zones.layouts.max(1));
+        let narrowest = self.zones.sectors.iter().copied().max().unwrap_or(1).max(1);
+        let turn = f64::from(k) / n * std::f64::consts::TAU / f64::from(narrowest);
+        let m = &mut c.sensor.mount;
+        match &mut m.matrix {
+            // Rz(turn) after the mount: the same ground, turned about its vertical.
+            Some(mat) => {
+                let pose = pose_from_matrix(mat)
+                    .map_err(|e| ConfigError::invalid("sensor.mount.matrix", &e.to_string()))?;
+                let turned = UnitQuaternion::from_euler_angles(0.0, 0.0, turn) * pose;
+                let h = turned.to_homogeneous();
+                for (r, row) in mat.iter_mut().enumerate() {
+                    for (col, v) in row.iter_mut().enumerate() {
+                        *v = h[(r, col)];
+                    }
+                }
+            }
+            // Rz(yaw)·Ry(pitch)·Rx(roll): a turn about the ground vertical adds to the yaw.
+            None => {
+                let yaw = m.yaw + turn;
+                m.yaw = if yaw > std::f64::consts::PI {
+                    yaw - std::f64::consts::TAU
+                } else {
+                    yaw
+                };
+            }
+        }
+        let b = self.zones.resolved_boundaries()?;
+        let scale = 1.0 + LAYOUT_SPREAD * ((f64::from(k) * 0.618_033_988_749_895).fract() - 0.5);
+        let last = b.len().saturating_sub(1);
+        let scaled: Vec<f64> = b
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| if i == 0 || i == last { v } else { v * scale })
+            .collect();
+        // A layout whose scaled boundaries would cross the fixed ones keeps them unscaled.
+        if scaled.windows(2).all(|w| w[0] < w[1]) {
+            c.zones.boundaries = Some(scaled);
+        } else {
+            c.zones.boundaries = Some(b);
+        }
+        Ok(c)
+    }
+}
+
 /// The roll and pitch of a mount whose ground vertical, seen from the sensor, is the unit
 /// vector `up` (any yaw): the inverse of [`mount_transform`]'s rotation
 /// Rz(yaw)·Ry(pitch)·Rx(roll), which carries up = (−sin p, sin r cos p, cos r cos p) to z.
@@ -964,6 +1050,78 @@ pub fn vertical_in_sensor(mount: &Pose) -> Vector3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every layout lies on the same ground (same vertical and height), turned about it by
+    /// less than one narrowest sector, with its inner boundaries moved by at most 7.5 %;
+    /// the same for a mount given as a matrix.
+    #[test]
+    fn layouts_are_the_zone_model_turned_and_stretched_on_the_same_ground() {
+        let mut cfg = SegmenterConfig::default();
+        cfg.sensor.mount = MountConfig {
+            height: 1.3,
+            roll: 0.05,
+            pitch: -0.12,
+            yaw: 3.1,
+            matrix: None,
+        };
+        cfg.zones.layouts = 4;
+        let base = mount_transform(&cfg.sensor.mount).unwrap();
+        let bounds = cfg.zones.resolved_boundaries().unwrap();
+        let narrowest = std::f64::consts::TAU / 54.0;
+        let as_matrix = {
+            let mut c = cfg.clone();
+            let h = base.to_homogeneous();
+            c.sensor.mount = MountConfig {
+                height: 0.0,
+                roll: 0.0,
+                pitch: 0.0,
+                yaw: 0.0,
+                matrix: Some(std::array::from_fn(|r| std::array::from_fn(|k| h[(r, k)]))),
+            };
+            c
+        };
+        for k in 0..4 {
+            for c in [&cfg, &as_matrix] {
+                let l = c.layout(k).unwrap();
+                assert_eq!(l.zones.layouts, 1);
+                l.validate().unwrap();
+                let m = mount_transform(&l.sensor.mount).unwrap();
+                let up = (vertical_in_sensor(&m) - vertical_in_sensor(&base)).norm();
+                assert!(up < 1e-12, "layout {k}: the vertical moved by {up}");
+                assert!((m.translation.z - 1.3).abs() < 1e-12);
+                let turn = (m.rotation * base.rotation.inverse()).angle();
+                let want = f64::from(k) / 4.0 * narrowest;
+                assert!(
+                    (turn - want).abs() < 1e-9,
+                    "layout {k}: turned {turn}, not {want}"
+                );
+                let b = l.zones.resolved_boundaries().unwrap();
+                assert_eq!((b[0], b[4]), (bounds[0], bounds[4]));
+                for i in 1..4 {
+                    let r = b[i] / bounds[i];
+                    assert!(
+                        (0.925..1.075).contains(&r),
+                        "layout {k}, boundary {i}: ×{r}"
+                    );
+                    assert_eq!(r == 1.0, k == 0);
+                }
+                assert_eq!(
+                    l.mount_check.mode == MountCheckMode::Off,
+                    k > 0 || c.mount_check.mode == MountCheckMode::Off
+                );
+            }
+        }
+        for bad in [0, MAX_LAYOUTS + 1] {
+            let mut c = cfg.clone();
+            c.zones.layouts = bad;
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains("zones.layouts"), "{e}");
+        }
+        let mut c = cfg.clone();
+        c.mount_check.mode = MountCheckMode::Correct;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("zones.layouts") && e.contains("correct"), "{e}");
+    }
 
     #[test]
     fn roll_and_pitch_invert_the_mount_rotation() {

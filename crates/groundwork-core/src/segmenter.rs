@@ -141,6 +141,9 @@ pub struct Segmenter {
     sorted: SegmentedPoints,
     query_scratch: QueryScratch,
     continuity: ContinuityScratch,
+    /// Layouts 1.. of `zones.layouts` (`SegmenterConfig::layout`), each a whole segmenter
+    /// with its own history, and their probabilities of the current scan.
+    layouts: Vec<(Segmenter, Vec<f32>)>,
 }
 
 impl Segmenter {
@@ -150,7 +153,11 @@ impl Segmenter {
         let zones = ZoneModel::new(&cfg.zones, cfg.sensor.ego_radius)?;
         let mount = mount_transform(&cfg.sensor.mount)?;
         let height = HeightFilter::new(cfg.height_filter.clone(), zones.first_zone_segments());
+        let layouts = (1..cfg.zones.layouts)
+            .map(|k| Ok((Segmenter::new(cfg.layout(k)?)?, Vec::new())))
+            .collect::<Result<_, ConfigError>>()?;
         Ok(Self {
+            layouts,
             history: History::default(),
             last_time_ns: None,
             cfg,
@@ -205,6 +212,9 @@ impl Segmenter {
     pub fn reset(&mut self) -> bool {
         self.height.reset();
         self.mount_watch.reset();
+        for (layout, _) in &mut self.layouts {
+            layout.reset();
+        }
         self.reset_history()
     }
 
@@ -229,6 +239,9 @@ impl Segmenter {
     /// requested reset if there was one. Returns whether frames were dropped.
     pub fn reset_history(&mut self) -> bool {
         self.last_time_ns = None;
+        for (layout, _) in &mut self.layouts {
+            layout.reset_history();
+        }
         self.clear_history(HistoryReset::Requested)
     }
 
@@ -256,11 +269,14 @@ impl Segmenter {
     /// Forgets only the zone-1 height filter.
     pub fn reset_height_filter(&mut self) {
         self.height.reset();
+        for (layout, _) in &mut self.layouts {
+            layout.reset_height_filter();
+        }
     }
 
     /// Fits a model to a scan without touching any between-frame state (height filter,
     /// history): the first half of [`Segmenter::segment`], exposed for benchmarks and
-    /// callers that fit once and query many times.
+    /// callers that fit once and query many times. With `zones.layouts` > 1: layout 0 only.
     pub fn fit<P: PointXyz + Sync>(&mut self, points: &[P]) -> Result<FrameModel, SegmentError> {
         let out = vec![0.0; points.len()];
         self.check_and_bin(points, None, &out)?;
@@ -269,7 +285,7 @@ impl Segmenter {
     }
 
     /// Ground probabilities of `points` (this scan's own sensor frame) under one fitted
-    /// model, single-frame: the second half of [`Segmenter::segment`].
+    /// model, single-frame: the second half of [`Segmenter::segment`] (layout 0's).
     pub fn query_model<P: PointXyz + Sync>(
         &mut self,
         model: &FrameModel,
@@ -285,7 +301,7 @@ impl Segmenter {
     /// Ground probabilities of `points` (this scan's own sensor frame, world pose `pose`)
     /// under `model` and the stored history, exactly as [`Segmenter::segment`] queries them,
     /// but without changing the history: for benchmarks and callers that query one scan
-    /// several times. Returns the number of models queried.
+    /// several times (layout 0's). Returns the number of models queried.
     pub fn query_model_posed<P: PointXyz + Sync>(
         &mut self,
         model: &FrameModel,
@@ -397,6 +413,45 @@ impl Segmenter {
     /// sensor): a gap to the previous stamped scan beyond `history.max_time_gap`, or time
     /// running backwards, clears the history before this scan is queried.
     pub fn segment_stamped<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        pose: Option<&Pose>,
+        sensor_time_ns: Option<u64>,
+        out: &mut [f32],
+    ) -> Result<FrameReport, SegmentError> {
+        let mut report = self.segment_layout(points, pose, sensor_time_ns, out)?;
+        if self.layouts.is_empty() {
+            return Ok(report);
+        }
+        // The other layouts see the same scan (it passed this layout's checks) and keep
+        // their own history; their probabilities are added in layout order, so the mean is
+        // the same bits on any number of threads and for any order of the points.
+        for (layout, probs) in &mut self.layouts {
+            probs.resize(points.len(), 0.0);
+            let r = layout.segment_layout(points, pose, sensor_time_ns, probs)?;
+            report.fit_time += r.fit_time;
+            report.query_time += r.query_time;
+            report.em_iterations += r.em_iterations;
+            report.components += r.components;
+            for (o, &p) in out.iter_mut().zip(probs.iter()) {
+                *o += p;
+            }
+        }
+        // Each sum is of values in [0, 1], so at most the count, and the division (exact
+        // rounding, monotone) keeps the mean in [0, 1].
+        let n = (self.layouts.len() + 1) as f32;
+        let thr = self.cfg.ground.ground_threshold;
+        let mut ground = 0;
+        for o in out.iter_mut() {
+            *o /= n;
+            ground += usize::from(*o >= thr);
+        }
+        report.ground_points = ground;
+        Ok(report)
+    }
+
+    /// One layout of the zone model: the whole method on one scan.
+    fn segment_layout<P: PointXyz + Sync>(
         &mut self,
         points: &[P],
         pose: Option<&Pose>,
