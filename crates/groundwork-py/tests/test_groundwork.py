@@ -287,6 +287,32 @@ def test_keyword_arguments_configure_like_a_file(tmp_path: Path) -> None:
     assert groundwork.Segmenter(sensor="vlp16").sensor == "vlp16"
 
 
+def test_layouts_are_a_keyword_away_and_score_higher(cli: Path, tmp_path: Path) -> None:
+    """`zones.layouts` by keyword gives the CLI's bits with the same setting in a file, and on
+    the labeled frames a better pooled IoU than one layout (98.79 against 98.25 measured)."""
+    cfg = tmp_path / "layouts.toml"
+    cfg.write_text("[zones]\nlayouts = 3\n")
+    out = tmp_path / "out"
+    run(cli, "segment", "--config", str(cfg), "--out", str(out), str(SCANS[0]))
+    three = groundwork.Segmenter(frames=1, zones={"layouts": 3})
+    probs = three.segment(kitti(SCANS[0]))
+    assert np.array_equal(bits(probs), bits(np.fromfile(out / "000000.prob", np.float32)))
+    assert probs.min() >= 0.0 and probs.max() <= 1.0
+    pooled = {}
+    for layouts in (1, 3):
+        seg = groundwork.Segmenter(frames=1, zones={"layouts": layouts})
+        counts = np.zeros(3)
+        for i in LABELED:
+            points = kitti(SCANS[i])
+            labels = groundwork.read_labels(SEQ / "labels" / f"{i:06}.label", len(points))
+            r = groundwork.evaluate(seg.segment(points), labels, protocol="gmm")
+            counts += [r["tp"], r["fp"], r["fn"]]
+        pooled[layouts] = counts[0] / counts.sum()
+    assert pooled[3] >= pooled[1] + 0.004, pooled
+    with pytest.raises(ValueError, match="zones.layouts"):
+        groundwork.Segmenter(zones={"layouts": 9})
+
+
 def test_an_ascii_pcd_of_a_scan_gives_the_decisions_of_its_bin(cli: Path, tmp_path: Path) -> None:
     """A scan converted to text by an independent writer (pypcd4: ten decimals, i.e. the f32
     coordinates rounded) gives the ground of the original: the fit points are chosen by the
