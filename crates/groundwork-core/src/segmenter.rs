@@ -202,9 +202,15 @@ impl Segmenter {
         self.history.len()
     }
 
-    /// Component count over all stored frames: memory use of the history is proportional.
+    /// Component count over all stored frames (of every layout): memory use of the history
+    /// is proportional.
     pub fn history_components(&self) -> usize {
         self.history.components()
+            + self
+                .layouts
+                .iter()
+                .map(|(l, _)| l.history_components())
+                .sum::<usize>()
     }
 
     /// Forgets the history and the height filter (e.g. on a new sequence); counted as a
