@@ -462,7 +462,7 @@ fn presets_across_sensors() {
 #[test]
 #[ignore = "slow: every preset on every sensor's scans, for docs/calibration.md"]
 fn near_edge_against_every_preset() {
-    use groundwork_calibrate::{NearEdgeConfig, near_ground, zones_for_mount};
+    use groundwork_calibrate::{NearEdgeConfig, zones_for_mount};
     let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
     let near_cfg = NearEdgeConfig::default();
     for (si, &sensor) in names.iter().enumerate() {
@@ -473,23 +473,10 @@ fn near_edge_against_every_preset() {
             for seed in 0..3u64 {
                 let truth = random_mount(si, seed, own.sensor.mount.yaw);
                 let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
-                let run = |mut cfg: groundwork_core::SegmenterConfig| {
-                    cfg.sensor = SensorConfig {
-                        mount: truth.clone(),
-                        ..own.sensor.clone()
-                    };
-                    synthetic_run(&g, cfg, Poses::True).iou()
-                };
-                let best = names
-                    .iter()
-                    .map(|p| run(sensor_preset(p).unwrap()))
-                    .fold(f64::MIN, f64::max);
-                let scans: Vec<Vec<[f32; 3]>> = (0..g.frames())
-                    .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
-                    .collect();
-                let pose = groundwork_core::mount_transform(&truth).unwrap();
+                let run = |cfg| iou_on_mount(&g, &own.sensor, &truth, cfg);
+                let best = best_preset_iou(&g, &own.sensor, &truth);
                 let ego = own.sensor.ego_radius;
-                let ground = near_ground(&scans, &pose, ego, &near_cfg);
+                let ground = near_ground_on(&g, &truth, ego, &near_cfg);
                 let fit = |height| {
                     zones_for_mount(&own.zones, ground.as_ref(), height, ego, &near_cfg).zones
                 };
@@ -541,7 +528,7 @@ fn near_edge_against_every_preset() {
 #[test]
 #[ignore = "slow: every preset on every sensor's scans, for docs/algorithm.md"]
 fn layouts_against_every_preset() {
-    use groundwork_calibrate::{NearEdgeConfig, near_ground, zones_for_mount};
+    use groundwork_calibrate::{NearEdgeConfig, zones_for_mount};
     let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
     let near_cfg = NearEdgeConfig::default();
     let counts = [1u32, 2, 3, 4];
@@ -552,31 +539,9 @@ fn layouts_against_every_preset() {
             for seed in 0..3u64 {
                 let truth = random_mount(si, seed, own.sensor.mount.yaw);
                 let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
-                let sensor_cfg = SensorConfig {
-                    mount: truth.clone(),
-                    ..own.sensor.clone()
-                };
-                let run = |cfg: SegmenterConfig| {
-                    synthetic_run(
-                        &g,
-                        SegmenterConfig {
-                            sensor: sensor_cfg.clone(),
-                            ..cfg
-                        },
-                        Poses::True,
-                    )
-                    .iou()
-                };
-                let best = names
-                    .iter()
-                    .map(|p| run(sensor_preset(p).unwrap()))
-                    .fold(f64::MIN, f64::max);
-                let scans: Vec<Vec<[f32; 3]>> = (0..g.frames())
-                    .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
-                    .collect();
-                let pose = groundwork_core::mount_transform(&truth).unwrap();
+                let best = best_preset_iou(&g, &own.sensor, &truth);
                 let ego = own.sensor.ego_radius;
-                let ground = near_ground(&scans, &pose, ego, &near_cfg);
+                let ground = near_ground_on(&g, &truth, ego, &near_cfg);
                 let moved = zones_for_mount(
                     &own.zones,
                     ground.as_ref(),
@@ -591,7 +556,7 @@ fn layouts_against_every_preset() {
                     let mut cfg = own.clone();
                     cfg.zones = moved.clone();
                     cfg.zones.layouts = n;
-                    let iou = run(cfg);
+                    let iou = iou_on_mount(&g, &own.sensor, &truth, cfg);
                     sums[j] += iou;
                     wins[j] += usize::from(iou >= best);
                     line += &format!(" {n} layout(s) {iou:6.2}");
@@ -608,6 +573,43 @@ fn layouts_against_every_preset() {
             wins[j]
         );
     }
+}
+
+/// Pooled IoU of `cfg` over `g`'s frames (true poses) with the scans' own sensor section
+/// `sensor` on the mount `truth` they were taken from.
+fn iou_on_mount(
+    g: &Generator,
+    sensor: &SensorConfig,
+    truth: &MountConfig,
+    cfg: SegmenterConfig,
+) -> f64 {
+    let sensor = SensorConfig {
+        mount: truth.clone(),
+        ..sensor.clone()
+    };
+    synthetic_run(g, SegmenterConfig { sensor, ..cfg }, Poses::True).iou()
+}
+
+/// The best [`iou_on_mount`] of every preset.
+fn best_preset_iou(g: &Generator, sensor: &SensorConfig, truth: &MountConfig) -> f64 {
+    SENSOR_PRESETS
+        .iter()
+        .map(|(p, _)| iou_on_mount(g, sensor, truth, sensor_preset(p).unwrap()))
+        .fold(f64::MIN, f64::max)
+}
+
+/// Where `g`'s scans first see ground on the mount `truth`, as `calibrate` finds it.
+fn near_ground_on(
+    g: &Generator,
+    truth: &MountConfig,
+    ego_radius: f64,
+    cfg: &groundwork_calibrate::NearEdgeConfig,
+) -> Option<groundwork_calibrate::NearGround> {
+    let scans: Vec<Vec<[f32; 3]>> = (0..g.frames())
+        .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
+        .collect();
+    let pose = groundwork_core::mount_transform(truth).unwrap();
+    groundwork_calibrate::near_ground(&scans, &pose, ego_radius, cfg)
 }
 
 /// The random mount of [`presets_across_sensors`] for sensor `si`'s scans, seed `seed`.
