@@ -211,14 +211,14 @@ impl PseudoLabeler {
                 .par_iter_mut()
                 .zip(draws.par_chunks(CHUNK))
                 .map(|(c, draws)| {
-                    c.x.clear();
-                    c.y.clear();
-                    c.z.clear();
-                    for &d in draws {
-                        let [x, y, z] = targets[d as usize];
-                        c.x.push(x);
-                        c.y.push(y);
-                        c.z.push(z);
+                    // Written in place, not pushed: a push's length update kept the
+                    // scattered reads of `targets` from overlapping.
+                    for v in [&mut c.x, &mut c.y, &mut c.z] {
+                        v.resize(draws.len(), 0.0);
+                    }
+                    for (((&d, x), y), z) in draws.iter().zip(&mut c.x).zip(&mut c.y).zip(&mut c.z)
+                    {
+                        [*x, *y, *z] = targets.get(d as usize).copied().unwrap_or_default();
                     }
                     net.forward(&c.x, &c.y, &mut c.ws);
                     c.d_output.clear();
@@ -244,7 +244,7 @@ impl PseudoLabeler {
                     *a += b;
                 }
             }
-            opt.step(map.net.params_mut(), &grad, lr);
+            map.net.update(|p| opt.step(p, &grad, lr));
             ema = if ema.is_nan() {
                 loss
             } else {
@@ -284,6 +284,18 @@ impl PseudoLabeler {
     /// points labelled ground). `points` are in the sensor frame; every point must be
     /// finite (checked by [`GroundFrame::prepare`]).
     pub fn label<P: groundwork_core::PointXyz + Sync>(
+        &self,
+        points: &[P],
+        out: &mut [f32],
+    ) -> Result<FitReport, groundwork_core::SegmentError> {
+        // On a thread of rayon's pool (a no-op when already on one): the fit's hundreds of
+        // parallel steps then run as joins there, instead of each sending its work to the
+        // pool while the calling thread sleeps until it is done (two context switches a
+        // step: 12-20 % of `segment --method pseudolabeler`'s time).
+        rayon::scope(|_| self.label_on_pool(points, out))
+    }
+
+    fn label_on_pool<P: groundwork_core::PointXyz + Sync>(
         &self,
         points: &[P],
         out: &mut [f32],
