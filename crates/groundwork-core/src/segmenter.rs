@@ -425,6 +425,20 @@ impl Segmenter {
         sensor_time_ns: Option<u64>,
         out: &mut [f32],
     ) -> Result<FrameReport, SegmentError> {
+        // On a thread of rayon's pool (a no-op when already on one): the scan's parallel
+        // steps then run as joins there, instead of each sending its work to the pool
+        // while the calling thread sleeps until it is done.
+        rayon::scope(|_| self.segment_on_pool(points, pose, sensor_time_ns, out))
+    }
+
+    /// [`Segmenter::segment_stamped`], on a thread of the pool.
+    fn segment_on_pool<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        pose: Option<&Pose>,
+        sensor_time_ns: Option<u64>,
+        out: &mut [f32],
+    ) -> Result<FrameReport, SegmentError> {
         let mut report = self.segment_layout(points, pose, sensor_time_ns, out)?;
         if self.layouts.is_empty() {
             return Ok(report);
