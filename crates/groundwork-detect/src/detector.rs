@@ -254,10 +254,11 @@ pub struct Detector {
     pieces: Vec<Piece>,
     candidates: Vec<Maybe>,
     joiners: Vec<Maybe>,
+    /// The candidates' coordinates, and the joiners'.
     xyz: Vec<[f32; 3]>,
+    joiner_xyz: Vec<[f32; 3]>,
     labels: Vec<u32>,
     touched: Vec<Option<u32>>,
-    members: Vec<(u32, Maybe)>,
     /// The members in cluster order.
     grouped: Vec<Maybe>,
     /// The clusters kept, in cluster order, and their measures and boxes.
@@ -295,9 +296,9 @@ impl Detector {
             candidates: Vec::new(),
             joiners: Vec::new(),
             xyz: Vec::new(),
+            joiner_xyz: Vec::new(),
             labels: Vec::new(),
             touched: Vec::new(),
-            members: Vec::new(),
             grouped: Vec::new(),
             live: Vec::new(),
             measured: Vec::new(),
@@ -317,6 +318,15 @@ impl Detector {
     /// Proposals for one scan (sensor frame) and its ground probabilities (one per point,
     /// input order), written into `out`.
     pub fn detect<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        probabilities: &[f32],
+        out: &mut Detections,
+    ) -> Result<DetectionReport, DetectError> {
+        rayon::scope(|_| self.detect_on_pool(points, probabilities, out))
+    }
+
+    fn detect_on_pool<P: PointXyz + Sync>(
         &mut self,
         points: &[P],
         probabilities: &[f32],
@@ -427,48 +437,57 @@ impl Detector {
         self.xyz.extend(self.candidates.iter().map(|m| m.xyz));
         let found = self.grid.cluster(&self.xyz, cfg, &mut self.labels);
 
-        // The members of the clusters kept (small ones dropped), as (cluster, point).
-        let mut sizes = vec![0u32; found];
-        for &l in &self.labels {
-            if l != u32::MAX {
-                sizes[l as usize] += 1;
-            }
-        }
+        // The size of each cluster, and meanwhile on the other core the cluster each
+        // uncertain ground point touches.
+        self.joiner_xyz.clear();
+        self.joiner_xyz.extend(self.joiners.iter().map(|m| m.xyz));
+        let (grid, joiner_xyz, touched) = (&mut self.grid, &self.joiner_xyz, &mut self.touched);
+        let labels = &self.labels;
+        let ((), sizes) = rayon::join(
+            || grid.touching(joiner_xyz, cfg, touched),
+            || {
+                let mut sizes = vec![0u32; found];
+                for &l in labels {
+                    if l != u32::MAX {
+                        sizes[l as usize] += 1;
+                    }
+                }
+                sizes
+            },
+        );
         let kept = |c: u32| c != u32::MAX && sizes[c as usize] >= cfg.min_points;
-        self.members.clear();
-        for (m, &l) in self.candidates.iter().zip(&self.labels) {
-            if kept(l) {
-                self.members.push((l, *m));
+
+        // The members of the clusters kept (small ones dropped) grouped by cluster, each
+        // cluster's candidates in order, then the uncertain ground points that touch it (a
+        // counting sort), then each cluster measured and boxed on all cores.
+        let mut start = vec![0usize; found + 1];
+        for (c, &size) in sizes.iter().enumerate() {
+            if kept(c as u32) {
+                start[c + 1] = size as usize;
             }
         }
-        self.xyz.clear();
-        self.xyz.extend(self.joiners.iter().map(|m| m.xyz));
-        self.grid.touching(&self.xyz, cfg, &mut self.touched);
-        let before = self.members.len();
-        for (m, &c) in self.joiners.iter().zip(&self.touched) {
+        let mut joined = 0;
+        for &c in &self.touched {
             if let Some(c) = c
                 && kept(c)
             {
-                self.members.push((c, *m));
+                start[c as usize + 1] += 1;
+                joined += 1;
             }
-        }
-        let joined = self.members.len() - before;
-
-        // The members grouped by cluster (a stable counting sort: within a cluster, in the
-        // order above), then each cluster measured and boxed on all cores.
-        let mut start = vec![0usize; found + 1];
-        for &(c, _) in &self.members {
-            start[c as usize + 1] += 1;
         }
         for k in 1..start.len() {
             start[k] += start[k - 1];
         }
         self.grouped.clear();
-        self.grouped.resize(self.members.len(), Maybe::default());
+        self.grouped.resize(start[found], Maybe::default());
         let mut slot = start.clone();
-        for &(c, m) in &self.members {
-            self.grouped[slot[c as usize]] = m;
-            slot[c as usize] += 1;
+        let touching = self.touched.iter().map(|c| c.unwrap_or(u32::MAX));
+        let labelled = self.candidates.iter().zip(self.labels.iter().copied());
+        for (m, c) in labelled.chain(self.joiners.iter().zip(touching)) {
+            if kept(c) {
+                self.grouped[slot[c as usize]] = *m;
+                slot[c as usize] += 1;
+            }
         }
         self.live.clear();
         self.live
@@ -504,8 +523,10 @@ impl Detector {
         }
         out.clusters.clear();
         out.clusters.resize(points.len(), 0);
-        for &(c, m) in &self.members {
-            out.clusters[m.index as usize] = id_of[c as usize];
+        for &c in &self.live {
+            for m in &self.grouped[start[c as usize]..start[c as usize + 1]] {
+                out.clusters[m.index as usize] = id_of[c as usize];
+            }
         }
         out.proposals.clear();
         for (k, &(_, _, c)) in order.iter().enumerate() {
