@@ -461,10 +461,14 @@ pub fn fit_segment_with(
     for v in [&mut s.x, &mut s.y, &mut s.z, &mut s.w] {
         v.clear();
     }
-    s.fitted.clear();
+    // Every candidate written at the running end, kept when its weight is positive
+    // (branch-free, as `gather_candidates`).
+    s.fitted.resize(kept, 0);
+    s.w.resize(kept, 0.0);
+    let mut fitted = 0;
     for &(_, i) in &s.order[..kept] {
-        let i = i as usize;
-        let w = if banded && s.near[i] != 0 {
+        let w = if banded && s.near[i as usize] != 0 {
+            let i = i as usize;
             band_weight(
                 xs[i] - anchor[0],
                 ys[i] - anchor[1],
@@ -474,11 +478,12 @@ pub fn fit_segment_with(
         } else {
             1.0
         };
-        if w > 0.0 {
-            s.fitted.push(i as u32);
-            s.w.push(w);
-        }
+        s.fitted[fitted] = i;
+        s.w[fitted] = w;
+        fitted += usize::from(w > 0.0);
     }
+    s.fitted.truncate(fitted);
+    s.w.truncate(fitted);
     if s.fitted.is_empty() {
         // No cube drawn (a few cubes holding every point, none within the share): fit
         // every point, in the same canonical order, rather than nothing.
@@ -502,13 +507,18 @@ pub fn fit_segment_with(
         centroid[2] += w * zs[i];
     }
     let centroid = centroid.map(|c| c / total_weight);
-    for &i in &s.fitted {
-        let i = i as usize;
-        s.x.push((xs[i] - centroid[0]) as f32);
-        s.y.push((ys[i] - centroid[1]) as f32);
-        s.z.push((zs[i] - centroid[2]) as f32);
+    // Written in place, not pushed: a push's length update per point kept the scattered
+    // reads from overlapping.
+    let m = s.fitted.len();
+    for v in [&mut s.x, &mut s.y, &mut s.z] {
+        v.resize(m, 0.0);
     }
-    let m = s.x.len();
+    for (((&i, x), y), z) in s.fitted.iter().zip(&mut s.x).zip(&mut s.y).zip(&mut s.z) {
+        let i = i as usize;
+        *x = (xs[i] - centroid[0]) as f32;
+        *y = (ys[i] - centroid[1]) as f32;
+        *z = (zs[i] - centroid[2]) as f32;
+    }
     let scale = n as f64 / total_weight;
     let np = m.div_ceil(LANES) * LANES;
     for v in [&mut s.x, &mut s.y, &mut s.z, &mut s.w] {
