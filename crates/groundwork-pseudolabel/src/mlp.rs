@@ -370,7 +370,7 @@ impl Mlp {
         let mut dz = std::mem::take(&mut ws.grad_a);
         let mut da = std::mem::take(&mut ws.grad_b);
         // Grown to the widest layer once, never cleared: every value read is written first
-        // (zeroing them each pass was most of training's `memset`).
+        // (zeroing them each pass showed as `memset` in the profile).
         let widest = self.sizes.iter().copied().max().unwrap_or(1) * vecs;
         for buf in [&mut dz, &mut da] {
             if buf.len() < widest {
