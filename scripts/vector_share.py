@@ -14,7 +14,7 @@ import sys
 HOT = [
     "groundwork_core::query::eval_run",
     "groundwork_core::gmm::fit_segment_with",
-    "groundwork_detect::detector::Detector::detect",
+    "groundwork_detect::detector::Detector::detect_on_pool",
     "groundwork_detect::bbox::min_area_rect",
 ]
 NEON = re.compile(r"\bv\d+\.(?:16b|8b|8h|4h|4s|2s|2d|1d)\b|\bq\d+\b")

@@ -323,9 +323,15 @@ impl Detector {
         probabilities: &[f32],
         out: &mut Detections,
     ) -> Result<DetectionReport, DetectError> {
+        // On a thread of rayon's pool (a no-op when already on one): the parallel steps
+        // then run as joins there, instead of each sending its work to the pool while
+        // the calling thread sleeps until it is done.
         rayon::scope(|_| self.detect_on_pool(points, probabilities, out))
     }
 
+    /// [`Detector::detect`], on a thread of the pool. Never inlined: profiles and the
+    /// aarch64 check of its vector share (`scripts/vector_share.py`) find it by name.
+    #[inline(never)]
     fn detect_on_pool<P: PointXyz + Sync>(
         &mut self,
         points: &[P],
