@@ -254,8 +254,10 @@ pub struct Detector {
     pieces: Vec<Piece>,
     candidates: Vec<Maybe>,
     joiners: Vec<Maybe>,
-    /// The candidates' coordinates, and the joiners'.
+    /// The candidates' coordinates.
     xyz: Vec<[f32; 3]>,
+    /// The joiners' coordinates (a buffer of their own: they are looked up while the
+    /// candidates' labels are still being counted).
     joiner_xyz: Vec<[f32; 3]>,
     labels: Vec<u32>,
     touched: Vec<Option<u32>>,

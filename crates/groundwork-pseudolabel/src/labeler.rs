@@ -291,10 +291,11 @@ impl PseudoLabeler {
         // On a thread of rayon's pool (a no-op when already on one): the fit's hundreds of
         // parallel steps then run as joins there, instead of each sending its work to the
         // pool while the calling thread sleeps until it is done (two context switches a
-        // step: 12-20 % of `segment --method pseudolabeler`'s time).
+        // step: about 13 % of `segment --method pseudolabeler`'s time, docs/dev/speed-notes.md).
         rayon::scope(|_| self.label_on_pool(points, out))
     }
 
+    /// [`PseudoLabeler::label`], on a thread of the pool.
     fn label_on_pool<P: groundwork_core::PointXyz + Sync>(
         &self,
         points: &[P],
