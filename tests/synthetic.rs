@@ -421,12 +421,8 @@ fn presets_across_sensors() {
                 let truth = random_mount(si, seed, own.mount.yaw);
                 let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
                 let mut line = format!("{sensor:9} {:8} seed {seed}:", scene.name());
-                for (pi, &preset) in names.iter().enumerate() {
-                    let mut cfg = sensor_preset(preset).unwrap();
-                    cfg.sensor = own.clone();
-                    cfg.sensor.mount = truth.clone();
-                    let iou = synthetic_run(&g, cfg, Poses::True).iou();
-                    sums[pi] += iou;
+                for (sum, iou) in sums.iter_mut().zip(preset_ious(&g, &own, &truth)) {
+                    *sum += iou;
                     line += &format!(" {iou:6.2}");
                 }
                 eprintln!("{line}");
