@@ -26,31 +26,31 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("hdl64e", Offroad, 94.98),
     ("hdl64e", Parking, 94.95),
     ("hdl64e", Hill, 96.53),
-    ("hdl32e", Urban, 84.17),
-    ("hdl32e", Offroad, 94.22),
-    ("hdl32e", Parking, 92.03),
-    ("hdl32e", Hill, 96.53),
+    ("hdl32e", Urban, 94.23),
+    ("hdl32e", Offroad, 93.24),
+    ("hdl32e", Parking, 93.65),
+    ("hdl32e", Hill, 93.68),
     ("vlp16", Urban, 92.35),
     ("vlp16", Offroad, 91.75),
     ("vlp16", Parking, 90.99),
     ("vlp16", Hill, 94.38),
-    ("vlp32c", Urban, 94.50),
-    ("vlp32c", Offroad, 81.24),
-    ("vlp32c", Parking, 81.72),
-    ("vlp32c", Hill, 94.22),
-    ("os1-64", Urban, 97.95),
-    ("os1-64", Offroad, 94.64),
-    ("os1-64", Parking, 97.46),
-    ("os1-64", Hill, 97.94),
-    ("os1-128", Urban, 95.46),
-    ("os1-128", Offroad, 96.31),
-    ("os1-128", Parking, 97.19),
-    ("os1-128", Hill, 93.84),
-    ("pandar64", Urban, 93.88),
-    ("pandar64", Offroad, 79.00),
-    ("pandar64", Parking, 87.14),
-    ("pandar64", Hill, 94.17),
-    ("livox", Urban, 98.48),
+    ("vlp32c", Urban, 91.56),
+    ("vlp32c", Offroad, 86.35),
+    ("vlp32c", Parking, 83.92),
+    ("vlp32c", Hill, 94.63),
+    ("os1-64", Urban, 97.66),
+    ("os1-64", Offroad, 94.51),
+    ("os1-64", Parking, 97.63),
+    ("os1-64", Hill, 97.96),
+    ("os1-128", Urban, 97.82),
+    ("os1-128", Offroad, 97.48),
+    ("os1-128", Parking, 99.08),
+    ("os1-128", Hill, 98.97),
+    ("pandar64", Urban, 94.94),
+    ("pandar64", Offroad, 89.85),
+    ("pandar64", Parking, 86.71),
+    ("pandar64", Hill, 96.66),
+    ("livox", Urban, 98.60),
     ("livox", Offroad, 88.07),
     ("livox", Parking, 99.16),
     ("livox", Hill, 98.85),
@@ -365,40 +365,42 @@ fn mean_iou_over_seeds_of_every_preset_and_scene() {
 }
 
 /// Mean IoU over seeds 0–5 with ground continuity (docs/synthetic.md; every entry gained
-/// or held against the build without it).
+/// or held against the build without it), the HDL-32E, VLP-32C, OS1, Pandar64 and Livox
+/// rows with those presets as re-tuned on random mounts (docs/sensors.md; the HDL-32E hill
+/// road lost 1.21 there, the one loss beyond 0.3).
 const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("hdl64e", Urban, 93.86),
     ("hdl64e", Offroad, 94.25),
     ("hdl64e", Parking, 93.68),
     ("hdl64e", Hill, 94.87),
-    ("hdl32e", Urban, 88.53),
-    ("hdl32e", Offroad, 92.48),
-    ("hdl32e", Parking, 90.78),
-    ("hdl32e", Hill, 94.18),
+    ("hdl32e", Urban, 93.67),
+    ("hdl32e", Offroad, 92.21),
+    ("hdl32e", Parking, 93.25),
+    ("hdl32e", Hill, 92.97),
     ("vlp16", Urban, 91.98),
     ("vlp16", Offroad, 91.76),
     ("vlp16", Parking, 93.12),
     ("vlp16", Hill, 94.30),
-    ("vlp32c", Urban, 89.53),
-    ("vlp32c", Offroad, 80.32),
-    ("vlp32c", Parking, 84.00),
-    ("vlp32c", Hill, 91.53),
-    ("os1-64", Urban, 96.34),
-    ("os1-64", Offroad, 94.43),
-    ("os1-64", Parking, 97.54),
-    ("os1-64", Hill, 97.51),
-    ("os1-128", Urban, 92.10),
-    ("os1-128", Offroad, 94.87),
-    ("os1-128", Parking, 93.50),
-    ("os1-128", Hill, 95.35),
-    ("pandar64", Urban, 91.55),
-    ("pandar64", Offroad, 80.82),
-    ("pandar64", Parking, 87.79),
-    ("pandar64", Hill, 94.08),
-    ("livox", Urban, 98.53),
-    ("livox", Offroad, 89.66),
+    ("vlp32c", Urban, 89.52),
+    ("vlp32c", Offroad, 86.12),
+    ("vlp32c", Parking, 83.91),
+    ("vlp32c", Hill, 92.42),
+    ("os1-64", Urban, 96.52),
+    ("os1-64", Offroad, 94.45),
+    ("os1-64", Parking, 97.84),
+    ("os1-64", Hill, 97.55),
+    ("os1-128", Urban, 96.95),
+    ("os1-128", Offroad, 97.49),
+    ("os1-128", Parking, 99.21),
+    ("os1-128", Hill, 99.17),
+    ("pandar64", Urban, 92.42),
+    ("pandar64", Offroad, 90.42),
+    ("pandar64", Parking, 88.02),
+    ("pandar64", Hill, 96.47),
+    ("livox", Urban, 98.56),
+    ("livox", Offroad, 89.67),
     ("livox", Parking, 98.95),
-    ("livox", Hill, 98.50),
+    ("livox", Hill, 98.51),
 ];
 
 /// Every preset's parameters on every sensor's synthetic scans: the urban, off-road and
@@ -544,7 +546,7 @@ fn near_edge_against_every_preset() {
 #[test]
 #[ignore = "slow: every preset on every sensor's scans, for docs/algorithm.md"]
 fn layouts_against_every_preset() {
-    use groundwork_calibrate::{NearEdgeConfig, zones_for_mount};
+    use groundwork_calibrate::NearEdgeConfig;
     let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
     let near_cfg = NearEdgeConfig::default();
     let counts = [1u32, 2, 3, 4];
@@ -558,15 +560,7 @@ fn layouts_against_every_preset() {
                 let best = best_preset_iou(&g, &own.sensor, &truth);
                 let ego = own.sensor.ego_radius;
                 let ground = near_ground_on(&g, &truth, ego, &near_cfg);
-                let moved = zones_for_mount(
-                    &own.zones,
-                    ground.as_ref(),
-                    Some((truth.height, &own.sensor.mount)),
-                    ego,
-                    &near_cfg,
-                )
-                .zones
-                .unwrap_or_else(|| own.zones.clone());
+                let moved = zones_moved(&own, ground.as_ref(), truth.height);
                 let mut line = format!("{sensor:9} {:8} seed {seed}:", scene.name());
                 for (j, &n) in counts.iter().enumerate() {
                     let mut cfg = own.clone();
@@ -589,6 +583,110 @@ fn layouts_against_every_preset() {
             wins[j]
         );
     }
+}
+
+/// The whole of `groundwork calibrate` (no `--fit-params`) on the scans and mounts of
+/// [`presets_across_sensors`], 24 consecutive scans each: the mount found from the scans
+/// alone, the zones moved for it, then single-frame pooled IoU on the same scans against
+/// every preset told the true mount, per run and per scene (the one preset best over the
+/// scene's three runs). `SENSORS` (comma-separated) picks the scans' sensors; VLP-16, OS1-64
+/// and Livox by default, the three of issue 42's acceptance. About 5 minutes:
+/// `cargo test -p groundwork-tests --test synthetic -- --ignored whole_calibration
+/// --nocapture` (docs/calibration.md, "The whole command per scene").
+#[test]
+#[ignore = "slow: calibrate and every preset on 24 scans of every scene, for docs/calibration.md"]
+fn whole_calibration_per_scene_against_every_preset() {
+    use groundwork_calibrate::{
+        MountSearchConfig, NearEdgeConfig, combine_near_ground, estimate_mount, view_near_ground,
+    };
+    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
+    let sensors = std::env::var("SENSORS").unwrap_or_else(|_| "vlp16,os1-64,livox".into());
+    let near_cfg = NearEdgeConfig::default();
+    let single = |mut cfg: SegmenterConfig| {
+        cfg.history.frames = 1;
+        cfg
+    };
+    let (mut scenes, mut scene_wins, mut runs, mut run_wins) = (0, 0, 0, 0);
+    let mut far_behind = Vec::new();
+    for sensor in sensors.split(',') {
+        let si = names.iter().position(|n| *n == sensor).expect("a preset");
+        let own = sensor_preset(sensor).unwrap();
+        let ego = own.sensor.ego_radius;
+        for scene in [Urban, Offroad, Parking] {
+            let (mut presets, mut calibrated) = (vec![0.0; names.len()], 0.0);
+            for seed in 0..3u64 {
+                let truth = random_mount(si, seed, own.sensor.mount.yaw);
+                let g = synthetic_seeded(sensor, scene, 24, Some(truth.clone()), seed);
+                let xyz: Vec<Vec<[f32; 3]>> = (0..g.frames())
+                    .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
+                    .collect();
+                let prior = groundwork_core::mount_transform(&own.sensor.mount).unwrap();
+                let (views, est) = estimate_mount(&xyz, &prior, &MountSearchConfig::default());
+                let ious: Vec<f64> = SENSOR_PRESETS
+                    .iter()
+                    .map(|(p, _)| {
+                        iou_on_mount(&g, &own.sensor, &truth, single(sensor_preset(p).unwrap()))
+                    })
+                    .collect();
+                let best = ious.iter().copied().fold(f64::MIN, f64::max);
+                for (sum, iou) in presets.iter_mut().zip(&ious) {
+                    *sum += iou / 3.0;
+                }
+                let iou = match est {
+                    Ok(est) => {
+                        let near = combine_near_ground(
+                            xyz.iter()
+                                .zip(&views)
+                                .filter_map(|(p, v)| {
+                                    view_near_ground(p, v.as_ref().ok()?, ego, &near_cfg)
+                                })
+                                .collect(),
+                        );
+                        let mount = est.mount();
+                        let zones = zones_moved(&own, near.as_ref(), mount.height);
+                        let cfg = single(SegmenterConfig {
+                            zones,
+                            ..own.clone()
+                        });
+                        iou_on_mount(&g, &own.sensor, &mount, cfg)
+                    }
+                    // A refusal leaves the user with the preset on its own mount.
+                    Err(_) => iou_on_mount(&g, &own.sensor, &own.sensor.mount, single(own.clone())),
+                };
+                eprintln!(
+                    "{sensor:9} {:8} seed {seed}: calibrated {iou:6.2}, best preset {best:6.2}",
+                    scene.name()
+                );
+                calibrated += iou / 3.0;
+                runs += 1;
+                run_wins += usize::from(iou >= best);
+            }
+            let (bi, best) = presets
+                .iter()
+                .enumerate()
+                .fold((0, f64::MIN), |b, (i, &m)| if m > b.1 { (i, m) } else { b });
+            eprintln!(
+                "WHOLE {sensor} | {} | {calibrated:.2} (`{}` {best:.2}, {:+.2})",
+                scene.name(),
+                names[bi],
+                calibrated - best
+            );
+            scenes += 1;
+            scene_wins += usize::from(calibrated >= best);
+            if calibrated < best - 3.0 {
+                far_behind.push(format!("{sensor} {}", scene.name()));
+            }
+        }
+    }
+    eprintln!(
+        "WHOLE {scene_wins} of {scenes} scenes, {run_wins} of {runs} runs at least the best preset"
+    );
+    // Measured 2026-11-29: 3 of 9 scenes at least the best preset, the worst 2.42 behind
+    // (Livox off-road). The goal is every scene; this guards what holds.
+    assert!(
+        far_behind.is_empty(),
+        "more than 3 points behind: {far_behind:?}"
+    );
 }
 
 /// Pooled IoU of `cfg` over `g`'s frames (true poses) with the scans' own sensor section
@@ -619,6 +717,20 @@ fn best_preset_iou(g: &Generator, sensor: &SensorConfig, truth: &MountConfig) ->
     preset_ious(g, sensor, truth)
         .into_iter()
         .fold(f64::MIN, f64::max)
+}
+
+/// `own`'s zones as `calibrate` moves them for a sensor `height` above the ground that first
+/// sees ground where `near` says (the preset's zones where nothing moves).
+fn zones_moved(
+    own: &SegmenterConfig,
+    near: Option<&groundwork_calibrate::NearGround>,
+    height: f64,
+) -> groundwork_core::config::ZoneConfig {
+    let cfg = groundwork_calibrate::NearEdgeConfig::default();
+    let mount = Some((height, &own.sensor.mount));
+    groundwork_calibrate::zones_for_mount(&own.zones, near, mount, own.sensor.ego_radius, &cfg)
+        .zones
+        .unwrap_or_else(|| own.zones.clone())
 }
 
 /// Where `g`'s scans first see ground on the mount `truth`, as `calibrate` finds it.

@@ -993,10 +993,11 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
     assert!(text(&installed).contains("2 masks"), "{}", text(&installed));
 }
 
-/// An OS1-64 0.8 m up and pitched 6° nose down sees the road from about 1.6 m, inside its
-/// preset's 2.5 m near edge: `calibrate` moves the zones' near edge in and scales the inner
-/// boundaries with the height, the file loads over the preset, and the labels (used here
-/// only to score) say it segments better than the mount alone (`--keep-zones`).
+/// A VLP-32C 0.8 m up and pitched 6° nose down, its preset made for 1.8 m: `calibrate`
+/// moves the zones' near edge in (2.7 → 2.49 m: ground from 2.77 m, times 0.9) and scales
+/// the inner boundaries by the height found over the preset's (about 0.44), the file loads
+/// over the preset, and the labels (used here only to score) say it segments better than
+/// the mount alone (`--keep-zones`; measured 90.55 against 88.70).
 #[test]
 fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1009,7 +1010,7 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     let seq = tmp.path().join("seq");
     let o = bin()
         .args([
-            "synth", "--sensor", "os1-64", "--scene", "urban", "--frames", "6",
+            "synth", "--sensor", "vlp32c", "--scene", "urban", "--frames", "6",
         ])
         .arg("--config")
         .arg(&low)
@@ -1021,7 +1022,7 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     let eval = |config: &Path| {
         let o = bin()
             .args([
-                "eval", "--json", "--sensor", "os1-64", "--frames", "1", "--config",
+                "eval", "--json", "--sensor", "vlp32c", "--frames", "1", "--config",
             ])
             .arg(config)
             .arg(&seq)
@@ -1035,7 +1036,7 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     for (name, extra) in [("zones.toml", None), ("mount.toml", Some("--keep-zones"))] {
         let out = tmp.path().join(name);
         let o = bin()
-            .args(["calibrate", "--sensor", "os1-64", "--out"])
+            .args(["calibrate", "--sensor", "vlp32c", "--out"])
             .arg(&out)
             .args(extra)
             .arg(&seq)
@@ -1043,25 +1044,25 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
             .unwrap();
         let stdout = String::from_utf8_lossy(&o.stdout);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let cfg = groundwork_io::load_config_over(Some("os1-64"), Some(&out)).unwrap();
+        let cfg = groundwork_io::load_config_over(Some("vlp32c"), Some(&out)).unwrap();
         let text = fs::read_to_string(&out).unwrap();
         if extra.is_none() {
             assert!(
-                text.contains("[zones]") && text.contains("# was 2.5"),
+                text.contains("[zones]") && text.contains("# was 2.7"),
                 "{text}"
             );
             let edge = cfg.zones.min_range;
-            assert!((1.2..2.0).contains(&edge), "{edge} {text}");
+            assert!((2.2..2.6).contains(&edge), "{edge} {text}");
             assert!(stdout.contains("near edge of the zones"), "{stdout}");
             // The first two inner boundaries follow the height found (about 0.8 m against
             // the preset's 1.5 m); the outermost inner one and max_range are the preset's.
-            let preset = groundwork_io::sensor_preset("os1-64").unwrap();
+            let preset = groundwork_io::sensor_preset("vlp32c").unwrap();
             let (b, p) = (
                 cfg.zones.resolved_boundaries().unwrap(),
                 preset.zones.resolved_boundaries().unwrap(),
             );
-            let ratio = cfg.sensor.mount.height / 1.5;
-            assert!((ratio - 0.8 / 1.5).abs() < 0.05, "{ratio} {text}");
+            let ratio = cfg.sensor.mount.height / 1.8;
+            assert!((ratio - 0.8 / 1.8).abs() < 0.05, "{ratio} {text}");
             assert_eq!((b[0], &b[3..]), (edge, &p[3..]));
             for i in [1, 2] {
                 assert!((b[i] - p[i] * ratio).abs() < 0.02, "{b:?} {p:?} {text}");
@@ -1077,7 +1078,7 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
         "single-frame IoU: near edge moved {:.2}, mount only {:.2}",
         iou[0], iou[1]
     );
-    assert!(iou[0] > iou[1] + 3.0, "{iou:?}");
+    assert!(iou[0] > iou[1] + 1.0, "{iou:?}");
 }
 
 #[test]
