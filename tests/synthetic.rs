@@ -162,14 +162,14 @@ fn a_tilted_sensor_needs_only_its_mount_transform() {
     );
 }
 
-/// Measured (VLP-16 at 0.6 m, its preset otherwise): urban 94.00, offroad 92.72, parking
-/// 93.44.
+/// Measured (VLP-16 at 0.6 m, its preset otherwise; seed 1, 2026-11-29): urban 95.19,
+/// offroad 93.14, parking 93.98.
 #[test]
 fn a_sensor_mounted_at_0_6_m() {
     let low = mount(0.6, 0.0, 0.0, 0.0);
     let mut cfg = sensor_preset("vlp16").unwrap();
     cfg.sensor.mount = low.clone();
-    for (scene, measured) in [(Urban, 94.00), (Offroad, 92.72), (Parking, 93.44)] {
+    for (scene, measured) in [(Urban, 95.19), (Offroad, 93.14), (Parking, 93.98)] {
         let run = synthetic_run(
             &synthetic("vlp16", scene, 4, Some(low.clone())),
             cfg.clone(),
