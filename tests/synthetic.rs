@@ -515,10 +515,7 @@ fn near_edge_against_every_preset() {
                 scene_scaled += both / 3.0;
             }
             // The one preset best over the scene's three runs (not the best per run).
-            let (best, best_mean) = scene_presets
-                .iter()
-                .enumerate()
-                .fold((0, f64::MIN), |b, (i, &m)| if m > b.1 { (i, m) } else { b });
+            let (best, best_mean) = best_scene_preset(&scene_presets);
             eprintln!(
                 "SCENE {sensor} | {} | {:.2} | {scene_scaled:.2} | `{}` {best_mean:.2} | {:+.2}",
                 scene.name(),
@@ -661,10 +658,7 @@ fn whole_calibration_per_scene_against_every_preset() {
                 runs += 1;
                 run_wins += usize::from(iou >= best);
             }
-            let (bi, best) = presets
-                .iter()
-                .enumerate()
-                .fold((0, f64::MIN), |b, (i, &m)| if m > b.1 { (i, m) } else { b });
+            let (bi, best) = best_scene_preset(&presets);
             eprintln!(
                 "WHOLE {sensor} | {} | {calibrated:.2} (`{}` {best:.2}, {:+.2})",
                 scene.name(),
@@ -710,6 +704,15 @@ fn preset_ious(g: &Generator, sensor: &SensorConfig, truth: &MountConfig) -> Vec
         .iter()
         .map(|(p, _)| iou_on_mount(g, sensor, truth, sensor_preset(p).unwrap()))
         .collect()
+}
+
+/// The index and mean of the one preset best over a scene's runs, from each preset's mean
+/// (the first of equals).
+fn best_scene_preset(means: &[f64]) -> (usize, f64) {
+    means
+        .iter()
+        .enumerate()
+        .fold((0, f64::MIN), |b, (i, &m)| if m > b.1 { (i, m) } else { b })
 }
 
 /// The best [`iou_on_mount`] of every preset.

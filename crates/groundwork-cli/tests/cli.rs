@@ -1055,7 +1055,7 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
             assert!((2.2..2.6).contains(&edge), "{edge} {text}");
             assert!(stdout.contains("near edge of the zones"), "{stdout}");
             // The first two inner boundaries follow the height found (about 0.8 m against
-            // the preset's 1.5 m); the outermost inner one and max_range are the preset's.
+            // the preset's 1.8 m); the outermost inner one and max_range are the preset's.
             let preset = groundwork_io::sensor_preset("vlp32c").unwrap();
             let (b, p) = (
                 cfg.zones.resolved_boundaries().unwrap(),
