@@ -642,7 +642,7 @@ fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_la
 /// segmented on its preset's mount, with the true poses (history on). The
 /// mount in use turns towards the observed one at its rate and locks there; from then on
 /// the segmentation is as good as with the true mount and better than `warn`'s, which keeps
-/// the configured mount. Told the true mount, `correct` never moves it: the output is
+/// the configured mount, wherever that mount costs accuracy. Told the true mount, `correct` never moves it: the output is
 /// `warn`'s, bit for bit. Figures in docs/calibration.md.
 #[test]
 fn correct_mode_moves_a_wrong_mount_to_the_observed_one() {
@@ -717,7 +717,12 @@ fn correct_mode_moves_a_wrong_mount_to_the_observed_one() {
         // At 0.1° and 1 cm per scan, about 5° or 0.7–1 m takes 50 scans or more; it then
         // follows the observation until that settles (at most the 200 scans seen).
         assert!((50..=200).contains(&seen.corrected_scans), "{seen:?}");
-        assert!(c > w && c >= t - 0.3, "{c:.2} against {w:.2} and {t:.2}");
+        // As good as the true mount; better than the wrong one wherever that costs (on the
+        // OS1-64's car park its zones score 97.12 on the wrong mount, 96.96 on the true).
+        assert!(
+            c >= t - 0.3 && (c > w || w >= t - 0.3),
+            "{c:.2} against {w:.2} and {t:.2}"
+        );
         assert_eq!(still.corrected_scans, 0, "{still:?}");
         assert_eq!(exact_correct.probabilities, exact.probabilities);
     }

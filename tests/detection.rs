@@ -172,7 +172,7 @@ fn recall(score: &ObjectScore) -> (usize, usize) {
 /// | scene | GMM's probabilities | true ground |
 /// | --- | --- | --- |
 /// | HDL-64E street | 107/107 | 107/107 |
-/// | OS1-64 street | 46/48 | 48/48 |
+/// | OS1-64 street | 48/48 | 48/48 |
 /// | Livox street | 24/27 | 27/27 |
 /// | VLP-16 car park | 87/131 | 120/131 |
 ///
@@ -183,12 +183,14 @@ fn recall(score: &ObjectScore) -> (usize, usize) {
 fn synthetic_objects_are_found_and_boxed() {
     let cases = [
         ("hdl64e", SceneKind::Urban, Ground::Segmenter, 0.95),
-        // 45/48 (46/48 in release, whose EM sums vectorise differently): two cars 20 m
-        // away split into two proposals each, and one at 71 m has 26 points.
-        ("os1-64", SceneKind::Urban, Ground::Segmenter, 0.93),
+        // 48/48 with the zones of 2026-11-30 (45/48 before: two cars 20 m away split into
+        // two proposals each, and one at 71 m has 26 points).
+        ("os1-64", SceneKind::Urban, Ground::Segmenter, 0.95),
         ("hdl64e", SceneKind::Urban, Ground::Labels, 0.95),
         ("os1-64", SceneKind::Urban, Ground::Labels, 0.95),
         ("livox", SceneKind::Urban, Ground::Labels, 0.95),
+        // 24/27: one car 56–57 m ahead, 22–29 points, is missed in three of the frames.
+        ("livox", SceneKind::Urban, Ground::Segmenter, 0.85),
         ("vlp16", SceneKind::Parking, Ground::Labels, 0.88),
     ];
     for (sensor, scene, ground, floor) in cases {

@@ -38,10 +38,10 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("vlp32c", Offroad, 86.35),
     ("vlp32c", Parking, 83.92),
     ("vlp32c", Hill, 94.63),
-    ("os1-64", Urban, 97.66),
-    ("os1-64", Offroad, 94.51),
-    ("os1-64", Parking, 97.63),
-    ("os1-64", Hill, 97.96),
+    ("os1-64", Urban, 97.64),
+    ("os1-64", Offroad, 95.37),
+    ("os1-64", Parking, 97.61),
+    ("os1-64", Hill, 97.90),
     ("os1-128", Urban, 97.82),
     ("os1-128", Offroad, 97.48),
     ("os1-128", Parking, 99.08),
@@ -50,10 +50,10 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("pandar64", Offroad, 89.85),
     ("pandar64", Parking, 86.71),
     ("pandar64", Hill, 96.66),
-    ("livox", Urban, 98.60),
-    ("livox", Offroad, 88.07),
-    ("livox", Parking, 99.16),
-    ("livox", Hill, 98.85),
+    ("livox", Urban, 97.57),
+    ("livox", Offroad, 91.33),
+    ("livox", Parking, 99.00),
+    ("livox", Hill, 99.23),
 ];
 
 const MARGIN: f64 = 1.5;
@@ -367,7 +367,8 @@ fn mean_iou_over_seeds_of_every_preset_and_scene() {
 /// Mean IoU over seeds 0–5 with ground continuity (docs/synthetic.md; every entry gained
 /// or held against the build without it), the HDL-32E, VLP-32C, OS1, Pandar64 and Livox
 /// rows with those presets as re-tuned on random mounts (docs/sensors.md; the HDL-32E hill
-/// road lost 1.21 there, the one loss beyond 0.3).
+/// road lost 1.21 there, the one loss beyond 0.3; the OS1-64 and Livox rows with the zones
+/// they share since 2026-11-30).
 const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("hdl64e", Urban, 93.86),
     ("hdl64e", Offroad, 94.25),
@@ -385,10 +386,10 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("vlp32c", Offroad, 86.12),
     ("vlp32c", Parking, 83.91),
     ("vlp32c", Hill, 92.42),
-    ("os1-64", Urban, 96.52),
-    ("os1-64", Offroad, 94.45),
-    ("os1-64", Parking, 97.84),
-    ("os1-64", Hill, 97.55),
+    ("os1-64", Urban, 96.30),
+    ("os1-64", Offroad, 95.37),
+    ("os1-64", Parking, 97.80),
+    ("os1-64", Hill, 98.16),
     ("os1-128", Urban, 96.95),
     ("os1-128", Offroad, 97.49),
     ("os1-128", Parking, 99.21),
@@ -397,10 +398,10 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("pandar64", Offroad, 90.42),
     ("pandar64", Parking, 88.02),
     ("pandar64", Hill, 96.47),
-    ("livox", Urban, 98.56),
-    ("livox", Offroad, 89.67),
-    ("livox", Parking, 98.95),
-    ("livox", Hill, 98.51),
+    ("livox", Urban, 98.50),
+    ("livox", Offroad, 91.97),
+    ("livox", Parking, 99.17),
+    ("livox", Hill, 98.97),
 ];
 
 /// Every preset's parameters on every sensor's synthetic scans: the urban, off-road and
@@ -667,7 +668,7 @@ fn whole_calibration_per_scene_against_every_preset() {
             );
             scenes += 1;
             scene_wins += usize::from(calibrated >= best);
-            if calibrated < best - 3.0 {
+            if calibrated < best - 1.5 {
                 far_behind.push(format!("{sensor} {}", scene.name()));
             }
         }
@@ -675,11 +676,12 @@ fn whole_calibration_per_scene_against_every_preset() {
     eprintln!(
         "WHOLE {scene_wins} of {scenes} scenes, {run_wins} of {runs} runs at least the best preset"
     );
-    // Measured 2026-11-29: 3 of 9 scenes at least the best preset, the worst 2.42 behind
-    // (Livox off-road). The goal is every scene; this guards what holds.
+    // Measured 2026-11-30: 4 of 9 scenes at least the best preset, the worst 0.91 behind
+    // (VLP-16 off-road; 2.42, Livox off-road, with the `livox` zones before). The goal is
+    // every scene; this guards what holds.
     assert!(
         far_behind.is_empty(),
-        "more than 3 points behind: {far_behind:?}"
+        "more than 1.5 points behind: {far_behind:?}"
     );
 }
 
