@@ -642,8 +642,8 @@ fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_la
 /// segmented on its preset's mount, with the true poses (history on). The
 /// mount in use turns towards the observed one at its rate and locks there; from then on
 /// the segmentation is as good as with the true mount and better than `warn`'s, which keeps
-/// the configured mount, wherever that mount costs accuracy. Told the true mount, `correct` never moves it: the output is
-/// `warn`'s, bit for bit. Figures in docs/calibration.md.
+/// the configured mount, wherever that mount costs accuracy. Told the true mount, `correct`
+/// never moves it: the output is `warn`'s, bit for bit. Figures in docs/calibration.md.
 #[test]
 fn correct_mode_moves_a_wrong_mount_to_the_observed_one() {
     use groundwork_core::config::MountCheckMode;
