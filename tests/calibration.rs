@@ -342,7 +342,7 @@ fn spoiled_vlp16() -> groundwork_core::SegmenterConfig {
     let mut cfg = sensor_preset("vlp16").unwrap();
     cfg.history.frames = 1;
     cfg.ground.elevation.beta = 2.0;
-    cfg.ground.ground_threshold = 0.7;
+    cfg.ground.ground_threshold = 0.8;
     cfg
 }
 

@@ -6,7 +6,8 @@
 //! - [`params`]: with the mount fixed, the segmenter's likelihood parameters and ground
 //!   threshold fitted to reference labels (the PseudoLabeler's), judged on held-out scans.
 //! - [`zones`]: the zone model's near edge, from where the sensor first sees ground on the
-//!   mount found, and its inner boundaries scaled with the height found.
+//!   mount found, and its inner boundaries scaled with the height found where the layout
+//!   follows the beams (`zones.scale_with_height`).
 //!
 //! Pure algorithm: the caller reads the scans (the `groundwork calibrate` command).
 

@@ -153,18 +153,26 @@ pub const HEIGHT_SCALE_DEAD_BAND: f64 = 0.05;
 /// beyond the near edge) multiplied by `height` over the height of `preset_mount` (the
 /// mount the preset's layout was made for), clamped to [0.25, 2], rounded to the
 /// centimetre and kept at least a metre apart; the near edge, the outermost inner boundary
-/// and `max_range` stay. `None` when the ratio is within [`HEIGHT_SCALE_DEAD_BAND`] of 1
+/// and `max_range` stay. `None` when the layout does not follow the height
+/// (`zones.scale_with_height` off), the ratio is within [`HEIGHT_SCALE_DEAD_BAND`] of 1
 /// (or not a number), the zones have fewer than three zones or no boundaries, or they are
 /// too narrow to keep a metre between every two.
 ///
 /// Why not the outermost inner boundary: measured on synthetic scans of eight sensors on
 /// random mounts (docs/calibration.md), scaling it too gained less on five of them. Far
 /// out the beams are nearly level, and their ranges follow the pitch more than the height.
+/// Why only where a preset says so: a layout searched on scans from random mounts (the
+/// `vlp16`, `os1-64` and `livox` presets) is already the best for every height, and
+/// scaling it loses; on `vlp32c` and `os1-128` it gains under 0.1 (docs/calibration.md,
+/// "Which layouts follow the height").
 pub fn zones_scaled_to_height(
     zones: &ZoneConfig,
     height: f64,
     preset_mount: &MountConfig,
 ) -> Option<(ZoneConfig, HeightScale)> {
+    if !zones.scale_with_height {
+        return None;
+    }
     // The sensor's origin in the ground-aligned frame (whose origin is on the ground):
     // `height`, or a matrix mount's translation.
     let preset_height = mount_transform(preset_mount).ok()?.translation.vector.z;
@@ -309,7 +317,13 @@ mod tests {
         };
         // The HDL-64E preset's layout (2.7, 12.36, 22.03, 41.35, 80) on a sensor 0.8 m up
         // instead of 1.73 m: the first two inner boundaries move in by 0.8 / 1.73.
-        let zones = ZoneConfig::default();
+        let zones = ZoneConfig {
+            scale_with_height: true,
+            ..ZoneConfig::default()
+        };
+        // A layout that does not follow the height stays where it is.
+        let fixed = ZoneConfig::default();
+        assert!(zones_scaled_to_height(&fixed, 0.8, &at(1.73)).is_none());
         let (scaled, how) = zones_scaled_to_height(&zones, 0.8, &at(1.73)).unwrap();
         let b = scaled.resolved_boundaries().unwrap();
         let was = zones.resolved_boundaries().unwrap();
@@ -344,20 +358,23 @@ mod tests {
             boundaries: Some(vec![2.0, 10.0, 50.0]),
             rings: vec![1, 1],
             sectors: vec![8, 8],
-            ..ZoneConfig::default()
+            ..zones.clone()
         };
         assert!(zones_scaled_to_height(&two, 0.8, &at(1.73)).is_none());
         // Zones a metre wide at most are left alone rather than squeezed.
         let tight = ZoneConfig {
             boundaries: Some(vec![2.0, 2.5, 3.0, 3.5, 50.0]),
-            ..ZoneConfig::default()
+            ..zones.clone()
         };
         assert!(zones_scaled_to_height(&tight, 3.0, &at(1.0)).is_none());
     }
 
     #[test]
     fn the_mount_moves_the_edge_then_scales_from_it() {
-        let zones = ZoneConfig::default();
+        let zones = ZoneConfig {
+            scale_with_height: true,
+            ..ZoneConfig::default()
+        };
         let cfg = NearEdgeConfig::default();
         let preset = MountConfig {
             height: 1.73,

@@ -276,6 +276,9 @@ pub struct ZoneConfig {
     /// falls badly in one layout is outvoted by the others. Costs the fit and the query
     /// once per layout. See [`SegmenterConfig::layout`].
     pub layouts: u32,
+    /// The inner boundaries follow the beams' rings on the preset's mount: `calibrate`
+    /// scales them with the height it finds. Not read by the segmenter.
+    pub scale_with_height: bool,
 }
 
 impl Default for ZoneConfig {
@@ -288,6 +291,7 @@ impl Default for ZoneConfig {
             sectors: vec![16, 32, 54, 32],
             beyond_max_range: BeyondRangePolicy::OuterRing,
             layouts: 1,
+            scale_with_height: false,
         }
     }
 }

@@ -394,16 +394,16 @@ def test_an_older_cpu_gets_an_import_error_not_sigill() -> None:
 
 
 def test_calibrate_moves_the_zones_for_a_low_mount_as_the_cli_does(cli: Path, tmp_path: Path) -> None:
-    """A VLP-32C 0.8 m up, pitched 6°: Python's calibrate moves the near edge in and scales
-    the inner boundaries by the height found over the preset's 1.8 m, to the same zones as
-    the CLI's file."""
+    """A Pandar64 0.8 m up, pitched 6°: Python's calibrate moves the near edge in and, the
+    preset's layout following its beams (`scale_with_height`), scales the inner boundaries
+    by the height found over the preset's 1.8 m, to the same zones as the CLI's file."""
     low = tmp_path / "low.toml"
     low.write_text("[sensor]\nmount = { height = 0.8, pitch_deg = 6.0 }\n")
     seq = tmp_path / "seq"
-    run(cli, "synth", "--sensor", "vlp32c", "--scene", "urban", "--frames", "6",
+    run(cli, "synth", "--sensor", "pandar64", "--scene", "urban", "--frames", "6",
         "--config", str(low), "--out", str(seq))
     scans = [kitti(p) for p in sorted((seq / "velodyne").glob("*.bin"))]
-    preset, report = groundwork.calibrate(scans, sensor="vlp32c")
+    preset, report = groundwork.calibrate(scans, sensor="pandar64")
     scale = report["height_scale"]
     assert abs(scale["ratio"] - preset["mount"]["height"] / 1.8) < 1e-9, scale
     assert abs(scale["ratio"] - 0.8 / 1.8) < 0.05, scale
@@ -412,10 +412,10 @@ def test_calibrate_moves_the_zones_for_a_low_mount_as_the_cli_does(cli: Path, tm
     assert zones["boundaries"][0] == zones["min_range"] == report["near_edge"]["min_range"]
     assert zones["boundaries"][3:] == scale["was"][3:], zones
     out = tmp_path / "low-cal.toml"
-    run(cli, "calibrate", "--sensor", "vlp32c", "--out", str(out), str(seq))
+    run(cli, "calibrate", "--sensor", "pandar64", "--out", str(out), str(seq))
     text = out.read_text()
     assert f"boundaries = {zones['boundaries']!r}".replace("'", "") in text, (zones, text)
-    _, kept = groundwork.calibrate(scans, sensor="vlp32c", keep_zones=True)
+    _, kept = groundwork.calibrate(scans, sensor="pandar64", keep_zones=True)
     assert "height_scale" not in kept and "near_edge" not in kept
 
 
