@@ -38,10 +38,10 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("vlp32c", Offroad, 86.35),
     ("vlp32c", Parking, 83.92),
     ("vlp32c", Hill, 94.63),
-    ("os1-64", Urban, 97.64),
-    ("os1-64", Offroad, 95.37),
-    ("os1-64", Parking, 97.61),
-    ("os1-64", Hill, 97.90),
+    ("os1-64", Urban, 97.95),
+    ("os1-64", Offroad, 95.39),
+    ("os1-64", Parking, 97.57),
+    ("os1-64", Hill, 97.77),
     ("os1-128", Urban, 97.82),
     ("os1-128", Offroad, 97.48),
     ("os1-128", Parking, 99.08),
@@ -221,8 +221,10 @@ fn origin_placeholders_get_zero_and_do_not_disturb_the_fit() {
 }
 
 /// Measured on 12 frames of an Ouster on hills (sensor rolled 3°, pitched 4°, turned 30°
-/// on its mount; the vehicle turns and pitches along the track): single frame 92.37,
-/// 3 frames with the true poses 94.63, with the poses run backwards 93.34.
+/// on its mount; the vehicle turns and pitches along the track), with the `os1-64` zones of
+/// 2026-12-01: single frame 94.74, 3 frames with the true poses 95.54, with the poses run
+/// backwards 94.42 (with the zones before, whose single frame left more to gain: 92.37,
+/// 94.63, 93.34).
 #[test]
 fn history_maps_points_through_mount_and_turning_poses() {
     let m = mount(1.6, 3.0, 4.0, 30.0);
@@ -239,7 +241,7 @@ fn history_maps_points_through_mount_and_turning_poses() {
         multi.iou()
     );
     assert!(
-        multi.iou() >= single + 1.0,
+        multi.iou() >= single + 0.5,
         "{:.2} vs single {single:.2}",
         multi.iou()
     );
@@ -388,10 +390,10 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("vlp32c", Offroad, 86.12),
     ("vlp32c", Parking, 83.91),
     ("vlp32c", Hill, 92.42),
-    ("os1-64", Urban, 96.30),
-    ("os1-64", Offroad, 95.37),
-    ("os1-64", Parking, 97.80),
-    ("os1-64", Hill, 98.16),
+    ("os1-64", Urban, 96.47),
+    ("os1-64", Offroad, 95.45),
+    ("os1-64", Parking, 97.83),
+    ("os1-64", Hill, 98.02),
     ("os1-128", Urban, 96.95),
     ("os1-128", Offroad, 97.49),
     ("os1-128", Parking, 99.21),
@@ -589,8 +591,11 @@ fn layouts_against_every_preset() {
 /// [`presets_across_sensors`], 24 consecutive scans each: the mount found from the scans
 /// alone, the zones moved for it, then single-frame pooled IoU on the same scans against
 /// every preset told the true mount, per run and per scene (the one preset best over the
-/// scene's three runs). `SENSORS` (comma-separated) picks the scans' sensors; VLP-16, OS1-64
-/// and Livox by default, the three of issue 42's acceptance. About 5 minutes:
+/// scene's three runs), beside the sensor's own preset and the comparison's resolution: how
+/// far that preset's scene mean moves when the true mount is turned by 0.02° ([`NUDGES`]).
+/// `SENSORS` (comma-separated) picks the scans' sensors; VLP-16, OS1-64 and Livox by
+/// default, the three of issue 42's acceptance. `FRAMES` scores with that many frames of
+/// history (`preset`: the preset's own), single frame by default. About 7 minutes:
 /// `cargo test -p groundwork-tests --test synthetic -- --ignored whole_calibration
 /// --nocapture` (docs/calibration.md, "The whole command per scene").
 #[test]
@@ -602,11 +607,18 @@ fn whole_calibration_per_scene_against_every_preset() {
     let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
     let sensors = std::env::var("SENSORS").unwrap_or_else(|_| "vlp16,os1-64,livox".into());
     let near_cfg = NearEdgeConfig::default();
-    let single = |mut cfg: SegmenterConfig| {
-        cfg.history.frames = 1;
+    let frames: Option<u32> = match std::env::var("FRAMES") {
+        Ok(f) if f == "preset" => None,
+        Ok(f) => Some(f.parse().expect("FRAMES: a number or `preset`")),
+        Err(_) => Some(1),
+    };
+    let scoring = |mut cfg: SegmenterConfig| {
+        if let Some(f) = frames {
+            cfg.history.frames = f;
+        }
         cfg
     };
-    let (mut scenes, mut scene_wins, mut runs, mut run_wins) = (0, 0, 0, 0);
+    let (mut scenes, mut scene_wins, mut within, mut runs, mut run_wins) = (0, 0, 0, 0, 0);
     let mut far_behind = Vec::new();
     for sensor in sensors.split(',') {
         let si = names.iter().position(|n| *n == sensor).expect("a preset");
@@ -614,6 +626,7 @@ fn whole_calibration_per_scene_against_every_preset() {
         let ego = own.sensor.ego_radius;
         for scene in [Urban, Offroad, Parking] {
             let (mut presets, mut calibrated) = (vec![0.0; names.len()], 0.0);
+            let mut nudged = [0.0; NUDGES.len()];
             for seed in 0..3u64 {
                 let truth = random_mount(si, seed, own.sensor.mount.yaw);
                 let g = synthetic_seeded(sensor, scene, 24, Some(truth.clone()), seed);
@@ -625,13 +638,24 @@ fn whole_calibration_per_scene_against_every_preset() {
                 let ious: Vec<f64> = SENSOR_PRESETS
                     .iter()
                     .map(|(p, _)| {
-                        iou_on_mount(&g, &own.sensor, &truth, single(sensor_preset(p).unwrap()))
+                        iou_on_mount(&g, &own.sensor, &truth, scoring(sensor_preset(p).unwrap()))
                     })
                     .collect();
                 let best = ious.iter().copied().fold(f64::MIN, f64::max);
+                // The comparison's resolution: the sensor's own preset told the true mount
+                // turned by 0.02° in roll or pitch, either way.
+                for (sum, nudge) in nudged.iter_mut().zip(NUDGES) {
+                    let m = MountConfig {
+                        roll: truth.roll + nudge.0.to_radians(),
+                        pitch: truth.pitch + nudge.1.to_radians(),
+                        ..truth.clone()
+                    };
+                    *sum += iou_on_mount(&g, &own.sensor, &m, scoring(own.clone())) / 3.0;
+                }
                 for (sum, iou) in presets.iter_mut().zip(&ious) {
                     *sum += iou / 3.0;
                 }
+                let mut found = String::from("refused");
                 let iou = match est {
                     Ok(est) => {
                         let near = combine_near_ground(
@@ -643,49 +667,73 @@ fn whole_calibration_per_scene_against_every_preset() {
                                 .collect(),
                         );
                         let mount = est.mount();
+                        found = format!(
+                            "found {:+.1} cm, roll {:+.2}°, pitch {:+.2}°",
+                            100.0 * (mount.height - truth.height),
+                            (mount.roll - truth.roll).to_degrees(),
+                            (mount.pitch - truth.pitch).to_degrees()
+                        );
                         let zones = zones_moved(&own, near.as_ref(), mount.height);
-                        let cfg = single(SegmenterConfig {
+                        let cfg = scoring(SegmenterConfig {
                             zones,
                             ..own.clone()
                         });
                         iou_on_mount(&g, &own.sensor, &mount, cfg)
                     }
                     // A refusal leaves the user with the preset on its own mount.
-                    Err(_) => iou_on_mount(&g, &own.sensor, &own.sensor.mount, single(own.clone())),
+                    Err(_) => {
+                        iou_on_mount(&g, &own.sensor, &own.sensor.mount, scoring(own.clone()))
+                    }
                 };
                 eprintln!(
-                    "{sensor:9} {:8} seed {seed}: calibrated {iou:6.2}, best preset {best:6.2}",
-                    scene.name()
+                    "{sensor:9} {:8} seed {seed}: calibrated {iou:6.2}, own preset {:6.2}, best \
+                     preset {best:6.2}; {found}",
+                    scene.name(),
+                    ious[si]
                 );
                 calibrated += iou / 3.0;
                 runs += 1;
                 run_wins += usize::from(iou >= best);
             }
             let (bi, best) = best_scene_preset(&presets);
+            let resolution = nudged
+                .iter()
+                .map(|n| (n - presets[si]).abs())
+                .fold(0.0, f64::max);
             eprintln!(
-                "WHOLE {sensor} | {} | {calibrated:.2} (`{}` {best:.2}, {:+.2})",
+                "WHOLE {sensor} | {} | {calibrated:.2} (`{}` {best:.2}, {:+.2}) | own preset \
+                 {:.2} | ±{resolution:.2}",
                 scene.name(),
                 names[bi],
-                calibrated - best
+                calibrated - best,
+                presets[si]
             );
             scenes += 1;
             scene_wins += usize::from(calibrated >= best);
-            if calibrated < best - 0.5 {
+            within += usize::from(calibrated >= best - resolution);
+            if calibrated < best - 0.25 {
                 far_behind.push(format!("{sensor} {}", scene.name()));
             }
         }
     }
     eprintln!(
-        "WHOLE {scene_wins} of {scenes} scenes, {run_wins} of {runs} runs at least the best preset"
+        "WHOLE {scene_wins} of {scenes} scenes ({within} within the resolution), {run_wins} of \
+         {runs} runs at least the best preset"
     );
-    // Measured 2026-11-30: 6 of 9 scenes at least the best preset, the worst 0.12 behind
-    // (OS1-64 urban, against the `vlp16` layout; 0.91 and 2.42 with the presets before).
+    // Measured 2026-12-01 (docs/calibration.md, "The whole command per scene"): 5 of 9 scenes
+    // at least the best preset, 8 within the resolution, the worst 0.08 behind (OS1-64
+    // urban and VLP-16 off-road).
     // The goal is every scene; this guards what holds.
     assert!(
         far_behind.is_empty(),
-        "more than 0.5 points behind: {far_behind:?}"
+        "more than 0.25 points behind: {far_behind:?}"
     );
 }
+
+/// Turns of the true mount (roll, pitch; degrees) that give the resolution of a comparison
+/// with it: a preset's IoU on the same scans moves by that much with angles far finer than
+/// any mount is known to.
+const NUDGES: [(f64, f64); 4] = [(0.02, 0.0), (-0.02, 0.0), (0.0, 0.02), (0.0, -0.02)];
 
 /// Pooled IoU of `cfg` over `g`'s frames (true poses) with the scans' own sensor section
 /// `sensor` on the mount `truth` they were taken from.
