@@ -18,7 +18,9 @@ pub mod params;
 pub mod plane;
 pub mod zones;
 
-pub use mount::{MountEstimate, MountSearchConfig, combine, estimate_mount, frame_mount};
+pub use mount::{
+    MountEstimate, MountSearchConfig, OneSidedGround, combine, estimate_mount, frame_mount,
+};
 pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 pub use zones::{

@@ -25,7 +25,7 @@ use groundwork_eval::MethodsConfig;
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler};
 use rayon::prelude::*;
 use serde::Serialize;
-use tracing::{error, info};
+use tracing::{error, info, warn};
 
 use crate::args::CalibrateArgs;
 use crate::common::{open_inputs, progress};
@@ -275,6 +275,9 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         Ok(e) => e,
         Err(e) => bail!("{e} (nothing written to {})", a.out.display()),
     };
+    if let Some(o) = &est.one_sided {
+        warn!("{o}");
+    }
     let name = a
         .out
         .file_stem()
@@ -582,6 +585,9 @@ fn summary(base: &str, prior: &MountConfig, est: &MountEstimate) -> String {
         shown(&est.pitch, d, "°", 2),
         prior.pitch * d
     );
+    if let Some(o) = &est.one_sided {
+        let _ = writeln!(s, "  caveat: {o}");
+    }
     s
 }
 
@@ -652,7 +658,26 @@ fn preset_text(
             m.yaw * d
         );
     }
+    if let Some(o) = &est.one_sided {
+        s += &comment_lines(&format!("Caveat: {o}."));
+    }
     s
+}
+
+/// `text` as TOML comment lines of at most about 90 characters, broken between words.
+fn comment_lines(text: &str) -> String {
+    let mut out = String::new();
+    let mut line = String::from("#");
+    for word in text.split_whitespace() {
+        if line.len() > 1 && line.len() + 1 + word.len() > 90 {
+            out += &line;
+            out.push('\n');
+            line = String::from("#");
+        }
+        line.push(' ');
+        line += word;
+    }
+    out + &line + "\n"
 }
 
 #[cfg(test)]
@@ -672,6 +697,7 @@ mod tests {
             yaw: 0.0,
             frames_used: 5,
             frames: 6,
+            one_sided: None,
         }
     }
 
@@ -699,5 +725,43 @@ mod tests {
             assert_eq!(c.sensor.name, "mine");
             assert!(text.contains(&format!("# was {}", prior.height)), "{text}");
         }
+    }
+
+    #[test]
+    fn ground_seen_on_one_side_is_said_in_comments_and_the_file_still_loads() {
+        let prior = groundwork_io::sensor_preset("livox").unwrap().sensor.mount;
+        let one_sided = groundwork_calibrate::OneSidedGround {
+            leverage: 3.2,
+            nearest: 6.3,
+        };
+        let e = MountEstimate {
+            yaw: prior.yaw,
+            one_sided: Some(one_sided),
+            ..est([1.3, 0.0, 0.04])
+        };
+        let text = preset_text("livox", "mine", &prior, &e, &[PathBuf::from("a")]);
+        let caveat: Vec<&str> = text
+            .lines()
+            .skip_while(|l| !l.starts_with("# Caveat"))
+            .collect();
+        assert!(caveat.len() >= 3, "{text}");
+        assert!(
+            caveat.iter().all(|l| l.starts_with("# ") && l.len() <= 92),
+            "{text}"
+        );
+        let joined: Vec<&str> = caveat.iter().map(|l| &l[2..]).collect();
+        assert_eq!(joined.join(" "), format!("Caveat: {one_sided}."));
+        assert!(summary("livox", &prior, &e).contains("from 6.3 m, leverage 3.2"));
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mine.toml");
+        std::fs::write(&path, &text).unwrap();
+        let c = groundwork_io::load_config_over(Some("livox"), Some(&path)).unwrap();
+        assert!((c.sensor.mount.height - 1.3).abs() < 1e-4);
+        // Told nothing of the kind, the file says nothing of it.
+        let plain = preset_text("livox", "mine", &prior, &est([1.3, 0.0, 0.04]), &[]);
+        assert!(
+            !plain.contains("Caveat")
+                && !summary("livox", &prior, &est([1.3, 0.0, 0.04])).contains("caveat")
+        );
     }
 }

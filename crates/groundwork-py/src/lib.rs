@@ -748,7 +748,9 @@ fn evaluate<'py>(
 /// first see ground or its inner boundaries were scaled with the height found, unless
 /// `keep_zones`) and a report (each parameter's median, spread and standard error over the
 /// scans; each scan's view or why it showed no usable ground; the near edge; the height
-/// scale). Raises ValueError when the scans cannot determine the mount, with the reason.
+/// scale; `one_sided_ground` when the scans saw the ground on one side of the sensor only,
+/// with what the mount then assumes). Raises ValueError when the scans cannot determine the
+/// mount, with the reason.
 #[pyfunction]
 #[pyo3(signature = (scans, sensor=None, config=None, seed=0, keep_zones=false, **overrides))]
 fn calibrate<'py>(
@@ -841,6 +843,13 @@ fn calibrate<'py>(
     report.set_item("pitch_deg", deg(&est.pitch, d)?)?;
     report.set_item("frames_used", est.frames_used)?;
     report.set_item("frames", est.frames)?;
+    if let Some(o) = &est.one_sided {
+        let item = PyDict::new(py);
+        item.set_item("leverage", o.leverage)?;
+        item.set_item("nearest_m", o.nearest)?;
+        item.set_item("caveat", o.to_string())?;
+        report.set_item("one_sided_ground", item)?;
+    }
     let per_scan = pyo3::types::PyList::empty(py);
     for v in &views {
         let item = PyDict::new(py);

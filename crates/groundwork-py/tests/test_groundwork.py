@@ -434,6 +434,14 @@ def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, 
     assert "zones" not in preset and near["was"] == 2.7
     # KITTI's height is the preset's: the inner boundaries stay.
     assert "height_scale" not in report
+    # A spinning sensor sees ground all around; the same scans cut to a forward sensor's
+    # 90° window from 5 m on see it ahead only, and the report says what the mount assumes.
+    assert "one_sided_ground" not in report
+    ahead = [s[(s[:, 0] > 5.0) & (np.abs(s[:, 1]) < s[:, 0])] for s in scans]
+    _, forward = groundwork.calibrate(ahead, sensor="hdl64e")
+    one_sided = forward["one_sided_ground"]
+    assert one_sided["leverage"] > 1.5 and 5.0 < one_sided["nearest_m"] < 8.0, one_sided
+    assert "one side of the sensor only" in one_sided["caveat"]
     assert "near_edge" not in groundwork.calibrate(scans, sensor="hdl64e", keep_zones=True)[1]
     out = tmp_path / "mine.toml"
     subprocess.run(

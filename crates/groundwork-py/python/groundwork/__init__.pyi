@@ -201,5 +201,6 @@ def calibrate(
     with the height found, unless keep_zones; usable as keyword arguments) and a report
     (median, spread and standard error of each over the scans; each scan's view or why it
     showed no usable ground; "near_edge": ground_from, scans, was, min_range;
-    "height_scale": ratio, was, boundaries, where they were scaled). Raises ValueError,
-    with the reason, when the scans cannot determine the mount."""
+    "height_scale": ratio, was, boundaries, where they were scaled; "one_sided_ground":
+    leverage, nearest_m, caveat, where the scans saw the ground on one side of the sensor
+    only). Raises ValueError, with the reason, when the scans cannot determine the mount."""
