@@ -8,7 +8,7 @@ use groundwork_core::SegmenterConfig;
 use groundwork_eval::Sequence;
 use groundwork_service::ServiceConfig;
 use indicatif::{ProgressBar, ProgressStyle};
-use tracing::error;
+use tracing::{error, warn};
 
 use crate::args::{Common, ServiceArgs};
 
@@ -120,18 +120,37 @@ pub fn open_inputs(
 /// The output of an offline run, refused before anything is written where it would destroy
 /// an input (`--out rec.mcap rec.mcap`) or where two inputs' scans would write the same
 /// files of a folder (`000000.bin` in two folders): outputs are never overwritten in
-/// silence.
+/// silence. A re-run into the same place replaces what an earlier run wrote there (as a
+/// build does), and says so first: `suffixes` are the file endings the command writes per
+/// scan.
 pub fn create_output(
     out: &Path,
     inputs: &[PathBuf],
     sequences: &[Sequence],
+    suffixes: &[&str],
 ) -> Result<groundwork_io::OutputTarget> {
     let is_recording = out
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
-    if !is_recording {
+    if is_recording {
+        if out.is_file() {
+            warn!(
+                "{}: exists, and is replaced by this run's recording when it ends",
+                out.display()
+            );
+        }
+    } else {
         let sources: Vec<_> = sequences.iter().map(|s| &s.source).collect();
         groundwork_io::check_output_names(&sources)?;
+        let earlier = groundwork_io::earlier_outputs(out, &sources, suffixes);
+        if let Some(first) = earlier.first() {
+            warn!(
+                "{}: {} file(s) of an earlier run are replaced as this run writes them (first {}); --out another folder keeps them",
+                out.display(),
+                earlier.len(),
+                first.file_name().unwrap_or_default().to_string_lossy()
+            );
+        }
     }
     let mut files: Vec<PathBuf> = inputs.to_vec();
     for s in sequences {

@@ -44,7 +44,12 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
     let (sequences, mut failed) =
         crate::common::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref());
     if !matches!(
-        crate::common::create_output(job.out, job.inputs, &sequences)?,
+        crate::common::create_output(
+            job.out,
+            job.inputs,
+            &sequences,
+            &[".proposals.json", ".clusters"],
+        )?,
         OutputTarget::Files(_)
     ) {
         anyhow::bail!(

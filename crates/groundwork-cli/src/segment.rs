@@ -198,7 +198,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         common.calib.as_deref(),
         common.topic.as_deref(),
     );
-    let mut output = crate::common::create_output(out, inputs, &sequences)?;
+    let mut output = crate::common::create_output(out, inputs, &sequences, &[".prob", ".ground"])?;
     crate::common::place_scans_by_mount(&mut output, &cfg.sensor.mount)?;
     let (mut engines, threshold) = match method {
         MethodArg::Gmm => {

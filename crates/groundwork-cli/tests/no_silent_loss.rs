@@ -166,6 +166,66 @@ fn inputs_whose_outputs_collide_are_refused_before_anything_is_written() {
 }
 
 #[test]
+fn a_rerun_into_the_same_place_says_what_it_replaces() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scans = tmp.path().join("scans");
+    copy_scan(0, &scans);
+    copy_scan(1, &scans);
+    let replaced = |o: &Output| {
+        let err = stderr(o);
+        assert_eq!(o.status.code(), Some(0), "{err}");
+        err.lines()
+            .find(|l| l.contains("earlier run") || l.contains("exists, and is replaced"))
+            .map(str::to_owned)
+    };
+    for (command, first) in [("segment", "000000.ground"), ("detect", "000000.clusters")] {
+        let out = tmp.path().join(format!("out-{command}"));
+        let mut cmd = bin();
+        cmd.args([command, "--frames", "1", "--out"]).arg(&out);
+        // One scan, then both: the second run replaces the first one's files and says so.
+        let o = run(cmd.arg(scans.join("000000.bin")), Duration::from_secs(60));
+        assert_eq!(
+            replaced(&o),
+            None,
+            "{command}: a first run replaces nothing"
+        );
+        let o = run(
+            bin()
+                .args([command, "--frames", "1", "--out"])
+                .arg(&out)
+                .arg(&scans),
+            Duration::from_secs(60),
+        );
+        let line = replaced(&o).unwrap_or_else(|| panic!("{command}: {}", stderr(&o)));
+        assert!(
+            line.contains("2 file(s)") && line.contains(first),
+            "{command}: {line}"
+        );
+    }
+    // Another command's files in the folder are not this run's: nothing said.
+    let o = run(
+        bin()
+            .args(["segment", "--frames", "1", "--out"])
+            .arg(tmp.path().join("out-detect"))
+            .arg(&scans),
+        Duration::from_secs(60),
+    );
+    assert_eq!(replaced(&o), None);
+    // A recording output that exists.
+    let rec = tmp.path().join("out.mcap");
+    for (k, expect) in [(0, false), (1, true)] {
+        let o = run(
+            bin()
+                .args(["segment", "--out"])
+                .arg(&rec)
+                .arg(fixture("kitti_pointcloud2.mcap")),
+            Duration::from_secs(60),
+        );
+        assert_eq!(replaced(&o).is_some(), expect, "run {k}: {}", stderr(&o));
+    }
+}
+
+#[test]
 fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     let tmp = tempfile::tempdir().unwrap();
     let rec = tmp.path().join("rec.mcap");

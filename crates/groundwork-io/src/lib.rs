@@ -70,8 +70,8 @@ pub use kitti::{
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{
-    OutputTarget, check_not_an_input, check_output_names, outputs_complete, read_clusters,
-    read_prob, write_atomic, write_outputs,
+    OutputTarget, check_not_an_input, check_output_names, earlier_outputs, outputs_complete,
+    read_clusters, read_prob, write_atomic, write_outputs,
 };
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::Scan;

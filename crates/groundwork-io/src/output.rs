@@ -124,6 +124,12 @@ fn check_writable(dir: &Path) -> Result<(), FormatError> {
 /// from) for every scan known before reading; a recording's scans are named
 /// `<stem>_<index:06>`, so a recording is listed as its `<stem>_` with `prefix` true.
 pub fn check_output_names(sources: &[&ScanSource]) -> Result<(), FormatError> {
+    check_names(&output_names(sources))
+}
+
+/// (output name, where it comes from, whether the name is a recording's `<stem>_` prefix)
+/// for every scan of `sources` known before reading.
+fn output_names(sources: &[&ScanSource]) -> Vec<(String, PathBuf, bool)> {
     let mut names = Vec::new();
     for source in sources {
         match source {
@@ -135,7 +141,49 @@ pub fn check_output_names(sources: &[&ScanSource]) -> Result<(), FormatError> {
             }
         }
     }
-    check_names(&names)
+    names
+}
+
+/// Whether `name` is one of a recording's scan names `<prefix><index:06>`.
+fn is_recorded_name(name: &str, prefix: &str) -> bool {
+    name.strip_prefix(prefix)
+        .is_some_and(|rest| rest.len() >= 6 && rest.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// The files of `dir` that a run over `sources` will replace: those named after one of its
+/// scans with one of the `suffixes` it writes (`.prob`, `.ground`, …), left by an earlier
+/// run into the same folder. Sorted; empty when `dir` cannot be listed.
+pub fn earlier_outputs(dir: &Path, sources: &[&ScanSource], suffixes: &[&str]) -> Vec<PathBuf> {
+    let names = output_names(sources);
+    let stems: std::collections::HashSet<&str> = names
+        .iter()
+        .filter(|n| !n.2)
+        .map(|n| n.0.as_str())
+        .collect();
+    let ours = |stem: &str| {
+        stems.contains(stem)
+            || names
+                .iter()
+                .any(|(prefix, _, is_prefix)| *is_prefix && is_recorded_name(stem, prefix))
+    };
+    let Ok(entries) = fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    let mut found: Vec<PathBuf> = entries
+        .flatten()
+        .filter(|e| {
+            let name = e.file_name();
+            let Some(name) = name.to_str() else {
+                return false;
+            };
+            suffixes
+                .iter()
+                .any(|s| name.strip_suffix(s).is_some_and(&ours))
+        })
+        .map(|e| e.path())
+        .collect();
+    found.sort();
+    found
 }
 
 fn check_names(names: &[(String, PathBuf, bool)]) -> Result<(), FormatError> {
@@ -148,12 +196,9 @@ fn check_names(names: &[(String, PathBuf, bool)]) -> Result<(), FormatError> {
     }
     // A recording `a.mcap` names its scans `a_000000`…: a file `a_000003.bin` would collide.
     for (prefix, rec, _) in names.iter().filter(|n| n.2) {
-        let clash = names.iter().find(|(name, _, is_prefix)| {
-            !is_prefix
-                && name
-                    .strip_prefix(prefix.as_str())
-                    .is_some_and(|rest| rest.len() >= 6 && rest.bytes().all(|b| b.is_ascii_digit()))
-        });
+        let clash = names
+            .iter()
+            .find(|(name, _, is_prefix)| !is_prefix && is_recorded_name(name, prefix));
         if let Some((name, file, _)) = clash {
             return Err(collision(rec, file, name));
         }
@@ -210,6 +255,38 @@ pub fn read_prob(path: &Path) -> Result<Vec<f32>, FormatError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn earlier_outputs_are_this_runs_names_only() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in [
+            "000000.prob",
+            "000000.ground",
+            "000001.prob.tmp",
+            "000002.clusters",
+            "drive_000003.ground",
+            "drive_3.ground",
+            "other_000003.ground",
+            "notes.txt",
+        ] {
+            fs::write(dir.path().join(name), b"x").unwrap();
+        }
+        let files = ScanSource::Files(vec!["a/000000.bin".into(), "a/000001.bin".into()]);
+        let rec = ScanSource::Recording {
+            path: "b/drive.mcap".into(),
+            topic: None,
+        };
+        let found = earlier_outputs(dir.path(), &[&files, &rec], &[".prob", ".ground"]);
+        let names: Vec<_> = found
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(
+            names,
+            ["000000.ground", "000000.prob", "drive_000003.ground"]
+        );
+        assert!(earlier_outputs(&dir.path().join("absent"), &[&files], &[".prob"]).is_empty());
+    }
 
     #[test]
     fn outputs_round_trip_in_order() {
