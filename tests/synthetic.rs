@@ -618,6 +618,9 @@ fn whole_calibration_per_scene_against_every_preset() {
         }
         cfg
     };
+    // `FIT=params`: also `calibrate --fit-params` (the parameters fitted to the
+    // PseudoLabeler's labels of the 24 scans).
+    let fit_params = std::env::var("FIT").is_ok_and(|f| f == "params");
     let (mut scenes, mut scene_wins, mut within, mut runs, mut run_wins) = (0, 0, 0, 0, 0);
     let mut far_behind = Vec::new();
     for sensor in sensors.split(',') {
@@ -674,11 +677,18 @@ fn whole_calibration_per_scene_against_every_preset() {
                             (mount.pitch - truth.pitch).to_degrees()
                         );
                         let zones = zones_moved(&own, near.as_ref(), mount.height);
-                        let cfg = scoring(SegmenterConfig {
+                        let moved = SegmenterConfig {
                             zones,
                             ..own.clone()
-                        });
-                        iou_on_mount(&g, &own.sensor, &mount, cfg)
+                        };
+                        if fit_params {
+                            let fitted = fitted_to_pseudolabels(&moved, &mount, &xyz);
+                            let alone = iou_on_mount(&g, &own.sensor, &mount, scoring(moved));
+                            found += &format!("; the mount alone {alone:.2}");
+                            iou_on_mount(&g, &own.sensor, &mount, scoring(fitted))
+                        } else {
+                            iou_on_mount(&g, &own.sensor, &mount, scoring(moved))
+                        }
                     }
                     // A refusal leaves the user with the preset on its own mount.
                     Err(_) => {
@@ -728,6 +738,54 @@ fn whole_calibration_per_scene_against_every_preset() {
         far_behind.is_empty(),
         "more than 0.25 points behind: {far_behind:?}"
     );
+}
+
+/// `calibrate --fit-params`'s step after the mount: `scans` pseudo-labelled on the mount
+/// found, the parameters of `cfg` fitted to the labels (the defaults of the command).
+fn fitted_to_pseudolabels(
+    cfg: &SegmenterConfig,
+    mount: &MountConfig,
+    scans: &[Vec<[f32; 3]>],
+) -> SegmenterConfig {
+    use groundwork_calibrate::{LabeledScan, ParamSearchConfig, fit_parameters};
+    use groundwork_pseudolabel::{GroundFrame, PseudoLabeler};
+    let mut cfg = cfg.clone();
+    cfg.sensor.mount = mount.clone();
+    let labeler =
+        PseudoLabeler::new(Default::default(), GroundFrame::from_config(&cfg).unwrap()).unwrap();
+    let ground: Vec<Vec<bool>> = scans
+        .iter()
+        .map(|points| {
+            let mut p = vec![0.0f32; points.len()];
+            labeler.label(points, &mut p).unwrap();
+            p.iter().map(|&p| p >= 0.5).collect()
+        })
+        .collect();
+    let labeled: Vec<LabeledScan> = scans
+        .iter()
+        .zip(&ground)
+        .map(|(points, ground)| LabeledScan { points, ground })
+        .collect();
+    let fit = fit_parameters(&cfg, &labeled, &ParamSearchConfig::default(), |_, _| {}).unwrap();
+    eprintln!(
+        "  fit: held out {:.2} -> {:.2} (best round), {}",
+        fit.held_out_before.iou(),
+        fit.history
+            .iter()
+            .skip(1)
+            .map(|r| r.held_out_iou)
+            .fold(fit.held_out_before.iou(), f64::max),
+        if fit.kept_preset {
+            "kept the preset".to_owned()
+        } else {
+            fit.changed
+                .iter()
+                .map(|c| format!("{} {} → {}", c.name, c.old, c.new))
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    );
+    fit.config
 }
 
 /// Turns of the true mount (roll, pitch; degrees) that give the resolution of a comparison

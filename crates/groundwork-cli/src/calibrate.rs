@@ -489,7 +489,11 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
         fit_figures(fit)
     );
     if fit.kept_preset {
-        s += "# No change agreed better with the held-out scans: the preset's parameters are kept.\n";
+        s += if labels_hold_no_ground(fit) {
+            "# The PseudoLabeler called nothing ground there: the preset's parameters are kept.\n"
+        } else {
+            "# No change agreed better with the held-out scans: the preset's parameters are kept.\n"
+        };
         return s;
     }
     let (new, old) = (&fit.config.ground, &base.ground);
@@ -534,6 +538,14 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
     s
 }
 
+/// Whether the PseudoLabeler's labels of the sample hold no ground within the trusted range:
+/// agreement with them is then 0 for any parameters.
+fn labels_hold_no_ground(fit: &ParamFit) -> bool {
+    [&fit.fitted_before, &fit.held_out_before]
+        .iter()
+        .all(|a| a.both + a.reference_only == 0)
+}
+
 /// The parameter fit, for the terminal.
 fn params_summary(fit: &ParamFit) -> String {
     let mut s = format!(
@@ -542,7 +554,13 @@ fn params_summary(fit: &ParamFit) -> String {
         fit.evaluations
     );
     if fit.kept_preset {
-        s += "  kept the preset's: no change agreed better with the held-out scans\n";
+        s += if labels_hold_no_ground(fit) {
+            "  kept the preset's: the PseudoLabeler called nothing ground where its labels are \
+             trusted, so they cannot teach (it can lose the ground where the terrain falls far \
+             below the road: docs/offline-labels.md)\n"
+        } else {
+            "  kept the preset's: no change agreed better with the held-out scans\n"
+        };
     }
     for c in &fit.changed {
         let _ = writeln!(s, "  {} {}  was {}", c.name, c.new, c.old);
@@ -699,6 +717,44 @@ mod tests {
             frames: 6,
             one_sided: None,
         }
+    }
+
+    #[test]
+    fn a_fit_to_labels_without_ground_says_why_the_preset_is_kept() {
+        let none = groundwork_calibrate::Agreement {
+            both: 0,
+            segmenter_only: 900,
+            reference_only: 0,
+        };
+        let fit = ParamFit {
+            config: SegmenterConfig::default(),
+            changed: Vec::new(),
+            fitted_before: none,
+            fitted_after: none,
+            held_out_before: none,
+            held_out_after: none,
+            fitted_scans: 18,
+            held_out_scans: 6,
+            evaluations: 19,
+            rounds: 1,
+            kept_round: 0,
+            kept_preset: true,
+            history: Vec::new(),
+            trusted_range: 10.0,
+            ring_agreement: vec![0.0],
+        };
+        let base = SegmenterConfig::default();
+        assert!(params_summary(&fit).contains("called nothing ground"));
+        assert!(params_text(&base, &fit).contains("called nothing ground"));
+        // Labels with ground that no change agreed better with: the usual words.
+        let some = groundwork_calibrate::Agreement { both: 50, ..none };
+        let fit = ParamFit {
+            held_out_before: some,
+            fitted_before: some,
+            ..fit
+        };
+        assert!(params_summary(&fit).contains("no change agreed better"));
+        assert!(params_text(&base, &fit).contains("No change agreed better"));
     }
 
     #[test]
