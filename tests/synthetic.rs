@@ -587,15 +587,17 @@ fn layouts_against_every_preset() {
     }
 }
 
-/// The whole of `groundwork calibrate` (no `--fit-params`) on the scans and mounts of
-/// [`presets_across_sensors`], 24 consecutive scans each: the mount found from the scans
+/// The whole of `groundwork calibrate` (by default without `--fit-params`) on the scans and
+/// mounts of [`presets_across_sensors`], 24 consecutive scans each: the mount found from the scans
 /// alone, the zones moved for it, then single-frame pooled IoU on the same scans against
 /// every preset told the true mount, per run and per scene (the one preset best over the
 /// scene's three runs), beside the sensor's own preset and the comparison's resolution: how
 /// far that preset's scene mean moves when the true mount is turned by 0.02° ([`NUDGES`]).
 /// `SENSORS` (comma-separated) picks the scans' sensors; VLP-16, OS1-64 and Livox by
 /// default, the three of issue 42's acceptance. `FRAMES` scores with that many frames of
-/// history (`preset`: the preset's own), single frame by default. About 7 minutes:
+/// history (`preset`: the preset's own), single frame by default; `FIT=params` adds
+/// `--fit-params`'s step and prints each fit's held-out agreement and the mount alone's IoU
+/// beside it. About 7 minutes (twice that with the fit):
 /// `cargo test -p groundwork-tests --test synthetic -- --ignored whole_calibration
 /// --nocapture` (docs/calibration.md, "The whole command per scene").
 #[test]

@@ -535,6 +535,11 @@ pub struct CalibrateArgs {
     /// (ground IoU, %, in 10 m rings from the sensor): beyond, neither can be taken as truth.
     #[arg(long, default_value_t = 90.0)]
     pub param_trust: f64,
+    /// The fitted parameters are kept only if the held-out scans agree with the labels
+    /// better than with the preset's by more than this (ground IoU points); smaller gains
+    /// were as often losses against the truth (docs/calibration.md).
+    #[arg(long, default_value_t = 2.5)]
+    pub param_min_gain: f64,
     /// With --fit-params, also fit the layout of the two inner zones (their boundary,
     /// rings and sectors) to the labels. Off by default: it can fit the labeler's own
     /// mistakes (docs/calibration.md).

@@ -124,6 +124,17 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         "--param-trust is a ground IoU in percent (0–100), not {}",
         a.param_trust
     );
+    anyhow::ensure!(
+        (0.0..=100.0).contains(&a.param_min_gain),
+        "--param-min-gain is in ground IoU points (0–100), not {}",
+        a.param_min_gain
+    );
+    let search = ParamSearchConfig {
+        trust_agreement: a.param_trust,
+        min_held_out_gain: a.param_min_gain,
+        fit_zones: a.fit_zones,
+        ..ParamSearchConfig::default()
+    };
     let prior_mount = cfg.sensor.mount.clone();
     let prior = mount_transform(&prior_mount)?;
     let settings = MountSearchConfig {
@@ -242,7 +253,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .take(a.param_scans)
         .collect();
     let (parameters, parameters_refused) = match (&result, a.fit_params) {
-        (Ok(est), true) => match fit_params(&methods, est, &sample, a.param_trust, a.fit_zones) {
+        (Ok(est), true) => match fit_params(&methods, est, &sample, search.clone()) {
             Ok(fit) => (Some(fit), None),
             Err(e) => {
                 error!("parameters not fitted: {e:#}");
@@ -416,8 +427,7 @@ fn fit_params(
     methods: &MethodsConfig,
     est: &MountEstimate,
     sample: &[Vec<[f32; 3]>],
-    trust: f64,
-    fit_zones: bool,
+    search: ParamSearchConfig,
 ) -> Result<ParamFit> {
     let mut cfg = methods.segmenter.clone();
     cfg.sensor.mount = est.mount();
@@ -443,11 +453,6 @@ fn fit_params(
         .zip(&ground)
         .map(|(points, ground)| LabeledScan { points, ground })
         .collect();
-    let search = ParamSearchConfig {
-        trust_agreement: trust,
-        fit_zones,
-        ..ParamSearchConfig::default()
-    };
     info!(
         scans = scans.len(),
         "fitting the parameters to the PseudoLabeler's labels"

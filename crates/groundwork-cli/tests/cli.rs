@@ -1234,7 +1234,16 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
     };
     // The labels trusted at every range (on KITTI the PseudoLabeler is right far out too),
     // so that parameters change and are written; the inner zones' layout fitted too.
-    let o = run("a.toml", &["--param-trust", "0", "--fit-zones"]);
+    let o = run(
+        "a.toml",
+        &[
+            "--param-trust",
+            "0",
+            "--param-min-gain",
+            "0.25",
+            "--fit-zones",
+        ],
+    );
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     assert!(
@@ -1295,7 +1304,16 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
         assert!(written.contains("# was "), "{written}");
     }
     // Deterministic: the same scans give the same file.
-    let o = run("b.toml", &["--param-trust", "0", "--fit-zones"]);
+    let o = run(
+        "b.toml",
+        &[
+            "--param-trust",
+            "0",
+            "--param-min-gain",
+            "0.25",
+            "--fit-zones",
+        ],
+    );
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     let again = fs::read_to_string(tmp.path().join("b.toml")).unwrap();
     // The name is the file's stem; everything else is the same.
@@ -1317,7 +1335,11 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
     assert!(!c.contains("[ground]"), "{c}");
 
     // Settings out of range are refused before anything is read or written.
-    for (flag, value) in [("--param-trust", "120"), ("--param-scans", "0")] {
+    for (flag, value) in [
+        ("--param-trust", "120"),
+        ("--param-scans", "0"),
+        ("--param-min-gain", "101"),
+    ] {
         let o = run("d.toml", &[flag, value]);
         assert_eq!(o.status.code(), Some(2), "{}", text(&o));
         assert!(text(&o).contains(flag), "{}", text(&o));
