@@ -297,33 +297,6 @@ fn the_segmenter_observes_the_mount_it_was_not_told() {
     assert!(seg.observed_mount().is_none());
 }
 
-/// `scans` (sensor frame) with their reference labels, in the shape `fit_parameters` takes.
-fn labeled<'a>(
-    scans: &'a [Vec<[f32; 3]>],
-    ground: &'a [Vec<bool>],
-) -> Vec<groundwork_calibrate::LabeledScan<'a>> {
-    scans
-        .iter()
-        .zip(ground)
-        .map(|(points, ground)| groundwork_calibrate::LabeledScan { points, ground })
-        .collect()
-}
-
-/// The PseudoLabeler's ground decision for every point of `scans` (sensor frame).
-fn pseudo_ground(
-    labeler: &groundwork_pseudolabel::PseudoLabeler,
-    scans: &[Vec<[f32; 3]>],
-) -> Vec<Vec<bool>> {
-    scans
-        .iter()
-        .map(|s| {
-            let mut p = vec![0.0f32; s.len()];
-            labeler.label(s, &mut p).unwrap();
-            p.iter().map(|&p| p >= 0.5).collect()
-        })
-        .collect()
-}
-
 /// Eight scans of a synthetic VLP-16 street with their exact labels as the reference.
 fn synthetic_street() -> (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>) {
     let g = groundwork_tests::synthetic("vlp16", SceneKind::Urban, 40, None);
@@ -367,9 +340,13 @@ fn iou_against(
     scans: &[Vec<[f32; 3]>],
     ground: &[Vec<bool>],
 ) -> f64 {
-    groundwork_calibrate::params::agreement(cfg, &labeled(scans, ground), f64::INFINITY)
-        .unwrap()
-        .iou()
+    groundwork_calibrate::params::agreement(
+        cfg,
+        &groundwork_tests::labeled(scans, ground),
+        f64::INFINITY,
+    )
+    .unwrap()
+    .iou()
 }
 
 /// A labeler that loses the ground far from the sensor (here: exact within 20 m, nothing
@@ -389,7 +366,7 @@ fn labels_are_trusted_only_where_the_preset_agrees_with_them() {
                 .collect()
         })
         .collect();
-    let sample = labeled(&scans, &near_only);
+    let sample = groundwork_tests::labeled(&scans, &near_only);
     let mut base = sensor_preset("vlp16").unwrap();
     base.history.frames = 1;
     let preset_iou = iou_against(&base, &scans, &truth);
@@ -415,7 +392,7 @@ fn labels_are_trusted_only_where_the_preset_agrees_with_them() {
 #[test]
 fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() {
     let (scans, ground) = synthetic_street();
-    let sample = labeled(&scans, &ground);
+    let sample = groundwork_tests::labeled(&scans, &ground);
     let base = spoiled_vlp16();
     let search = exact_labels();
     let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
@@ -509,7 +486,7 @@ fn the_held_out_part_keeps_the_preset_when_the_fit_does_not_carry_over() {
     for labels in ground.iter_mut().skip(every - 1).step_by(every) {
         labels.iter_mut().for_each(|g| *g = !*g);
     }
-    let sample = labeled(&scans, &ground);
+    let sample = groundwork_tests::labeled(&scans, &ground);
     let base = spoiled_vlp16();
     let search = exact_labels();
     let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
@@ -546,8 +523,8 @@ fn kitti_parameters_fitted_to_pseudo_labels_keep_the_accuracy() {
     let hdl64e = sensor_preset("hdl64e").unwrap().sensor.mount;
     let kitti = kitti_seen_from(&hdl64e);
     let scans = xyz(&kitti);
-    let ground = pseudo_ground(&labeler, &scans);
-    let sample = labeled(&scans, &ground);
+    let ground = groundwork_tests::pseudo_ground(&labeler, &scans);
+    let sample = groundwork_tests::labeled(&scans, &ground);
     let search = groundwork_calibrate::ParamSearchConfig::default();
     let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
     let (iou_preset, precision_preset) = kitti_config_iou(&kitti, &base);
@@ -644,8 +621,8 @@ fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_la
         groundwork_pseudolabel::GroundFrame::from_config(&labeling).unwrap(),
     )
     .unwrap();
-    let ground = pseudo_ground(&labeler, &scans);
-    let sample = labeled(&scans, &ground);
+    let ground = groundwork_tests::pseudo_ground(&labeler, &scans);
+    let sample = groundwork_tests::labeled(&scans, &ground);
     let mut table = Vec::new();
     for (name, _) in SENSOR_PRESETS {
         let mut cfg = sensor_preset(name).unwrap();

@@ -749,25 +749,14 @@ fn fitted_to_pseudolabels(
     mount: &MountConfig,
     scans: &[Vec<[f32; 3]>],
 ) -> SegmenterConfig {
-    use groundwork_calibrate::{LabeledScan, ParamSearchConfig, fit_parameters};
+    use groundwork_calibrate::{ParamSearchConfig, fit_parameters};
     use groundwork_pseudolabel::{GroundFrame, PseudoLabeler};
     let mut cfg = cfg.clone();
     cfg.sensor.mount = mount.clone();
     let labeler =
         PseudoLabeler::new(Default::default(), GroundFrame::from_config(&cfg).unwrap()).unwrap();
-    let ground: Vec<Vec<bool>> = scans
-        .iter()
-        .map(|points| {
-            let mut p = vec![0.0f32; points.len()];
-            labeler.label(points, &mut p).unwrap();
-            p.iter().map(|&p| p >= 0.5).collect()
-        })
-        .collect();
-    let labeled: Vec<LabeledScan> = scans
-        .iter()
-        .zip(&ground)
-        .map(|(points, ground)| LabeledScan { points, ground })
-        .collect();
+    let ground = groundwork_tests::pseudo_ground(&labeler, scans);
+    let labeled = groundwork_tests::labeled(scans, &ground);
     let fit = fit_parameters(&cfg, &labeled, &ParamSearchConfig::default(), |_, _| {}).unwrap();
     eprintln!(
         "  fit: held out {:.2} -> {:.2} (best round), {}",

@@ -253,7 +253,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .take(a.param_scans)
         .collect();
     let (parameters, parameters_refused) = match (&result, a.fit_params) {
-        (Ok(est), true) => match fit_params(&methods, est, &sample, search.clone()) {
+        (Ok(est), true) => match fit_params(&methods, est, &sample, &search) {
             Ok(fit) => (Some(fit), None),
             Err(e) => {
                 error!("parameters not fitted: {e:#}");
@@ -427,7 +427,7 @@ fn fit_params(
     methods: &MethodsConfig,
     est: &MountEstimate,
     sample: &[Vec<[f32; 3]>],
-    search: ParamSearchConfig,
+    search: &ParamSearchConfig,
 ) -> Result<ParamFit> {
     let mut cfg = methods.segmenter.clone();
     cfg.sensor.mount = est.mount();
@@ -461,7 +461,7 @@ fn fit_params(
     bar.set_style(crate::common::progress_style(
         "fit parameters [{bar:30}] {pos} segmenter runs (at most {len}), {elapsed}",
     ));
-    let fit = fit_parameters(&cfg, &scans, &search, |done, most| {
+    let fit = fit_parameters(&cfg, &scans, search, |done, most| {
         bar.set_length(most as u64);
         bar.set_position(done as u64);
     });

@@ -145,7 +145,8 @@ pub fn create_output(
         let earlier = groundwork_io::earlier_outputs(out, &sources, suffixes);
         if let Some(first) = earlier.first() {
             warn!(
-                "{}: {} file(s) of an earlier run are replaced as this run writes them (first {}); --out another folder keeps them",
+                "{}: {} file(s) of an earlier run are replaced as this run writes them (first \
+                 {}); --out another folder keeps them",
                 out.display(),
                 earlier.len(),
                 first.file_name().unwrap_or_default().to_string_lossy()
