@@ -515,18 +515,18 @@ fn kitti_parameters_fitted_to_pseudo_labels_keep_the_accuracy() {
     let methods = groundwork_eval::load_methods_config_over(Some("hdl64e"), None).unwrap();
     let mut base = methods.segmenter.clone();
     base.history.frames = 1;
-    let labeler = groundwork_pseudolabel::PseudoLabeler::new(
-        methods.pseudolabeler.clone(),
-        groundwork_pseudolabel::GroundFrame::from_config(&base).unwrap(),
-    )
-    .unwrap();
     let hdl64e = sensor_preset("hdl64e").unwrap().sensor.mount;
     let kitti = kitti_seen_from(&hdl64e);
     let scans = xyz(&kitti);
-    let ground = groundwork_tests::pseudo_ground(&labeler, &scans);
-    let sample = groundwork_tests::labeled(&scans, &ground);
     let search = groundwork_calibrate::ParamSearchConfig::default();
-    let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
+    let fit = groundwork_calibrate::fit_to_pseudo_labels(
+        &base,
+        &methods.pseudolabeler,
+        &scans,
+        &search,
+        |_| {},
+    )
+    .unwrap();
     let (iou_preset, precision_preset) = kitti_config_iou(&kitti, &base);
     let (iou, precision) = kitti_config_iou(&kitti, &fit.config);
     eprintln!(
@@ -621,7 +621,7 @@ fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_la
         groundwork_pseudolabel::GroundFrame::from_config(&labeling).unwrap(),
     )
     .unwrap();
-    let ground = groundwork_tests::pseudo_ground(&labeler, &scans);
+    let ground = groundwork_calibrate::pseudo::pseudo_ground(&labeler, &scans, || {}).unwrap();
     let sample = groundwork_tests::labeled(&scans, &ground);
     let mut table = Vec::new();
     for (name, _) in SENSOR_PRESETS {

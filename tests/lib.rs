@@ -137,20 +137,3 @@ pub fn labeled<'a>(
         .map(|(points, ground)| groundwork_calibrate::LabeledScan { points, ground })
         .collect()
 }
-
-/// The PseudoLabeler's ground decision for every point of `scans` (sensor frame).
-pub fn pseudo_ground(
-    labeler: &groundwork_pseudolabel::PseudoLabeler,
-    scans: &[Vec<[f32; 3]>],
-) -> Vec<Vec<bool>> {
-    scans
-        .iter()
-        .map(|s| {
-            let mut p = vec![0.0f32; s.len()];
-            labeler
-                .label(s, &mut p)
-                .expect("the PseudoLabeler labels the scan");
-            p.iter().map(|&p| p >= 0.5).collect()
-        })
-        .collect()
-}

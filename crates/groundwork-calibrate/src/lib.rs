@@ -4,7 +4,8 @@
 //!   consensus ([`plane`]) over many scans, with the spread across scans as confidence and a
 //!   refusal (with the reason) when the scans cannot determine it.
 //! - [`params`]: with the mount fixed, the segmenter's likelihood parameters and ground
-//!   threshold fitted to reference labels (the PseudoLabeler's), judged on held-out scans.
+//!   threshold fitted to reference labels, judged on held-out scans; [`pseudo`]: that fit
+//!   on the PseudoLabeler's labels of a sample of the scans, whole.
 //! - [`zones`]: the zone model's near edge, from where the sensor first sees ground on the
 //!   mount found, and its inner boundaries scaled with the height found where the layout
 //!   follows the beams (`zones.scale_with_height`).
@@ -16,6 +17,7 @@
 pub mod mount;
 pub mod params;
 pub mod plane;
+pub mod pseudo;
 pub mod zones;
 
 pub use mount::{
@@ -23,6 +25,7 @@ pub use mount::{
 };
 pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
+pub use pseudo::{FitProgress, fit_to_pseudo_labels};
 pub use zones::{
     HEIGHT_SCALE_DEAD_BAND, HeightScale, MountZones, NearEdgeConfig, NearGround,
     combine_near_ground, near_ground, scan_near_ground, view_near_ground, zones_for_mount,

@@ -523,10 +523,14 @@ pub struct CalibrateArgs {
     /// Seed of the plane hypotheses: the same scans and seed give the same file.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// With the mount found, also fit the segmenter's likelihood parameters and ground
-    /// threshold to the PseudoLabeler's labels of a sample of the scans (one in four held
-    /// out to judge the fit; docs/calibration.md).
+    /// Keep the preset's likelihood parameters and ground threshold. By default, with the
+    /// mount found, they are fitted to the PseudoLabeler's labels of a sample of the scans
+    /// (one in four held out to judge the fit) and kept only where the held-out scans agree
+    /// with those labels clearly better (docs/calibration.md).
     #[arg(long)]
+    pub keep_params: bool,
+    /// The parameter fit, which is the default now (accepted for scripts written before).
+    #[arg(long, hide = true, conflicts_with = "keep_params")]
     pub fit_params: bool,
     /// Scans in that sample, at most (spread over the scans looked at).
     #[arg(long, default_value_t = 48)]
@@ -540,10 +544,10 @@ pub struct CalibrateArgs {
     /// were as often losses against the truth (docs/calibration.md).
     #[arg(long, default_value_t = 2.5)]
     pub param_min_gain: f64,
-    /// With --fit-params, also fit the layout of the two inner zones (their boundary,
-    /// rings and sectors) to the labels. Off by default: it can fit the labeler's own
-    /// mistakes (docs/calibration.md).
-    #[arg(long, requires = "fit_params")]
+    /// Also fit the layout of the two inner zones (their boundary, rings and sectors) to
+    /// the labels. Off by default: it can fit the labeler's own mistakes
+    /// (docs/calibration.md).
+    #[arg(long, conflicts_with = "keep_params")]
     pub fit_zones: bool,
     /// Keep the preset's zone model as it is. By default its near edge (`zones.min_range`)
     /// moves in to where the scans first see ground on the mount found, if that is nearer

@@ -14,15 +14,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
-    HeightScale, LabeledScan, MountEstimate, MountSearchConfig, MountZones, NearEdgeConfig,
+    FitProgress, HeightScale, MountEstimate, MountSearchConfig, MountZones, NearEdgeConfig,
     NearGround, NoGround, ParamFit, ParamSearchConfig, combine, combine_near_ground,
-    fit_parameters, frame_mount, view_near_ground, zones_for_mount,
+    fit_to_pseudo_labels, frame_mount, view_near_ground, zones_for_mount,
 };
 use groundwork_core::SegmenterConfig;
 use groundwork_core::config::{MountConfig, ZoneConfig};
 use groundwork_core::mount_transform;
 use groundwork_eval::MethodsConfig;
-use groundwork_pseudolabel::{GroundFrame, PseudoLabeler};
 use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{error, info, warn};
@@ -93,7 +92,7 @@ struct Report {
     /// refused mount, or a height within 5 % of the preset's).
     #[serde(skip_serializing_if = "Option::is_none")]
     height_scale: Option<HeightScale>,
-    /// The parameter fit (`--fit-params`), if it ran.
+    /// The parameter fit (unless `--keep-params`), if it ran.
     #[serde(skip_serializing_if = "Option::is_none")]
     parameters: Option<ParamFit>,
     /// Why the parameters were not fitted, if they were asked for and could not be.
@@ -157,9 +156,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let (ego_radius, near_cfg) = (cfg.sensor.ego_radius, NearEdgeConfig::default());
     // Every `keep`-th scan looked at is kept for the parameter fit's sample.
     let looked = total.map_or(a.max_scans, |n| n.div_ceil(stride).min(a.max_scans));
-    let keep = a
-        .fit_params
-        .then(|| looked.div_ceil(a.param_scans.max(1)).max(1));
+    let keep = (!a.keep_params).then(|| looked.div_ceil(a.param_scans.max(1)).max(1));
     info!(
         base = %base,
         inputs = a.inputs.len(),
@@ -252,8 +249,8 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .filter_map(|v| v.points.take())
         .take(a.param_scans)
         .collect();
-    let (parameters, parameters_refused) = match (&result, a.fit_params) {
-        (Ok(est), true) => match fit_params(&methods, est, &sample, &search) {
+    let (parameters, parameters_refused) = match (&result, a.keep_params) {
+        (Ok(est), false) => match fit_params(&methods, est, &sample, &search) {
             Ok(fit) => (Some(fit), None),
             Err(e) => {
                 error!("parameters not fitted: {e:#}");
@@ -311,7 +308,6 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     }
     if let Some(fit) = &report.parameters {
         text += &params_text(&cfg, fit);
-        print!("{}", params_summary(fit));
     } else if let Some(why) = &report.parameters_refused {
         let _ = writeln!(text, "\n# Parameters not fitted: {why}");
     }
@@ -337,6 +333,10 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
             "  inner zone boundaries scaled by {:.3} with the height: {:?}  was {:?}",
             h.ratio, h.boundaries, h.was
         );
+    }
+    // After the mount, as in the file.
+    if let Some(fit) = &report.parameters {
+        print!("{}", params_summary(fit));
     }
     println!(
         "wrote {} (use: --sensor {base} --config {}) in {:.1} s",
@@ -422,7 +422,7 @@ fn zones_text(
     s
 }
 
-/// The parameter fit: the sample pseudo-labelled with the mount found, then the search.
+/// The parameter fit on the mount found, with its progress bars.
 fn fit_params(
     methods: &MethodsConfig,
     est: &MountEstimate,
@@ -431,41 +431,30 @@ fn fit_params(
 ) -> Result<ParamFit> {
     let mut cfg = methods.segmenter.clone();
     cfg.sensor.mount = est.mount();
-    cfg.validate().context("the calibrated mount")?;
-    let labeler = PseudoLabeler::new(
-        methods.pseudolabeler.clone(),
-        GroundFrame::from_config(&cfg)?,
-    )?;
-    let pb = progress(sample.len(), "pseudo-label");
-    let ground: Vec<Vec<bool>> = sample
-        .par_iter()
-        .map(|points| {
-            let mut p = vec![0.0f32; points.len()];
-            let labelled = labeler.label(points, &mut p);
-            pb.inc(1);
-            labelled.map(|_| p.iter().map(|&p| p >= 0.5).collect())
-        })
-        .collect::<Result<_, _>>()
-        .context("pseudo-labelling the sample")?;
-    pb.finish_and_clear();
-    let scans: Vec<LabeledScan> = sample
-        .iter()
-        .zip(&ground)
-        .map(|(points, ground)| LabeledScan { points, ground })
-        .collect();
-    info!(
-        scans = scans.len(),
-        "fitting the parameters to the PseudoLabeler's labels"
-    );
-    let bar = indicatif::ProgressBar::new(0);
-    bar.set_style(crate::common::progress_style(
+    let labelling = progress(sample.len(), "pseudo-label");
+    // The search's bar replaces the labelling's when the search starts.
+    let searching = indicatif::ProgressBar::new(0);
+    searching.set_style(crate::common::progress_style(
         "fit parameters [{bar:30}] {pos} segmenter runs (at most {len}), {elapsed}",
     ));
-    let fit = fit_parameters(&cfg, &scans, search, |done, most| {
-        bar.set_length(most as u64);
-        bar.set_position(done as u64);
+    let search_starts = std::sync::Once::new();
+    let fit = fit_to_pseudo_labels(&cfg, &methods.pseudolabeler, sample, search, |p| match p {
+        FitProgress::Labelled { done, .. } if done > 0 => labelling.inc(1),
+        FitProgress::Labelled { .. } => {}
+        FitProgress::Searched { done, most } => {
+            search_starts.call_once(|| {
+                labelling.finish_and_clear();
+                info!(
+                    scans = sample.len(),
+                    "fitting the parameters to the PseudoLabeler's labels"
+                );
+            });
+            searching.set_length(most as u64);
+            searching.set_position(done as u64);
+        }
     });
-    bar.finish_and_clear();
+    labelling.finish_and_clear();
+    searching.finish_and_clear();
     Ok(fit?)
 }
 

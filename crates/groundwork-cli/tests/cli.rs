@@ -1040,8 +1040,9 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
         let mut iou = Vec::new();
         for (name, extra) in [("zones.toml", None), ("mount.toml", Some("--keep-zones"))] {
             let out = tmp.path().join(format!("{sensor}-{name}"));
+            // The zones alone: the parameters stay the preset's in both runs.
             let o = bin()
-                .args(["calibrate", "--sensor", sensor, "--out"])
+                .args(["calibrate", "--keep-params", "--sensor", sensor, "--out"])
                 .arg(&out)
                 .args(extra)
                 .arg(&seq)
@@ -1201,13 +1202,13 @@ fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_
     assert!(!tmp.path().join("two.toml").exists());
 }
 
-/// `--fit-params`: the mount, then the parameters fitted to the PseudoLabeler's labels of
-/// the sample, written after the mount with their old values (the values the report says
-/// were fitted, agreeing at least as well with the held-out labels); the same scans give
-/// the same file; a sample too small to hold a part out is refused with the reason (the
-/// mount is still written, exit code 1).
+/// By default the mount, then the parameters fitted to the PseudoLabeler's labels of the
+/// sample, written after the mount with their old values (the values the report says were
+/// fitted, agreeing at least as well with the held-out labels); the same scans give the same
+/// file; a sample too small to hold a part out is refused with the reason (the mount is
+/// still written, exit code 1); `--keep-params` leaves them out.
 #[test]
-fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
+fn calibrate_fits_the_parameters_to_pseudo_labels() {
     let text = |o: &std::process::Output| {
         format!(
             "{}{}",
@@ -1223,7 +1224,7 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
     }
     let run = |out: &str, extra: &[&str]| {
         bin()
-            .args(["calibrate", "--sensor", "hdl64e", "--fit-params", "--out"])
+            .args(["calibrate", "--sensor", "hdl64e", "--out"])
             .arg(tmp.path().join(out))
             .arg("--report")
             .arg(tmp.path().join(format!("{out}.json")))
@@ -1334,17 +1335,39 @@ fn calibrate_fits_the_parameters_to_pseudo_labels_when_asked() {
     );
     assert!(!c.contains("[ground]"), "{c}");
 
-    // Settings out of range are refused before anything is read or written.
-    for (flag, value) in [
-        ("--param-trust", "120"),
-        ("--param-scans", "0"),
-        ("--param-min-gain", "101"),
+    // Settings out of range, or at odds, are refused before anything is read or written.
+    for args in [
+        &["--param-trust", "120"][..],
+        &["--param-scans", "0"],
+        &["--param-min-gain", "101"],
+        &["--keep-params", "--fit-zones"],
+        &["--keep-params", "--fit-params"],
     ] {
-        let o = run("d.toml", &[flag, value]);
+        let o = run("d.toml", args);
         assert_eq!(o.status.code(), Some(2), "{}", text(&o));
-        assert!(text(&o).contains(flag), "{}", text(&o));
+        assert!(text(&o).contains(args[0]), "{}", text(&o));
         assert!(!tmp.path().join("d.toml").exists());
     }
+
+    // `--keep-params`: the mount only, as before the fit; `--fit-params` (the default now)
+    // is still taken, the same file as without it.
+    let o = run("e.toml", &["--keep-params"]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let e = fs::read_to_string(tmp.path().join("e.toml")).unwrap();
+    assert!(
+        e.contains("height = ") && !e.contains("# Parameters"),
+        "{e}"
+    );
+    let o = run("f.toml", &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let o = run("g.toml", &["--fit-params"]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let (f, g) = (
+        fs::read_to_string(tmp.path().join("f.toml")).unwrap(),
+        fs::read_to_string(tmp.path().join("g.toml")).unwrap(),
+    );
+    assert!(f.contains("# Parameters fitted"), "{f}");
+    assert_eq!(f, g.replace("name = \"g\"", "name = \"f\""));
 }
 
 #[test]

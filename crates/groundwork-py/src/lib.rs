@@ -749,10 +749,17 @@ fn evaluate<'py>(
 /// `keep_zones`) and a report (each parameter's median, spread and standard error over the
 /// scans; each scan's view or why it showed no usable ground; the near edge; the height
 /// scale; `one_sided_ground` when the scans saw the ground on one side of the sensor only,
-/// with what the mount then assumes). Raises ValueError when the scans cannot determine the
-/// mount, with the reason.
+/// with what the mount then assumes). Then, unless `keep_params`, the likelihood parameters
+/// and ground threshold fitted to the PseudoLabeler's labels of up to `param_scans` of the
+/// scans, as the CLI does: `"ground"` in the configuration where the fit was kept, the fit in
+/// the report's `"parameters"` (or why it could not run, `"parameters_refused"`). Raises
+/// ValueError when the scans cannot determine the mount, with the reason.
 #[pyfunction]
-#[pyo3(signature = (scans, sensor=None, config=None, seed=0, keep_zones=false, **overrides))]
+#[pyo3(signature = (
+    scans, sensor=None, config=None, seed=0, keep_zones=false, keep_params=false,
+    param_scans=48, param_trust=90.0, param_min_gain=2.5, **overrides
+))]
+#[allow(clippy::too_many_arguments)] // the keyword arguments of a Python function
 fn calibrate<'py>(
     py: Python<'py>,
     scans: Vec<Bound<'py, PyAny>>,
@@ -760,12 +767,34 @@ fn calibrate<'py>(
     config: Option<PathBuf>,
     seed: u64,
     keep_zones: bool,
+    keep_params: bool,
+    param_scans: usize,
+    param_trust: f64,
+    param_min_gain: f64,
     overrides: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
     use groundwork_calibrate::{
-        MountSearchConfig, NearEdgeConfig, combine_near_ground, estimate_mount, view_near_ground,
-        zones_for_mount,
+        MountSearchConfig, NearEdgeConfig, ParamSearchConfig, combine_near_ground, estimate_mount,
+        fit_to_pseudo_labels, view_near_ground, zones_for_mount,
     };
+    if param_scans == 0 {
+        return Err(value_error("param_scans must be at least 1"));
+    }
+    let search = ParamSearchConfig {
+        trust_agreement: param_trust,
+        min_held_out_gain: param_min_gain,
+        ..ParamSearchConfig::default()
+    };
+    for (name, v) in [
+        ("param_trust", param_trust),
+        ("param_min_gain", param_min_gain),
+    ] {
+        if !(0.0..=100.0).contains(&v) {
+            return Err(value_error(format!(
+                "{name} is in ground IoU points (0–100), not {v}"
+            )));
+        }
+    }
     let cfg = load_config(sensor, config, None, overrides)?;
     let prior =
         groundwork_core::mount_transform(&cfg.segmenter.sensor.mount).map_err(value_error)?;
@@ -880,7 +909,114 @@ fn calibrate<'py>(
         item.set_item("boundaries", h.boundaries.clone())?;
         report.set_item("height_scale", item)?;
     }
+    if !keep_params {
+        // As the CLI: the mount found and the zones moved for it, a sample spread evenly
+        // over the scans.
+        let mut base = cfg.segmenter.clone();
+        base.sensor.mount = est.mount();
+        if let Some(z) = &fitted.zones {
+            base.zones = z.clone();
+        }
+        let every = xyz.len().div_ceil(param_scans).max(1);
+        let sample: Vec<Vec<[f32; 3]>> = xyz
+            .iter()
+            .step_by(every)
+            .take(param_scans)
+            .cloned()
+            .collect();
+        let fit =
+            py.detach(|| fit_to_pseudo_labels(&base, &cfg.pseudolabeler, &sample, &search, |_| {}));
+        match fit {
+            Ok(fit) => {
+                if let Some(ground) = changed_ground(py, &base.ground, &fit.config.ground)? {
+                    preset.set_item("ground", ground)?;
+                }
+                report.set_item("parameters", param_fit_dict(py, &fit)?)?;
+            }
+            Err(e) => report.set_item("parameters_refused", e.to_string())?,
+        }
+    }
     Ok((preset, report))
+}
+
+/// The `[ground]` settings `new` changed from `old`, as keyword arguments (None if none).
+fn changed_ground<'py>(
+    py: Python<'py>,
+    old: &groundwork_core::config::GroundConfig,
+    new: &groundwork_core::config::GroundConfig,
+) -> PyResult<Option<Bound<'py, PyDict>>> {
+    let d = PyDict::new(py);
+    for (key, n, o) in [
+        ("flatness", new.flatness, old.flatness),
+        ("orientation", new.orientation, old.orientation),
+        ("elevation", new.elevation, old.elevation),
+    ] {
+        if n != o {
+            d.set_item(
+                key,
+                [("alpha", n.alpha), ("beta", n.beta)].into_py_dict(py)?,
+            )?;
+        }
+    }
+    for (key, n, o) in [
+        (
+            "elevation_window",
+            new.elevation_window,
+            old.elevation_window,
+        ),
+        (
+            "outlier_threshold",
+            new.outlier_threshold,
+            old.outlier_threshold,
+        ),
+        (
+            "ground_threshold",
+            f64::from(new.ground_threshold),
+            f64::from(old.ground_threshold),
+        ),
+    ] {
+        if n != o {
+            d.set_item(key, n)?;
+        }
+    }
+    Ok((!d.is_empty()).then_some(d))
+}
+
+/// A parameter fit's report as the CLI's `--report` holds it ("parameters"), each agreement
+/// with its ground IoU (%) added.
+fn param_fit_dict<'py>(
+    py: Python<'py>,
+    fit: &groundwork_calibrate::ParamFit,
+) -> PyResult<Bound<'py, PyDict>> {
+    let agreement = |a: &groundwork_calibrate::Agreement| -> PyResult<Bound<'py, PyDict>> {
+        let d = [
+            ("both", a.both),
+            ("segmenter_only", a.segmenter_only),
+            ("reference_only", a.reference_only),
+        ]
+        .into_py_dict(py)?;
+        d.set_item("iou", a.iou())?;
+        Ok(d)
+    };
+    let d = PyDict::new(py);
+    d.set_item("kept_preset", fit.kept_preset)?;
+    let changed = pyo3::types::PyList::empty(py);
+    for c in &fit.changed {
+        let item = [("old", c.old), ("new", c.new)].into_py_dict(py)?;
+        item.set_item("name", c.name)?;
+        changed.append(item)?;
+    }
+    d.set_item("changed", changed)?;
+    d.set_item("fitted_before", agreement(&fit.fitted_before)?)?;
+    d.set_item("fitted_after", agreement(&fit.fitted_after)?)?;
+    d.set_item("held_out_before", agreement(&fit.held_out_before)?)?;
+    d.set_item("held_out_after", agreement(&fit.held_out_after)?)?;
+    d.set_item("fitted_scans", fit.fitted_scans)?;
+    d.set_item("held_out_scans", fit.held_out_scans)?;
+    d.set_item("evaluations", fit.evaluations)?;
+    d.set_item("trusted_range", fit.trusted_range)?;
+    d.set_item("ring_agreement", fit.ring_agreement.clone())?;
+    Ok(d)
 }
 
 /// The sensor presets (`sensor=` of every call).

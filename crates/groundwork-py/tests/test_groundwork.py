@@ -489,6 +489,49 @@ def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, 
     assert groundwork.Segmenter(mount_check={"mode": "off"}).observed_mount is None
 
 
+def test_calibrate_fits_the_parameters_as_the_cli_does(cli: Path, tmp_path: Path) -> None:
+    """After the mount, the likelihood parameters fitted to the PseudoLabeler's labels, as
+    `groundwork calibrate` does by default: kept only on a clear held-out gain (on KITTI
+    the preset already agrees on 98 %: kept), and, with the labels trusted everywhere and a
+    low bar, changed to exactly what the CLI writes: the two segment the same bits."""
+    scans = [kitti(s) for s in SCANS]
+    preset, report = groundwork.calibrate(scans, sensor="hdl64e")
+    fit = report["parameters"]
+    assert fit["kept_preset"] and not fit["changed"] and "ground" not in preset, fit
+    assert (fit["fitted_scans"], fit["held_out_scans"]) == (5, 1), fit
+    assert 95.0 < fit["held_out_before"]["iou"] == fit["held_out_after"]["iou"], fit
+    assert "parameters" not in groundwork.calibrate(scans, sensor="hdl64e", keep_params=True)[1]
+
+    low_bar = {"param_trust": 0.0, "param_min_gain": 0.25}
+    preset, report = groundwork.calibrate(scans, sensor="hdl64e", **low_bar)
+    fit = report["parameters"]
+    assert not fit["kept_preset"] and fit["changed"], fit
+    assert fit["held_out_after"]["iou"] > fit["held_out_before"]["iou"] + 0.25, fit
+    ground = preset["ground"]
+    for change in fit["changed"]:
+        section, _, key = change["name"].partition(".")
+        assert section == "ground", change
+        value = ground[key] if "." not in key else ground[key.split(".")[0]][key.split(".")[1]]
+        assert value == change["new"], (change, ground)
+    out = tmp_path / "fitted.toml"
+    run(cli, "calibrate", "--sensor", "hdl64e", "--param-trust", "0", "--param-min-gain", "0.25",
+        "--out", str(out), str(SEQ))
+    assert "[ground]" in out.read_text()
+    # The file keeps the mount to 0.1 mm and 0.001° and the parameters as they are.
+    digits = {"height": 4, "roll_deg": 3, "pitch_deg": 3, "yaw_deg": 3}
+    rounded = {k: round(v, digits[k]) for k, v in preset["mount"].items()}
+    by_kwargs = groundwork.Segmenter(sensor="hdl64e", frames=1, mount=rounded, ground=ground)
+    by_file = groundwork.Segmenter(sensor="hdl64e", frames=1, config=out)
+    mount_only = groundwork.Segmenter(sensor="hdl64e", frames=1, mount=rounded)
+    for s in scans[:2]:
+        assert np.array_equal(by_kwargs.segment(s), by_file.segment(s))
+    assert not np.array_equal(mount_only.segment(scans[2]), by_kwargs.segment(scans[2]))
+    with pytest.raises(ValueError, match="param_min_gain"):
+        groundwork.calibrate(scans, param_min_gain=-1.0)
+    with pytest.raises(ValueError, match="param_scans"):
+        groundwork.calibrate(scans, param_scans=0)
+
+
 def read_clouds(path: Path) -> list[tuple[int, int, str]]:
     """(log time, header stamp, frame id) of every PointCloud2 in a recording, read by the
     `mcap` package and decoded by `mcap-ros2-support`: readers groundwork did not write."""

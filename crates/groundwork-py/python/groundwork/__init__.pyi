@@ -192,6 +192,10 @@ def calibrate(
     config: _Path | None = None,
     seed: int = 0,
     keep_zones: bool = False,
+    keep_params: bool = False,
+    param_scans: int = 48,
+    param_trust: float = 90.0,
+    param_min_gain: float = 2.5,
     **overrides: Any,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The sensor's mount from raw scans, no labels (`groundwork calibrate`): the
@@ -203,4 +207,12 @@ def calibrate(
     showed no usable ground; "near_edge": ground_from, scans, was, min_range;
     "height_scale": ratio, was, boundaries, where they were scaled; "one_sided_ground":
     leverage, nearest_m, caveat, where the scans saw the ground on one side of the sensor
-    only). Raises ValueError, with the reason, when the scans cannot determine the mount."""
+    only). Then, unless keep_params, the likelihood parameters and ground threshold fitted to
+    the PseudoLabeler's labels of up to param_scans of the scans (one in four held out; kept
+    only if the held-out scans agree with the labels by more than param_min_gain points
+    better, counted where the preset agrees with them on param_trust % or more), as
+    `groundwork calibrate` does: {"ground": {...}} in the configuration where the fit was
+    kept; report["parameters"]: kept_preset, changed [{name, old, new}], the agreement
+    (both, segmenter_only, reference_only, iou) fitted and held out, before and after,
+    trusted_range; or report["parameters_refused"], the reason. Raises ValueError, with the
+    reason, when the scans cannot determine the mount."""
