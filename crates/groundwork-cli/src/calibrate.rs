@@ -14,9 +14,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
-    FitProgress, HeightScale, MountEstimate, MountSearchConfig, MountZones, NearEdgeConfig,
-    NearGround, NoGround, ParamFit, ParamSearchConfig, combine, combine_near_ground,
-    fit_to_pseudo_labels, frame_mount, view_near_ground, zones_for_mount,
+    CalibrateError, FitProgress, HeightScale, MountEstimate, MountSearchConfig, MountZones,
+    NearEdgeConfig, NearGround, NoGround, ParamFit, ParamSearchConfig, combine,
+    combine_near_ground, fit_to_pseudo_labels, frame_mount, view_near_ground, zones_for_mount,
 };
 use groundwork_core::SegmenterConfig;
 use groundwork_core::config::{MountConfig, ZoneConfig};
@@ -253,7 +253,9 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         (Ok(est), false) => match fit_params(&methods, est, &sample, &search) {
             Ok(fit) => (Some(fit), None),
             Err(e) => {
-                error!("parameters not fitted: {e:#}");
+                // The preset's parameters are a valid outcome (as with --keep-params);
+                // the file and the report say why.
+                warn!("parameters not fitted, the preset's kept: {e:#}");
                 (None, Some(format!("{e:#}")))
             }
         },
@@ -309,7 +311,10 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     if let Some(fit) = &report.parameters {
         text += &params_text(&cfg, fit);
     } else if let Some(why) = &report.parameters_refused {
-        let _ = writeln!(text, "\n# Parameters not fitted: {why}");
+        let _ = writeln!(
+            text,
+            "\n# Parameters not fitted (the preset's are kept): {why}"
+        );
     }
     std::fs::write(&a.out, &text).with_context(|| format!("{}: cannot write", a.out.display()))?;
     print!("{}", summary(&base, &prior_mount, &est));
@@ -337,6 +342,8 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     // After the mount, as in the file.
     if let Some(fit) = &report.parameters {
         print!("{}", params_summary(fit));
+    } else if let Some(why) = &report.parameters_refused {
+        println!("parameters not fitted, the preset's kept: {why}");
     }
     println!(
         "wrote {} (use: --sensor {base} --config {}) in {:.1} s",
@@ -344,13 +351,11 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         a.out.display(),
         t.elapsed().as_secs_f64()
     );
-    Ok(
-        if unreadable + skipped_inputs > 0 || report.parameters_refused.is_some() {
-            ExitCode::from(1)
-        } else {
-            ExitCode::SUCCESS
-        },
-    )
+    Ok(if unreadable + skipped_inputs > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 /// The `[zones]` section: the near edge moved in (`near`), the inner boundaries scaled
@@ -455,7 +460,11 @@ fn fit_params(
     });
     labelling.finish_and_clear();
     searching.finish_and_clear();
-    Ok(fit?)
+    // The mount is calibrated: a refusal here is the parameters' alone.
+    fit.map_err(|e| match e {
+        CalibrateError::Refused(why) => anyhow::anyhow!(why),
+        e => e.into(),
+    })
 }
 
 /// The fit's figures in one line: the sample, the trusted range and the agreement with the

@@ -501,6 +501,10 @@ def test_calibrate_fits_the_parameters_as_the_cli_does(cli: Path, tmp_path: Path
     assert (fit["fitted_scans"], fit["held_out_scans"]) == (5, 1), fit
     assert 95.0 < fit["held_out_before"]["iou"] == fit["held_out_after"]["iou"], fit
     assert "parameters" not in groundwork.calibrate(scans, sensor="hdl64e", keep_params=True)[1]
+    # Three scans tell the mount but cannot hold one in four out: the preset's parameters.
+    preset, report = groundwork.calibrate(scans[:3], sensor="hdl64e")
+    assert "mount" in preset and "ground" not in preset and "parameters" not in report
+    assert report["parameters_refused"].startswith("3 scans are too few"), report
 
     low_bar = {"param_trust": 0.0, "param_min_gain": 0.25}
     preset, report = groundwork.calibrate(scans, sensor="hdl64e", **low_bar)
