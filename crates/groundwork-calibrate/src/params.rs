@@ -425,6 +425,14 @@ pub fn agreement_by_ring(
         )
 }
 
+/// The refusal of a sample of `n` scans that cannot hold one in `every` out.
+pub(crate) fn too_few_scans(n: usize, every: usize) -> CalibrateError {
+    CalibrateError::Refused(format!(
+        "{n} scans are too few to fit parameters: at least {every} are needed (one in \
+         {every} is held out to judge the fit)"
+    ))
+}
+
 /// Rings of the trust test: out to 500 m, beyond any sensor's ground.
 const TRUST_REACH: f64 = 500.0;
 
@@ -477,11 +485,7 @@ pub fn fit_parameters(
         .map(|(_, s)| *s)
         .collect();
     if held.is_empty() || fitted.is_empty() {
-        return Err(CalibrateError::Refused(format!(
-            "{} scans are too few to fit parameters: at least {every} are needed (one in \
-             {every} is held out to judge the fit)",
-            scans.len()
-        )));
+        return Err(too_few_scans(scans.len(), every));
     }
     let reference_ground: usize = scans
         .iter()

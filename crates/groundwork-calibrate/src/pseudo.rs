@@ -9,7 +9,7 @@ use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, PseudoLabelerConfig};
 use rayon::prelude::*;
 
 use crate::CalibrateError;
-use crate::params::{LabeledScan, ParamFit, ParamSearchConfig, fit_parameters};
+use crate::params::{LabeledScan, ParamFit, ParamSearchConfig, fit_parameters, too_few_scans};
 
 /// How far [`fit_to_pseudo_labels`] has come, for a progress display.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -62,6 +62,11 @@ pub fn fit_to_pseudo_labels(
 ) -> Result<ParamFit, CalibrateError> {
     let config =
         |what: &str, e: &dyn std::fmt::Display| CalibrateError::Config(format!("{what}: {e}"));
+    // Before the labelling, which is most of the cost.
+    let every = search.held_out_every.max(2);
+    if sample.len() < every {
+        return Err(too_few_scans(sample.len(), every));
+    }
     base.validate()
         .map_err(|e| config("the calibrated mount", &e))?;
     let frame = GroundFrame::from_config(base).map_err(|e| config("the calibrated mount", &e))?;
