@@ -342,7 +342,7 @@ fn iou_against(
 ) -> f64 {
     groundwork_calibrate::params::agreement(
         cfg,
-        &groundwork_tests::labeled(scans, ground),
+        &groundwork_calibrate::LabeledScan::pair(scans, ground),
         f64::INFINITY,
     )
     .unwrap()
@@ -366,7 +366,7 @@ fn labels_are_trusted_only_where_the_preset_agrees_with_them() {
                 .collect()
         })
         .collect();
-    let sample = groundwork_tests::labeled(&scans, &near_only);
+    let sample = groundwork_calibrate::LabeledScan::pair(&scans, &near_only);
     let mut base = sensor_preset("vlp16").unwrap();
     base.history.frames = 1;
     let preset_iou = iou_against(&base, &scans, &truth);
@@ -392,7 +392,7 @@ fn labels_are_trusted_only_where_the_preset_agrees_with_them() {
 #[test]
 fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() {
     let (scans, ground) = synthetic_street();
-    let sample = groundwork_tests::labeled(&scans, &ground);
+    let sample = groundwork_calibrate::LabeledScan::pair(&scans, &ground);
     let base = spoiled_vlp16();
     let search = exact_labels();
     let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
@@ -486,7 +486,7 @@ fn the_held_out_part_keeps_the_preset_when_the_fit_does_not_carry_over() {
     for labels in ground.iter_mut().skip(every - 1).step_by(every) {
         labels.iter_mut().for_each(|g| *g = !*g);
     }
-    let sample = groundwork_tests::labeled(&scans, &ground);
+    let sample = groundwork_calibrate::LabeledScan::pair(&scans, &ground);
     let base = spoiled_vlp16();
     let search = exact_labels();
     let fit = groundwork_calibrate::fit_parameters(&base, &sample, &search, |_, _| {}).unwrap();
@@ -622,7 +622,7 @@ fn real_solid_state_scans_give_one_mount_and_the_livox_preset_agrees_with_the_la
     )
     .unwrap();
     let ground = groundwork_calibrate::pseudo::pseudo_ground(&labeler, &scans, || {}).unwrap();
-    let sample = groundwork_tests::labeled(&scans, &ground);
+    let sample = groundwork_calibrate::LabeledScan::pair(&scans, &ground);
     let mut table = Vec::new();
     for (name, _) in SENSOR_PRESETS {
         let mut cfg = sensor_preset(name).unwrap();

@@ -125,15 +125,3 @@ pub fn method_run(
     }
     run
 }
-
-/// `scans` (sensor frame) with their reference labels, in the shape `fit_parameters` takes.
-pub fn labeled<'a>(
-    scans: &'a [Vec<[f32; 3]>],
-    ground: &'a [Vec<bool>],
-) -> Vec<groundwork_calibrate::LabeledScan<'a>> {
-    scans
-        .iter()
-        .zip(ground)
-        .map(|(points, ground)| groundwork_calibrate::LabeledScan { points, ground })
-        .collect()
-}

@@ -43,3 +43,14 @@ pub enum CalibrateError {
     #[error("cannot calibrate: {0}")]
     Refused(String),
 }
+
+impl CalibrateError {
+    /// The message without "cannot calibrate" for a refusal: for a step after the mount
+    /// (the parameter fit), whose refusal leaves the mount calibrated.
+    pub fn reason(&self) -> String {
+        match self {
+            Self::Refused(why) => why.clone(),
+            e => e.to_string(),
+        }
+    }
+}

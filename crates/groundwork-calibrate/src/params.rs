@@ -25,6 +25,17 @@ pub struct LabeledScan<'a> {
     pub ground: &'a [bool],
 }
 
+impl<'a> LabeledScan<'a> {
+    /// Each scan of `scans` with its labels from `ground` (paired in order).
+    pub fn pair(scans: &'a [Vec<[f32; 3]>], ground: &'a [Vec<bool>]) -> Vec<Self> {
+        scans
+            .iter()
+            .zip(ground)
+            .map(|(points, ground)| Self { points, ground })
+            .collect()
+    }
+}
+
 /// How the search runs.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ParamSearchConfig {

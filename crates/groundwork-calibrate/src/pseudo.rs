@@ -79,14 +79,12 @@ pub fn fit_to_pseudo_labels(
         let done = done.fetch_add(1, Ordering::Relaxed) + 1;
         progress(FitProgress::Labelled { done, of });
     })?;
-    let scans: Vec<LabeledScan> = sample
-        .iter()
-        .zip(&ground)
-        .map(|(points, ground)| LabeledScan { points, ground })
-        .collect();
-    fit_parameters(base, &scans, search, |done, most| {
-        progress(FitProgress::Searched { done, most })
-    })
+    fit_parameters(
+        base,
+        &LabeledScan::pair(sample, &ground),
+        search,
+        |done, most| progress(FitProgress::Searched { done, most }),
+    )
 }
 
 #[cfg(test)]

@@ -14,9 +14,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
-    CalibrateError, FitProgress, HeightScale, MountEstimate, MountSearchConfig, MountZones,
-    NearEdgeConfig, NearGround, NoGround, ParamFit, ParamSearchConfig, combine,
-    combine_near_ground, fit_to_pseudo_labels, frame_mount, view_near_ground, zones_for_mount,
+    FitProgress, HeightScale, MountEstimate, MountSearchConfig, MountZones, NearEdgeConfig,
+    NearGround, NoGround, ParamFit, ParamSearchConfig, combine, combine_near_ground,
+    fit_to_pseudo_labels, frame_mount, view_near_ground, zones_for_mount,
 };
 use groundwork_core::SegmenterConfig;
 use groundwork_core::config::{MountConfig, ZoneConfig};
@@ -461,10 +461,7 @@ fn fit_params(
     labelling.finish_and_clear();
     searching.finish_and_clear();
     // The mount is calibrated: a refusal here is the parameters' alone.
-    fit.map_err(|e| match e {
-        CalibrateError::Refused(why) => anyhow::anyhow!(why),
-        e => e.into(),
-    })
+    fit.map_err(|e| anyhow::anyhow!(e.reason()))
 }
 
 /// The fit's figures in one line: the sample, the trusted range and the agreement with the

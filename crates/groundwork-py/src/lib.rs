@@ -934,10 +934,7 @@ fn calibrate<'py>(
                 report.set_item("parameters", param_fit_dict(py, &fit)?)?;
             }
             // The mount is calibrated: a refusal here is the parameters' alone.
-            Err(groundwork_calibrate::CalibrateError::Refused(why)) => {
-                report.set_item("parameters_refused", why)?
-            }
-            Err(e) => report.set_item("parameters_refused", e.to_string())?,
+            Err(e) => report.set_item("parameters_refused", e.reason())?,
         }
     }
     Ok((preset, report))
