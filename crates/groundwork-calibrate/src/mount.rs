@@ -198,7 +198,9 @@ pub fn frame_mount(
     k: u64,
 ) -> Result<FrameMount, NoGround> {
     let (up, _) = prior_up(prior);
-    let plane = ground_plane(points, &up, &cfg.plane, cfg.seed.wrapping_add(k))?;
+    // The vehicle's forward axis in the sensor frame: the tangent's lane lies along it.
+    let forward = prior.rotation.inverse() * Vector3::x();
+    let plane = ground_plane(points, &up, &forward, &cfg.plane, cfg.seed.wrapping_add(k))?;
     let (roll, pitch) = roll_pitch_of(&Vector3::from(plane.normal));
     Ok(FrameMount {
         height: plane.height,
