@@ -23,7 +23,10 @@ pub mod zones;
 pub use mount::{
     MountEstimate, MountSearchConfig, OneSidedGround, combine, estimate_mount, frame_mount,
 };
-pub use params::{Agreement, LabeledScan, ParamFit, ParamSearchConfig, RoundScore, fit_parameters};
+pub use params::{
+    Agreement, GroundChange, GroundValue, LabeledScan, ParamFit, ParamSearchConfig, RoundScore,
+    fit_parameters, ground_changes,
+};
 pub use plane::{NoGround, PlaneFit, PlaneSearchConfig, Surface, ground_plane};
 pub use pseudo::{FitProgress, fit_to_pseudo_labels};
 pub use zones::{

@@ -9,7 +9,7 @@
 //! state), agreement is counted in integers, and the knobs are tried in a fixed order.
 
 use groundwork_core::Segmenter;
-use groundwork_core::config::{SegmenterConfig, ZoneConfig};
+use groundwork_core::config::{GroundConfig, SegmenterConfig, Sigmoid, ZoneConfig};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -81,6 +81,121 @@ impl Default for ParamSearchConfig {
             fit_zones: false,
         }
     }
+}
+
+impl ParamSearchConfig {
+    /// Refuses settings the search cannot use, naming the field.
+    pub fn validate(&self) -> Result<(), CalibrateError> {
+        self.check()
+            .map_err(|(field, why)| CalibrateError::Config(format!("params.{field}: {why}")))
+    }
+
+    /// The first field out of its range and why: for a front end that names the field by
+    /// its own flag or keyword (the CLI's `--param-trust`, Python's `param_trust`).
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        let percent = |v: f64| (0.0..=100.0).contains(&v);
+        if !(1..=STEPS.len()).contains(&self.rounds) {
+            return Err(("rounds", format!("1–{}, not {}", STEPS.len(), self.rounds)));
+        }
+        if self.held_out_every < 2 {
+            return Err((
+                "held_out_every",
+                format!("at least 2, not {}", self.held_out_every),
+            ));
+        }
+        if !(self.min_gain.is_finite() && self.min_gain >= 0.0) {
+            return Err(("min_gain", format!("a number ≥ 0, not {}", self.min_gain)));
+        }
+        if !(self.trust_ring >= 0.5 && self.trust_ring.is_finite()) {
+            return Err((
+                "trust_ring",
+                format!("at least 0.5 m, not {}", self.trust_ring),
+            ));
+        }
+        if !percent(self.trust_agreement) {
+            return Err((
+                "trust_agreement",
+                format!(
+                    "a ground IoU in percent (0–100), not {}",
+                    self.trust_agreement
+                ),
+            ));
+        }
+        if !percent(self.min_held_out_gain) {
+            return Err((
+                "min_held_out_gain",
+                format!(
+                    "in ground IoU points (0–100), not {}",
+                    self.min_held_out_gain
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A `[ground]` setting that differs between two configurations: its key in the table, its
+/// new and its old value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GroundChange {
+    /// The key in `[ground]`.
+    pub key: &'static str,
+    /// The value in the newer configuration.
+    pub new: GroundValue,
+    /// ... and in the older one.
+    pub old: GroundValue,
+}
+
+/// A `[ground]` value, as the configuration holds it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum GroundValue {
+    /// A likelihood's sigmoid.
+    Sigmoid(Sigmoid),
+    /// A number held as f64.
+    Number(f64),
+    /// The ground threshold, held as f32.
+    Threshold(f32),
+}
+
+/// TOML, the shortest form that reads back as the same bits (an f32 as the f32 it is).
+impl std::fmt::Display for GroundValue {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Sigmoid(s) => write!(f, "{{ alpha = {}, beta = {} }}", s.alpha, s.beta),
+            Self::Number(v) => write!(f, "{v}"),
+            Self::Threshold(v) => write!(f, "{v}"),
+        }
+    }
+}
+
+/// The settings a fit may change that differ between `old` and `new`, in the table's order:
+/// what the CLI writes into the file and Python returns as keyword arguments.
+pub fn ground_changes(old: &GroundConfig, new: &GroundConfig) -> Vec<GroundChange> {
+    use GroundValue::{Number, Sigmoid as S, Threshold};
+    [
+        ("flatness", S(new.flatness), S(old.flatness)),
+        ("orientation", S(new.orientation), S(old.orientation)),
+        ("elevation", S(new.elevation), S(old.elevation)),
+        (
+            "elevation_window",
+            Number(new.elevation_window),
+            Number(old.elevation_window),
+        ),
+        (
+            "outlier_threshold",
+            Number(new.outlier_threshold),
+            Number(old.outlier_threshold),
+        ),
+        (
+            "ground_threshold",
+            Threshold(new.ground_threshold),
+            Threshold(old.ground_threshold),
+        ),
+    ]
+    .into_iter()
+    .filter(|(_, n, o)| n != o)
+    .map(|(key, new, old)| GroundChange { key, new, old })
+    .collect()
 }
 
 /// The step of each round, as a share of a knob's unit step (log knobs: the exponent).
@@ -455,26 +570,7 @@ pub fn fit_parameters(
     cfg: &ParamSearchConfig,
     progress: impl Fn(usize, usize),
 ) -> Result<ParamFit, CalibrateError> {
-    if cfg.rounds == 0 || cfg.rounds > STEPS.len() {
-        return Err(CalibrateError::Config(format!(
-            "rounds must be 1–{}, not {}",
-            STEPS.len(),
-            cfg.rounds
-        )));
-    }
-    if cfg.held_out_every < 2
-        || !cfg.min_gain.is_finite()
-        || cfg.min_gain < 0.0
-        || !(cfg.trust_ring >= 0.5 && cfg.trust_ring.is_finite())
-        || !(0.0..=100.0).contains(&cfg.trust_agreement)
-        || !(cfg.min_held_out_gain.is_finite() && cfg.min_held_out_gain >= 0.0)
-    {
-        return Err(CalibrateError::Config(
-            "held_out_every must be at least 2, min_gain and min_held_out_gain non-negative \
-             numbers, trust_ring at least 0.5 m and trust_agreement a percentage"
-                .into(),
-        ));
-    }
+    cfg.validate()?;
     if let Some(s) = scans.iter().find(|s| s.points.len() != s.ground.len()) {
         return Err(CalibrateError::Config(format!(
             "a scan of {} points came with {} labels",
@@ -646,6 +742,68 @@ pub fn fit_parameters(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ground_changes_list_what_moved_as_it_reads_back() {
+        let old = SegmenterConfig::default().ground;
+        assert!(ground_changes(&old, &old).is_empty());
+        let mut new = old.clone();
+        new.elevation.beta = 0.6;
+        new.ground_threshold = 0.7;
+        let changes = ground_changes(&old, &new);
+        let keys: Vec<&str> = changes.iter().map(|c| c.key).collect();
+        assert_eq!(keys, ["elevation", "ground_threshold"]);
+        assert_eq!(
+            changes[0].new.to_string(),
+            format!("{{ alpha = {}, beta = 0.6 }}", old.elevation.alpha)
+        );
+        // The f32 threshold as the shortest text of the f32, not of its f64 (0.699999988…).
+        assert_eq!(changes[1].new.to_string(), "0.7");
+        assert_eq!(changes[1].old, GroundValue::Threshold(old.ground_threshold));
+    }
+
+    #[test]
+    fn a_setting_out_of_range_is_named() {
+        assert_eq!(ParamSearchConfig::default().check(), Ok(()));
+        let field = |c: ParamSearchConfig| c.check().unwrap_err().0;
+        let d = ParamSearchConfig::default;
+        assert_eq!(field(ParamSearchConfig { rounds: 0, ..d() }), "rounds");
+        assert_eq!(
+            field(ParamSearchConfig {
+                held_out_every: 1,
+                ..d()
+            }),
+            "held_out_every"
+        );
+        assert_eq!(
+            field(ParamSearchConfig {
+                min_gain: f64::NAN,
+                ..d()
+            }),
+            "min_gain"
+        );
+        assert_eq!(
+            field(ParamSearchConfig {
+                trust_agreement: 120.0,
+                ..d()
+            }),
+            "trust_agreement"
+        );
+        assert_eq!(
+            field(ParamSearchConfig {
+                min_held_out_gain: 101.0,
+                ..d()
+            }),
+            "min_held_out_gain"
+        );
+        let e = ParamSearchConfig {
+            trust_ring: 0.1,
+            ..d()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(e.to_string().contains("params.trust_ring"), "{e}");
+    }
 
     #[test]
     fn steps_stay_in_bounds_and_read_cleanly() {

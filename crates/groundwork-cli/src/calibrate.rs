@@ -118,22 +118,21 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     }
     anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");
     anyhow::ensure!(a.param_scans > 0, "--param-scans must be at least 1");
-    anyhow::ensure!(
-        (0.0..=100.0).contains(&a.param_trust),
-        "--param-trust is a ground IoU in percent (0–100), not {}",
-        a.param_trust
-    );
-    anyhow::ensure!(
-        (0.0..=100.0).contains(&a.param_min_gain),
-        "--param-min-gain is in ground IoU points (0–100), not {}",
-        a.param_min_gain
-    );
     let search = ParamSearchConfig {
         trust_agreement: a.param_trust,
         min_held_out_gain: a.param_min_gain,
         fit_zones: a.fit_zones,
         ..ParamSearchConfig::default()
     };
+    // Checked before anything is read, by the flag the user typed.
+    search.check().map_err(|(field, why)| {
+        let flag = match field {
+            "trust_agreement" => "--param-trust",
+            "min_held_out_gain" => "--param-min-gain",
+            other => other,
+        };
+        anyhow::anyhow!("{flag}: {why}")
+    })?;
     let prior_mount = cfg.sensor.mount.clone();
     let prior = mount_transform(&prior_mount)?;
     let settings = MountSearchConfig {
@@ -496,44 +495,12 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
         };
         return s;
     }
-    let (new, old) = (&fit.config.ground, &base.ground);
-    if new != old {
+    let changes = groundwork_calibrate::ground_changes(&base.ground, &fit.config.ground);
+    if !changes.is_empty() {
         s += "[ground]\n";
     }
-    for (key, n, o) in [
-        ("flatness", new.flatness, old.flatness),
-        ("orientation", new.orientation, old.orientation),
-        ("elevation", new.elevation, old.elevation),
-    ] {
-        if n != o {
-            let _ = writeln!(
-                s,
-                "{key} = {{ alpha = {}, beta = {} }}  # was {{ alpha = {}, beta = {} }}",
-                n.alpha, n.beta, o.alpha, o.beta
-            );
-        }
-    }
-    // Shortest round-trip forms: the f32 threshold is written as the f32 it is.
-    for (key, n, o) in [
-        (
-            "elevation_window",
-            new.elevation_window.to_string(),
-            old.elevation_window.to_string(),
-        ),
-        (
-            "outlier_threshold",
-            new.outlier_threshold.to_string(),
-            old.outlier_threshold.to_string(),
-        ),
-        (
-            "ground_threshold",
-            new.ground_threshold.to_string(),
-            old.ground_threshold.to_string(),
-        ),
-    ] {
-        if n != o {
-            let _ = writeln!(s, "{key} = {n}  # was {o}");
-        }
+    for c in changes {
+        let _ = writeln!(s, "{} = {}  # was {}", c.key, c.new, c.old);
     }
     s
 }

@@ -785,16 +785,14 @@ fn calibrate<'py>(
         min_held_out_gain: param_min_gain,
         ..ParamSearchConfig::default()
     };
-    for (name, v) in [
-        ("param_trust", param_trust),
-        ("param_min_gain", param_min_gain),
-    ] {
-        if !(0.0..=100.0).contains(&v) {
-            return Err(value_error(format!(
-                "{name} is in ground IoU points (0–100), not {v}"
-            )));
-        }
-    }
+    search.check().map_err(|(field, why)| {
+        let keyword = match field {
+            "trust_agreement" => "param_trust",
+            "min_held_out_gain" => "param_min_gain",
+            other => other,
+        };
+        value_error(format!("{keyword}: {why}"))
+    })?;
     let cfg = load_config(sensor, config, None, overrides)?;
     let prior =
         groundwork_core::mount_transform(&cfg.segmenter.sensor.mount).map_err(value_error)?;
@@ -946,38 +944,17 @@ fn changed_ground<'py>(
     old: &groundwork_core::config::GroundConfig,
     new: &groundwork_core::config::GroundConfig,
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
+    use groundwork_calibrate::GroundValue;
     let d = PyDict::new(py);
-    for (key, n, o) in [
-        ("flatness", new.flatness, old.flatness),
-        ("orientation", new.orientation, old.orientation),
-        ("elevation", new.elevation, old.elevation),
-    ] {
-        if n != o {
-            d.set_item(
-                key,
-                [("alpha", n.alpha), ("beta", n.beta)].into_py_dict(py)?,
-            )?;
-        }
-    }
-    for (key, n, o) in [
-        (
-            "elevation_window",
-            new.elevation_window,
-            old.elevation_window,
-        ),
-        (
-            "outlier_threshold",
-            new.outlier_threshold,
-            old.outlier_threshold,
-        ),
-        (
-            "ground_threshold",
-            f64::from(new.ground_threshold),
-            f64::from(old.ground_threshold),
-        ),
-    ] {
-        if n != o {
-            d.set_item(key, n)?;
+    for c in groundwork_calibrate::ground_changes(old, new) {
+        match c.new {
+            GroundValue::Sigmoid(s) => d.set_item(
+                c.key,
+                [("alpha", s.alpha), ("beta", s.beta)].into_py_dict(py)?,
+            )?,
+            GroundValue::Number(v) => d.set_item(c.key, v)?,
+            // The f32 as the f64 it is exactly: read back, the same bits.
+            GroundValue::Threshold(v) => d.set_item(c.key, f64::from(v))?,
         }
     }
     Ok((!d.is_empty()).then_some(d))
