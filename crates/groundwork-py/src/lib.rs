@@ -752,12 +752,14 @@ fn evaluate<'py>(
 /// with what the mount then assumes). Then, unless `keep_params`, the likelihood parameters
 /// and ground threshold fitted to the PseudoLabeler's labels of up to `param_scans` of the
 /// scans, as the CLI does: `"ground"` in the configuration where the fit was kept, the fit in
-/// the report's `"parameters"` (or why it could not run, `"parameters_refused"`). Raises
-/// ValueError when the scans cannot determine the mount, with the reason.
+/// the report's `"parameters"` (or why it could not run, `"parameters_refused"`); with
+/// `fit_zones`, the inner zones' layout fitted with them (`"zones"` with rings and sectors
+/// where it changed, as `--fit-zones`). Raises ValueError when the scans cannot determine
+/// the mount, with the reason.
 #[pyfunction]
 #[pyo3(signature = (
     scans, sensor=None, config=None, seed=0, keep_zones=false, keep_params=false,
-    param_scans=48, param_trust=90.0, param_min_gain=2.5, **overrides
+    param_scans=48, param_trust=90.0, param_min_gain=2.5, fit_zones=false, **overrides
 ))]
 #[allow(clippy::too_many_arguments)] // the keyword arguments of a Python function
 fn calibrate<'py>(
@@ -771,6 +773,7 @@ fn calibrate<'py>(
     param_scans: usize,
     param_trust: f64,
     param_min_gain: f64,
+    fit_zones: bool,
     overrides: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
     use groundwork_calibrate::{
@@ -780,9 +783,15 @@ fn calibrate<'py>(
     if param_scans == 0 {
         return Err(value_error("param_scans must be at least 1"));
     }
+    if fit_zones && keep_params {
+        return Err(value_error(
+            "fit_zones fits the zones with the parameters: not with keep_params",
+        ));
+    }
     let search = ParamSearchConfig {
         trust_agreement: param_trust,
         min_held_out_gain: param_min_gain,
+        fit_zones,
         ..ParamSearchConfig::default()
     };
     search.check().map_err(|(field, why)| {
@@ -928,6 +937,19 @@ fn calibrate<'py>(
             Ok(fit) => {
                 if let Some(ground) = changed_ground(py, &base.ground, &fit.config.ground)? {
                     preset.set_item("ground", ground)?;
+                }
+                let (z, was) = (&fit.config.zones, &base.zones);
+                if (&z.boundaries, &z.rings, &z.sectors)
+                    != (&was.boundaries, &was.rings, &was.sectors)
+                {
+                    // The whole layout the fit left (the near edge's move included).
+                    let section = PyDict::new(py);
+                    section.set_item("min_range", z.min_range)?;
+                    section
+                        .set_item("boundaries", z.resolved_boundaries().map_err(value_error)?)?;
+                    section.set_item("rings", z.rings.clone())?;
+                    section.set_item("sectors", z.sectors.clone())?;
+                    preset.set_item("zones", section)?;
                 }
                 report.set_item("parameters", param_fit_dict(py, &fit)?)?;
             }

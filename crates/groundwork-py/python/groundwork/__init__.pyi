@@ -196,6 +196,7 @@ def calibrate(
     param_scans: int = 48,
     param_trust: float = 90.0,
     param_min_gain: float = 2.5,
+    fit_zones: bool = False,
     **overrides: Any,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The sensor's mount from raw scans, no labels (`groundwork calibrate`): the
@@ -214,5 +215,7 @@ def calibrate(
     `groundwork calibrate` does: {"ground": {...}} in the configuration where the fit was
     kept; report["parameters"]: kept_preset, changed [{name, old, new}], the agreement
     (both, segmenter_only, reference_only, iou) fitted and held out, before and after,
-    trusted_range; or report["parameters_refused"], the reason. Raises ValueError, with the
-    reason, when the scans cannot determine the mount."""
+    trusted_range; or report["parameters_refused"], the reason. fit_zones (not with
+    keep_params): the inner zones' layout fitted with the parameters, {"zones": {"min_range",
+    "boundaries", "rings", "sectors"}} where it changed (`--fit-zones`). Raises ValueError,
+    with the reason, when the scans cannot determine the mount."""
