@@ -225,7 +225,6 @@ fn tangent_at_foot(
         }
     }
     let lengthwise = 10 * ahead.min(behind) >= ahead + behind && ahead + behind > 0;
-    let lane = if lengthwise { cfg.lane_half_width } else { 0.0 };
     const K: usize = 7;
     // Scale the coordinates so that the normal equations stay well conditioned.
     let scale = 10.0;
@@ -234,9 +233,10 @@ fn tangent_at_foot(
         .map(|p| {
             let (u, v) = (u_axis.dot(p) / scale, v_axis.dot(p) / scale);
             let cubic = if lengthwise { v * v * v } else { 0.0 };
-            // The lane's weight: Tukey's, across the vehicle.
-            let lateral = if lane > 0.0 {
-                let q = (u * scale / lane).abs().min(1.0);
+            // The lane's weight: Tukey's, across the vehicle (a lane seen at all is wider
+            // than 0).
+            let lateral = if lengthwise {
+                let q = (u * scale / cfg.lane_half_width).abs().min(1.0);
                 (1.0 - q * q) * (1.0 - q * q)
             } else {
                 1.0

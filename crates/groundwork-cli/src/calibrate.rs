@@ -296,14 +296,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     // the moved near edge's.
     let fitted = report.parameters.as_ref().filter(|f| !f.kept_preset);
     let final_zones = fitted.map(|f| &f.config.zones).or(zones.as_ref());
-    let layout = |z: &ZoneConfig| {
-        (
-            z.resolved_boundaries().ok(),
-            z.rings.clone(),
-            z.sectors.clone(),
-        )
-    };
-    if let Some(z) = final_zones.filter(|z| layout(z) != layout(&cfg.zones)) {
+    if let Some(z) = final_zones.filter(|z| !z.same_layout(&cfg.zones)) {
         let moved = report.near_edge.as_ref().filter(|n| n.min_range.is_some());
         text += &zones_text(&cfg.zones, z, moved, report.height_scale.as_ref());
     }

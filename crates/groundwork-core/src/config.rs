@@ -297,6 +297,17 @@ impl Default for ZoneConfig {
 }
 
 impl ZoneConfig {
+    /// Whether `other` lays out the zones the same way: the boundaries in use, the rings
+    /// and the sectors (what a calibration writes into `[zones]` when they differ).
+    pub fn same_layout(&self, other: &ZoneConfig) -> bool {
+        (self.resolved_boundaries().ok(), &self.rings, &self.sectors)
+            == (
+                other.resolved_boundaries().ok(),
+                &other.rings,
+                &other.sectors,
+            )
+    }
+
     /// The zone boundaries in use: explicit ones, or Patchwork++'s derived from the ranges
     /// (only defined for four zones; other zone counts must give `boundaries`).
     pub fn resolved_boundaries(&self) -> Result<Vec<f64>, ConfigError> {
@@ -1054,6 +1065,29 @@ pub fn vertical_in_sensor(mount: &Pose) -> Vector3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_layout_is_its_boundaries_in_use_rings_and_sectors() {
+        let derived = ZoneConfig::default();
+        // The same boundaries written out are the same layout.
+        let written = ZoneConfig {
+            boundaries: Some(derived.resolved_boundaries().unwrap()),
+            ..derived.clone()
+        };
+        assert!(written.same_layout(&derived) && derived.same_layout(&written));
+        let mut sectors = derived.sectors.clone();
+        sectors[1] += 1;
+        assert!(!derived.same_layout(&ZoneConfig {
+            sectors,
+            ..derived.clone()
+        }));
+        let mut b = derived.resolved_boundaries().unwrap();
+        b[1] += 0.5;
+        assert!(!derived.same_layout(&ZoneConfig {
+            boundaries: Some(b),
+            ..derived.clone()
+        }));
+    }
 
     /// Every layout lies on the same ground (same vertical and height), turned about it by
     /// less than one narrowest sector, with its inner boundaries moved by at most 7.5 %;

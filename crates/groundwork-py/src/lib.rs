@@ -938,10 +938,8 @@ fn calibrate<'py>(
                 if let Some(ground) = changed_ground(py, &base.ground, &fit.config.ground)? {
                     preset.set_item("ground", ground)?;
                 }
-                let (z, was) = (&fit.config.zones, &base.zones);
-                if (&z.boundaries, &z.rings, &z.sectors)
-                    != (&was.boundaries, &was.rings, &was.sectors)
-                {
+                let z = &fit.config.zones;
+                if !z.same_layout(&base.zones) {
                     // The whole layout the fit left (the near edge's move included).
                     let section = PyDict::new(py);
                     section.set_item("min_range", z.min_range)?;
