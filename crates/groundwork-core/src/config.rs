@@ -355,6 +355,11 @@ pub struct GmmConfig {
     /// EM of a denser segment runs on an even subsample of this many points (0 = all).
     /// Every point is still queried and still counts for the outlier rule.
     pub max_fit_points: u32,
+    /// Edges (m) of the cells a denser segment's points are summarised in, horizontal and
+    /// vertical; `[0, 0]`: EM runs on the subsample instead. With cells, EM runs on every
+    /// point through each cell's count, mean and scatter, so a small turn of the scan (a
+    /// mount a hundredth of a degree off) cannot draw another subsample.
+    pub summary_cell: [f64; 2],
 }
 
 impl Default for GmmConfig {
@@ -367,6 +372,7 @@ impl Default for GmmConfig {
             tolerance: 1e-3,
             covariance_regularization: 1e-4,
             max_fit_points: 256,
+            summary_cell: [0.0, 0.0],
         }
     }
 }
@@ -816,6 +822,10 @@ impl SegmenterConfig {
                 1e6,
                 " (0: every point)",
             )?;
+        }
+        if g.summary_cell != [0.0, 0.0] {
+            within("gmm.summary_cell[0]", g.summary_cell[0], 0.005, 2.0, " m")?;
+            within("gmm.summary_cell[1]", g.summary_cell[1], 0.005, 2.0, " m")?;
         }
         let gr = &self.ground;
         positive("ground.flatness.alpha", gr.flatness.alpha, 1e4, " per m²")?;
@@ -1273,7 +1283,7 @@ mod tests {
     #[test]
     fn values_that_parse_but_mean_nothing_are_refused_by_name() {
         type Edit = fn(&mut SegmenterConfig);
-        let cases: [(&str, Edit); 10] = [
+        let cases: [(&str, Edit); 11] = [
             ("ground.flatness.beta", |c| c.ground.flatness.beta = 0.0),
             ("gmm.covariance_regularization", |c| {
                 c.gmm.covariance_regularization = 1e300
@@ -1286,6 +1296,7 @@ mod tests {
                 c.gmm.max_iterations = 4_000_000_000
             }),
             ("gmm.max_fit_points", |c| c.gmm.max_fit_points = 3),
+            ("gmm.summary_cell[0]", |c| c.gmm.summary_cell = [5.0, 0.1]),
             ("ground.orientation.beta", |c| {
                 c.ground.orientation.beta = 3.0
             }),

@@ -123,6 +123,23 @@ pub fn ln_positive(x: f32) -> f32 {
     2.0 * atanh + e as f32 * std::f32::consts::LN_2
 }
 
+/// [`ln_positive`] on eight lanes at once, with the same bits in every lane.
+#[inline(always)]
+pub fn ln_positive_x8(x: wide::f32x8) -> wide::f32x8 {
+    use wide::{f32x8, i32x8};
+    let bits: i32x8 = cast(x);
+    let e: i32x8 = ((bits >> 23) & i32x8::splat(0xff)) - i32x8::splat(127);
+    let m: f32x8 = cast((bits & i32x8::splat(0x007f_ffff)) | i32x8::splat(0x3f80_0000));
+    let one = f32x8::splat(1.0);
+    let s = (m - one) / (m + one);
+    let s2 = s * s;
+    let c = |v: f32| f32x8::splat(v);
+    let atanh = s
+        * (one
+            + s2 * (c(1.0 / 3.0) + s2 * (c(1.0 / 5.0) + s2 * (c(1.0 / 7.0) + s2 * c(1.0 / 9.0)))));
+    c(2.0) * atanh + e.round_float() * c(std::f32::consts::LN_2)
+}
+
 /// atan2(y, x) in (−π, π] with absolute error below 1e-8 rad: enough to pick a sector
 /// (a point that close to a sector boundary may land on either side, deterministically).
 #[inline(always)]
