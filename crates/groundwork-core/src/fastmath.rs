@@ -240,6 +240,25 @@ mod tests {
     }
 
     #[test]
+    fn ln_scalar_and_eight_lanes_give_the_same_bits() {
+        // The EM's stopping rule sums one or the other (subsample or summary cells): the
+        // same sum of responsibilities must give the same bits, and both must be ln.
+        let mut x = 1.0f32;
+        while x < 1e6 {
+            let v: [f32; 8] = std::array::from_fn(|i| x * (1.0 + i as f32 * 0.013));
+            for (&g, &xi) in ln_positive_x8(wide::f32x8::new(v))
+                .to_array()
+                .iter()
+                .zip(&v)
+            {
+                assert_eq!(g.to_bits(), ln_positive(xi).to_bits(), "{xi}");
+                assert!((f64::from(g) - f64::from(xi).ln()).abs() < 1e-5, "{xi}");
+            }
+            x *= 1.0007;
+        }
+    }
+
+    #[test]
     fn exp2_vector_matches_std() {
         let worst = |lo: f32, hi: f32| {
             let mut w: f64 = 0.0;
