@@ -108,36 +108,69 @@ pub fn exp2_from<T: ExpLanes>(t: T) -> T {
     p * shifted.shl23()
 }
 
-/// ln x for finite x ≥ 1e-30 (the callers pass sums of responsibilities ≥ 1).
-/// Absolute error below 1e-6.
-#[inline(always)]
-pub fn ln_positive(x: f32) -> f32 {
-    let bits = x.to_bits();
-    let e = ((bits >> 23) & 0xff) as i32 - 127;
-    // Mantissa m in [1, 2); use the identity ln m = 2 atanh((m − 1)/(m + 1)).
-    let m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
-    let s = (m - 1.0) / (m + 1.0); // in [0, 1/3)
-    let s2 = s * s;
-    let atanh =
-        s * (1.0 + s2 * (1.0 / 3.0 + s2 * (1.0 / 5.0 + s2 * (1.0 / 7.0 + s2 * (1.0 / 9.0)))));
-    2.0 * atanh + e as f32 * std::f32::consts::LN_2
+/// What the logarithm needs of its lanes: `f32` itself or eight of them (the EM's
+/// stopping rule, per point or per summary cell). One body, so their bits agree.
+pub trait LnLanes:
+    Copy
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::Div<Output = Self>
+{
+    fn splat(v: f32) -> Self;
+    /// The unbiased binary exponent e (as a float) and the mantissa m in [1, 2) of a
+    /// positive normal float: self = m·2^e.
+    fn exponent_mantissa(self) -> (Self, Self);
 }
 
-/// [`ln_positive`] on eight lanes at once, with the same bits in every lane.
+impl LnLanes for f32 {
+    #[inline(always)]
+    fn splat(v: f32) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn exponent_mantissa(self) -> (Self, Self) {
+        let bits = self.to_bits();
+        let e = ((bits >> 23) & 0xff) as i32 - 127;
+        (e as f32, f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000))
+    }
+}
+
+impl LnLanes for wide::f32x8 {
+    #[inline(always)]
+    fn splat(v: f32) -> Self {
+        wide::f32x8::splat(v)
+    }
+    #[inline(always)]
+    fn exponent_mantissa(self) -> (Self, Self) {
+        use wide::i32x8;
+        let bits: i32x8 = cast(self);
+        let e: i32x8 = ((bits >> 23) & i32x8::splat(0xff)) - i32x8::splat(127);
+        let m = cast((bits & i32x8::splat(0x007f_ffff)) | i32x8::splat(0x3f80_0000));
+        (e.round_float(), m)
+    }
+}
+
+/// ln x for finite x ≥ 1e-30 (the callers pass sums of responsibilities ≥ 1), on any
+/// [`LnLanes`]. Absolute error below 1e-5 (the series' truncation near m = 2).
 #[inline(always)]
-pub fn ln_positive_x8(x: wide::f32x8) -> wide::f32x8 {
-    use wide::{f32x8, i32x8};
-    let bits: i32x8 = cast(x);
-    let e: i32x8 = ((bits >> 23) & i32x8::splat(0xff)) - i32x8::splat(127);
-    let m: f32x8 = cast((bits & i32x8::splat(0x007f_ffff)) | i32x8::splat(0x3f80_0000));
-    let one = f32x8::splat(1.0);
-    let s = (m - one) / (m + one);
+pub fn ln_from<T: LnLanes>(x: T) -> T {
+    let (e, m) = x.exponent_mantissa();
+    // ln m = 2 atanh((m − 1)/(m + 1)).
+    let one = T::splat(1.0);
+    let s = (m - one) / (m + one); // in [0, 1/3)
     let s2 = s * s;
-    let c = |v: f32| f32x8::splat(v);
+    let c = T::splat;
     let atanh = s
         * (one
             + s2 * (c(1.0 / 3.0) + s2 * (c(1.0 / 5.0) + s2 * (c(1.0 / 7.0) + s2 * c(1.0 / 9.0)))));
-    c(2.0) * atanh + e.round_float() * c(std::f32::consts::LN_2)
+    c(2.0) * atanh + e * c(std::f32::consts::LN_2)
+}
+
+/// [`ln_from`] on one float.
+#[inline(always)]
+pub fn ln_positive(x: f32) -> f32 {
+    ln_from(x)
 }
 
 /// atan2(y, x) in (−π, π] with absolute error below 1e-8 rad: enough to pick a sector
@@ -240,17 +273,13 @@ mod tests {
     }
 
     #[test]
-    fn ln_scalar_and_eight_lanes_give_the_same_bits() {
+    fn ln_on_one_and_on_eight_lanes_gives_the_same_bits() {
         // The EM's stopping rule sums one or the other (subsample or summary cells): the
         // same sum of responsibilities must give the same bits, and both must be ln.
         let mut x = 1.0f32;
         while x < 1e6 {
             let v: [f32; 8] = std::array::from_fn(|i| x * (1.0 + i as f32 * 0.013));
-            for (&g, &xi) in ln_positive_x8(wide::f32x8::new(v))
-                .to_array()
-                .iter()
-                .zip(&v)
-            {
+            for (&g, &xi) in ln_from(wide::f32x8::new(v)).to_array().iter().zip(&v) {
                 assert_eq!(g.to_bits(), ln_positive(xi).to_bits(), "{xi}");
                 assert!((f64::from(g) - f64::from(xi).ln()).abs() < 1e-5, "{xi}");
             }
