@@ -7,11 +7,12 @@ use groundwork_eval::{Protocol, Sequence, evaluate};
 use groundwork_io::load_config;
 use groundwork_tests::{hdl64e_preset, kitti_sequence};
 
-/// Measured 98.25 pooled ground IoU (gmm protocol) with the HDL-64E preset, precision
-/// 99.40, scans 98.43 / 98.32 / 97.99 (97.64 before ground continuity); the paper reports
+/// Measured 98.33 pooled ground IoU (gmm protocol) with the HDL-64E preset, precision
+/// 99.44, scans 98.50 / 98.38 / 98.12 (98.25 on the subsample instead of summary cells,
+/// 97.64 before ground continuity); the paper reports
 /// 95.37 on the whole of sequence 00, Patchwork++ 1.4.1 scores 98.04 on these three frames.
 /// The floors are the measurement less 0.1.
-const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 98.15;
+const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 98.23;
 
 #[test]
 fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
@@ -36,7 +37,7 @@ fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
     assert!(m.precision >= 99.3, "precision {:.2}", m.precision);
     for s in &r.scans {
         let iou = s.metrics.unwrap().iou_ground;
-        assert!(iou >= 97.89, "scan {}: IoU {iou:.2}", s.name);
+        assert!(iou >= 98.02, "scan {}: IoU {iou:.2}", s.name);
     }
 }
 
@@ -57,9 +58,9 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
     assert!(ts.pooled_metrics.miou > 85.0, "{:?}", ts.pooled_metrics);
 }
 
-/// Measured: pooled IoU 98.25 single-frame → 98.50 with 2 frames, 98.53 with 3, 4 and 16
-/// (frames 1 and 2 gain 0.26 and 0.5–0.6 IoU points) on the vendored frames; precision
-/// 99.44–99.45. The floor is the 2-frame measurement less 0.1.
+/// Measured: pooled IoU 98.33 single-frame → 98.62 with 2 frames, 98.64 with 3, 4 and 16
+/// (frames 1 and 2 gain 0.23 and 0.63 IoU points) on the vendored frames; precision
+/// 99.45–99.47. The floor is the 2-frame measurement less 0.1.
 #[test]
 fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
     let single = {
@@ -101,7 +102,7 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
             multi.pooled_metrics.iou_ground, multi.pooled_metrics.precision
         );
         assert!(
-            multi.pooled_metrics.iou_ground >= 98.4 && multi.pooled_metrics.precision >= 99.3,
+            multi.pooled_metrics.iou_ground >= 98.52 && multi.pooled_metrics.precision >= 99.3,
             "{:?}",
             multi.pooled_metrics
         );
@@ -109,15 +110,15 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
 }
 
 /// Three layouts of the zone model (`zones.layouts = 3`), their probabilities averaged.
-/// Measured on frames 0–2: single frame 98.79 pooled ground IoU, precision 99.56 (one
-/// layout: 98.25, 99.40); three frames of history 98.94 (98.53). The floors are these less
+/// Measured on frames 0–2: single frame 98.78 pooled ground IoU, precision 99.57 (one
+/// layout: 98.33, 99.44); three frames of history 98.97 (98.64). The floors are these less
 /// 0.1. The output is exactly the mean, in layout order, of the three layouts segmented
 /// apart (`SegmenterConfig::layout`), and a reversed scan gets the same bits reversed.
 #[test]
 fn three_layouts_outvote_badly_placed_segment_borders() {
     let mut cfg = load_config(&hdl64e_preset()).unwrap();
     cfg.zones.layouts = 3;
-    for (frames, floor, min_precision) in [(1, 98.69, 99.46), (3, 98.84, 99.4)] {
+    for (frames, floor, min_precision) in [(1, 98.68, 99.47), (3, 98.87, 99.4)] {
         cfg.history.frames = frames;
         let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
         seq.limit = Some(3);

@@ -1074,6 +1074,9 @@ mod tests {
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
 
+    /// `gmm.summary_cell` that fits a dense segment on its subsample.
+    const SUBSAMPLE: [f64; 2] = [0.0, 0.0];
+
     fn sample(
         rng: &mut rand::rngs::StdRng,
         n: usize,
@@ -1139,6 +1142,7 @@ mod tests {
         // Fitted on a subsample of ~256 points, the same mixture comes out, less precisely.
         let sub = GmmConfig {
             max_fit_points: 256,
+            summary_cell: SUBSAMPLE,
             ..cfg
         };
         let mut c = fit_segment(&pts[0], &pts[1], &pts[2], &sub).components;
@@ -1283,22 +1287,29 @@ mod tests {
             &mut pts,
         );
         sample(&mut rng, 600, [12.3, 3.2, -0.9], [0.3, 0.3, 0.4], &mut pts);
-        let cfg = GmmConfig::default(); // 256 fit points: a subsample
-        let a = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
-        let shift = [0.37, -1.21, 0.0043];
-        let moved: Vec<Vec<f64>> = (0..3)
-            .map(|d| pts[d].iter().map(|v| v + shift[d]).collect())
-            .collect();
-        let b = fit_segment(&moved[0], &moved[1], &moved[2], &cfg);
-        assert_eq!(a.components.len(), b.components.len());
-        assert_eq!(a.iterations, b.iterations);
-        for (ga, gb) in a.components.iter().zip(&b.components) {
-            assert!((ga.weight - gb.weight).abs() < 1e-4, "{ga:?} {gb:?}");
-            for ((mb, ma), d) in gb.mean.iter().zip(&ga.mean).zip(shift) {
-                assert!((mb - ma - d).abs() < 1e-4, "{ga:?} {gb:?}");
-            }
-            for (ca, cb) in ga.covariance.iter().zip(&gb.covariance) {
-                assert!((ca - cb).abs() < 1e-5, "{ga:?} {gb:?}");
+        // Summary cells are laid from the segment's mean, the subsample's cubes are cut
+        // relative to it: either path's fit moves with the segment.
+        for cells in [[0.6, 0.12], SUBSAMPLE] {
+            let cfg = GmmConfig {
+                summary_cell: cells,
+                ..GmmConfig::default()
+            };
+            let a = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
+            let shift = [0.37, -1.21, 0.0043];
+            let moved: Vec<Vec<f64>> = (0..3)
+                .map(|d| pts[d].iter().map(|v| v + shift[d]).collect())
+                .collect();
+            let b = fit_segment(&moved[0], &moved[1], &moved[2], &cfg);
+            assert_eq!(a.components.len(), b.components.len(), "{cells:?}");
+            assert_eq!(a.iterations, b.iterations, "{cells:?}");
+            for (ga, gb) in a.components.iter().zip(&b.components) {
+                assert!((ga.weight - gb.weight).abs() < 1e-4, "{ga:?} {gb:?}");
+                for ((mb, ma), d) in gb.mean.iter().zip(&ga.mean).zip(shift) {
+                    assert!((mb - ma - d).abs() < 1e-4, "{ga:?} {gb:?}");
+                }
+                for (ca, cb) in ga.covariance.iter().zip(&gb.covariance) {
+                    assert!((ca - cb).abs() < 1e-5, "{ga:?} {gb:?}");
+                }
             }
         }
     }
@@ -1316,6 +1327,7 @@ mod tests {
         sample(&mut rng, 1000, [4.994, 1.006, -1.7], [0.001; 3], &mut pts);
         let cfg = GmmConfig {
             max_fit_points: 1,
+            summary_cell: SUBSAMPLE,
             ..GmmConfig::default()
         };
         let fit = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);

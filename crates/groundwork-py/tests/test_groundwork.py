@@ -289,7 +289,7 @@ def test_keyword_arguments_configure_like_a_file(tmp_path: Path) -> None:
 
 def test_layouts_are_a_keyword_away_and_score_higher(cli: Path, tmp_path: Path) -> None:
     """`zones.layouts` by keyword gives the CLI's bits with the same setting in a file, and on
-    the labeled frames a better pooled IoU than one layout (98.79 against 98.25 measured)."""
+    the labeled frames a better pooled IoU than one layout (98.78 against 98.33 measured)."""
     cfg = tmp_path / "layouts.toml"
     cfg.write_text("[zones]\nlayouts = 3\n")
     out = tmp_path / "out"
@@ -394,28 +394,28 @@ def test_an_older_cpu_gets_an_import_error_not_sigill() -> None:
 
 
 def test_calibrate_moves_the_zones_for_a_low_mount_as_the_cli_does(cli: Path, tmp_path: Path) -> None:
-    """A Pandar64 0.8 m up, pitched 6°: Python's calibrate moves the near edge in and, the
+    """An HDL-32E 0.8 m up, pitched 6°: Python's calibrate moves the near edge in and, the
     preset's layout following its beams (`scale_with_height`), scales the inner boundaries
-    by the height found over the preset's 1.8 m, to the same zones as the CLI's file."""
+    by the height found over the preset's 1.84 m, to the same zones as the CLI's file."""
     low = tmp_path / "low.toml"
     low.write_text("[sensor]\nmount = { height = 0.8, pitch_deg = 6.0 }\n")
     seq = tmp_path / "seq"
-    run(cli, "synth", "--sensor", "pandar64", "--scene", "urban", "--frames", "6",
+    run(cli, "synth", "--sensor", "hdl32e", "--scene", "urban", "--frames", "6",
         "--config", str(low), "--out", str(seq))
     scans = [kitti(p) for p in sorted((seq / "velodyne").glob("*.bin"))]
-    preset, report = groundwork.calibrate(scans, sensor="pandar64")
+    preset, report = groundwork.calibrate(scans, sensor="hdl32e")
     scale = report["height_scale"]
-    assert abs(scale["ratio"] - preset["mount"]["height"] / 1.8) < 1e-9, scale
-    assert abs(scale["ratio"] - 0.8 / 1.8) < 0.05, scale
+    assert abs(scale["ratio"] - preset["mount"]["height"] / 1.84) < 1e-9, scale
+    assert abs(scale["ratio"] - 0.8 / 1.84) < 0.05, scale
     zones = preset["zones"]
     assert zones["boundaries"] == scale["boundaries"]
     assert zones["boundaries"][0] == zones["min_range"] == report["near_edge"]["min_range"]
     assert zones["boundaries"][3:] == scale["was"][3:], zones
     out = tmp_path / "low-cal.toml"
-    run(cli, "calibrate", "--sensor", "pandar64", "--out", str(out), str(seq))
+    run(cli, "calibrate", "--sensor", "hdl32e", "--out", str(out), str(seq))
     text = out.read_text()
     assert f"boundaries = {zones['boundaries']!r}".replace("'", "") in text, (zones, text)
-    _, kept = groundwork.calibrate(scans, sensor="pandar64", keep_zones=True)
+    _, kept = groundwork.calibrate(scans, sensor="hdl32e", keep_zones=True)
     assert "height_scale" not in kept and "near_edge" not in kept
 
 
@@ -523,7 +523,9 @@ def test_calibrate_fits_the_parameters_as_the_cli_does(cli: Path, tmp_path: Path
         section, _, key = change["name"].partition(".")
         assert section == "ground", change
         value = ground[key] if "." not in key else ground[key.split(".")[0]][key.split(".")[1]]
-        assert value == change["new"], (change, ground)
+        # `ground_threshold` is an f32: the dict gives its exact value (0.6 is
+        # 0.6000000238...), the change record the decimal the CLI writes.
+        assert value == pytest.approx(change["new"], rel=1e-7), (change, ground)
     out = tmp_path / "fitted.toml"
     run(cli, "calibrate", "--sensor", "hdl64e", "--param-trust", "0", "--param-min-gain", "0",
         "--out", str(out), str(SEQ))
