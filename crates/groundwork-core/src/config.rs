@@ -356,9 +356,9 @@ pub struct GmmConfig {
     /// Every point is still queried and still counts for the outlier rule.
     pub max_fit_points: u32,
     /// Edges (m) of the cells a denser segment's points are summarised in, horizontal and
-    /// vertical (default 0.6 × 0.12); `[0, 0]`: EM runs on the subsample instead. With cells, EM runs on every
-    /// point through each cell's count, mean and scatter, so a small turn of the scan (a
-    /// mount a hundredth of a degree off) cannot draw another subsample.
+    /// vertical (default 0.6 × 0.12); `[0, 0]`: EM runs on the subsample instead. With
+    /// cells, EM runs on every point through each cell's count, mean and scatter, so a small
+    /// turn of the scan (a mount a hundredth of a degree off) cannot draw another subsample.
     pub summary_cell: [f64; 2],
 }
 

@@ -1127,16 +1127,21 @@ mod tests {
         assert!((obj.covariance[0] - 0.09).abs() < 0.02, "{obj:?}");
     }
 
-    #[test]
-    fn em_recovers_a_sampled_two_gaussian_mixture() {
-        let pts = road_and_object();
-        let cfg = GmmConfig {
+    /// Two components fitted to convergence on every point of [`road_and_object`].
+    fn two_components_to_convergence() -> GmmConfig {
+        GmmConfig {
             k_max: 2,
             max_iterations: 100,
             tolerance: 1e-9,
             max_fit_points: 0,
             ..GmmConfig::default()
-        };
+        }
+    }
+
+    #[test]
+    fn em_recovers_a_sampled_two_gaussian_mixture() {
+        let pts = road_and_object();
+        let cfg = two_components_to_convergence();
         assert_road_and_object(&fit_segment(&pts[0], &pts[1], &pts[2], &cfg));
 
         // Fitted on a subsample of ~256 points, the same mixture comes out, less precisely.
@@ -1289,16 +1294,16 @@ mod tests {
         sample(&mut rng, 600, [12.3, 3.2, -0.9], [0.3, 0.3, 0.4], &mut pts);
         // Summary cells are laid from the segment's mean, the subsample's cubes are cut
         // relative to it: either path's fit moves with the segment.
+        let shift = [0.37, -1.21, 0.0043];
+        let moved: Vec<Vec<f64>> = (0..3)
+            .map(|d| pts[d].iter().map(|v| v + shift[d]).collect())
+            .collect();
         for cells in [[0.6, 0.12], SUBSAMPLE] {
             let cfg = GmmConfig {
                 summary_cell: cells,
                 ..GmmConfig::default()
             };
             let a = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
-            let shift = [0.37, -1.21, 0.0043];
-            let moved: Vec<Vec<f64>> = (0..3)
-                .map(|d| pts[d].iter().map(|v| v + shift[d]).collect())
-                .collect();
             let b = fit_segment(&moved[0], &moved[1], &moved[2], &cfg);
             assert_eq!(a.components.len(), b.components.len(), "{cells:?}");
             assert_eq!(a.iterations, b.iterations, "{cells:?}");
@@ -1350,12 +1355,9 @@ mod tests {
         // their means alone would shrink: the fit of every point comes out.
         let pts = road_and_object();
         let cfg = GmmConfig {
-            k_max: 2,
-            max_iterations: 100,
-            tolerance: 1e-9,
             max_fit_points: 256,
             summary_cell: [0.6, 0.12],
-            ..GmmConfig::default()
+            ..two_components_to_convergence()
         };
         let fit = fit_segment(&pts[0], &pts[1], &pts[2], &cfg);
         assert_road_and_object(&fit);
