@@ -30,10 +30,10 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("hdl32e", Offroad, 93.24),
     ("hdl32e", Parking, 92.21),
     ("hdl32e", Hill, 93.77),
-    ("vlp16", Urban, 94.49),
-    ("vlp16", Offroad, 94.56),
-    ("vlp16", Parking, 92.16),
-    ("vlp16", Hill, 97.01),
+    ("vlp16", Urban, 94.05),
+    ("vlp16", Offroad, 94.42),
+    ("vlp16", Parking, 94.32),
+    ("vlp16", Hill, 96.73),
     ("vlp32c", Urban, 91.65),
     ("vlp32c", Offroad, 86.38),
     ("vlp32c", Parking, 84.60),
@@ -42,10 +42,10 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("os1-64", Offroad, 95.37),
     ("os1-64", Parking, 97.66),
     ("os1-64", Hill, 98.09),
-    ("os1-128", Urban, 97.80),
-    ("os1-128", Offroad, 97.48),
-    ("os1-128", Parking, 99.10),
-    ("os1-128", Hill, 98.83),
+    ("os1-128", Urban, 98.81),
+    ("os1-128", Offroad, 97.42),
+    ("os1-128", Parking, 99.07),
+    ("os1-128", Hill, 98.58),
     ("pandar64", Urban, 94.83),
     ("pandar64", Offroad, 89.85),
     ("pandar64", Parking, 87.99),
@@ -162,14 +162,15 @@ fn a_tilted_sensor_needs_only_its_mount_transform() {
     );
 }
 
-/// Measured (VLP-16 at 0.6 m, its preset otherwise; seed 1, 2026-12-03, summary cells):
-/// urban 96.22, offroad 95.58, parking 94.61 (2026-11-30, subsample: 95.88, 95.54, 94.52).
+/// Measured (VLP-16 at 0.6 m, its preset otherwise; seed 1, 2026-12-03, summary cells and
+/// the preset's zones of that day): urban 95.55, offroad 95.48, parking 95.29 (with the
+/// zones before: 96.22, 95.58, 94.61).
 #[test]
 fn a_sensor_mounted_at_0_6_m() {
     let low = mount(0.6, 0.0, 0.0, 0.0);
     let mut cfg = sensor_preset("vlp16").unwrap();
     cfg.sensor.mount = low.clone();
-    for (scene, measured) in [(Urban, 96.22), (Offroad, 95.58), (Parking, 94.61)] {
+    for (scene, measured) in [(Urban, 95.55), (Offroad, 95.48), (Parking, 95.29)] {
         let run = synthetic_run(
             &synthetic("vlp16", scene, 4, Some(low.clone())),
             cfg.clone(),
@@ -375,7 +376,9 @@ fn mean_iou_over_seeds_of_every_preset_and_scene() {
 /// road lost 1.21 there, the one loss beyond 0.3). Measured again 2026-12-03 with summary
 /// cells, the default since (docs/algorithm.md) and the `os1-64` sectors re-tuned for them:
 /// against the subsample the HDL-32E street and car park lost 0.67 and 0.64 (the losses
-/// beyond 0.3), the HDL-64E gained 2.2–4.8.
+/// beyond 0.3), the HDL-64E gained 2.2–4.8. The VLP-16 and OS1-128 rows with their zones of
+/// the same day (against the zones before: −0.11 / +0.14 / +0.54 / +0.48 and +0.16 / +0.26 /
+/// +0.02 / −0.14).
 const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("hdl64e", Urban, 97.75),
     ("hdl64e", Offroad, 96.48),
@@ -385,10 +388,10 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("hdl32e", Offroad, 92.09),
     ("hdl32e", Parking, 92.61),
     ("hdl32e", Hill, 93.55),
-    ("vlp16", Urban, 93.60),
-    ("vlp16", Offroad, 93.97),
-    ("vlp16", Parking, 93.66),
-    ("vlp16", Hill, 95.78),
+    ("vlp16", Urban, 93.49),
+    ("vlp16", Offroad, 94.11),
+    ("vlp16", Parking, 94.20),
+    ("vlp16", Hill, 96.26),
     ("vlp32c", Urban, 89.56),
     ("vlp32c", Offroad, 86.15),
     ("vlp32c", Parking, 84.19),
@@ -397,10 +400,10 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("os1-64", Offroad, 95.63),
     ("os1-64", Parking, 98.00),
     ("os1-64", Hill, 97.91),
-    ("os1-128", Urban, 96.92),
-    ("os1-128", Offroad, 97.47),
-    ("os1-128", Parking, 99.21),
-    ("os1-128", Hill, 99.16),
+    ("os1-128", Urban, 97.08),
+    ("os1-128", Offroad, 97.73),
+    ("os1-128", Parking, 99.23),
+    ("os1-128", Hill, 99.02),
     ("pandar64", Urban, 93.18),
     ("pandar64", Offroad, 90.47),
     ("pandar64", Parking, 89.88),
