@@ -231,9 +231,9 @@ fn kitti_in_a_tilted_mount_is_calibrated() {
 /// The segmenter observes the mount in the ground it fits: told a mount 4° off in pitch and
 /// 20 cm off in height, it sees the true one (within 1° and 10 cm: it is a check, not a
 /// calibration; in this urban scene the crown and the lawns tilt its plane by 0.8°; the
-/// sidewalks lifted it by 6 cm until it leant to the lowest ground) and says how far the configured one is beyond the
-/// tolerances (3°, 20 cm); told the true one, it stays within them. With the check off it
-/// observes nothing.
+/// sidewalks lifted it by 6 cm until it leant to the lowest ground) and says how far the
+/// configured one is beyond the tolerances (3°, 20 cm); told the true one, it stays within
+/// them. With the check off it observes nothing.
 #[test]
 fn the_segmenter_observes_the_mount_it_was_not_told() {
     let truth = MountConfig {
@@ -328,6 +328,7 @@ fn spoiled_vlp16() -> groundwork_core::SegmenterConfig {
 
 /// The search with the labels trusted everywhere: these tests give it exact labels (or labels
 /// wrong on purpose on whole scans) to test the search itself.
+///
 /// The bar for keeping a fit is lowered to one point: it guards against fitting the
 /// PseudoLabeler's own mistakes, which exact labels do not have.
 fn exact_labels() -> groundwork_calibrate::ParamSearchConfig {
@@ -710,13 +711,15 @@ fn correct_mode_moves_a_wrong_mount_to_the_observed_one() {
         let (w, c, t) = (tail(&warn, 150), tail(&correct, 150), tail(&exact, 150));
         eprintln!(
             "{sensor} {scene:?}: applied h {:.3} pitch {:.2}° roll {:.2}° after {} corrected \
-             scans ({angle:.2}°, {dh:.3} m from the truth; observed h {:.3}); IoU over scans 150–199: warn \
-             {w:.2}, correct {c:.2}, true mount {t:.2}; all scans: {:.2} {:.2} {:.2}",
+             scans ({angle:.2}°, {dh:.3} m from the truth; observed h {:.3} in {} of 200 scans); IoU \
+             over scans 150–199: warn {w:.2}, correct {c:.2}, true mount {t:.2}; all scans: {:.2} \
+             {:.2} {:.2}",
             seen.applied_height,
             seen.applied_pitch.to_degrees(),
             seen.applied_roll.to_degrees(),
             seen.corrected_scans,
             seen.height,
+            seen.scans,
             tail(&warn, 0),
             tail(&correct, 0),
             tail(&exact, 0),

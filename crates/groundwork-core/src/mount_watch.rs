@@ -74,7 +74,7 @@ pub(crate) struct MountVerdict {
 
 /// Fewest ground components a scan's plane is fitted to (three unknowns). 12 left a
 /// VLP-16 2.2 m up on a synthetic street (one ring per segment beyond 10 m) without a plane
-/// in 55 of 200 scans, too few for `correct` to lock within them; 8: in fewer.
+/// in 55 of 200 scans, too few for `correct` to lock within them; 8: in 41.
 const MIN_COMPONENTS: usize = 8;
 
 impl MountWatch {
@@ -341,8 +341,8 @@ mod tests {
     }
 
     /// Ground component means on a road tilted 2 % along x, 0.3 m below the frame's
-    /// origin, every few metres out to 18 m; beside it, 15 cm higher, sidewalk means (a
-    /// third of them at the sides); a car roof's stray mean 1.5 m up.
+    /// origin, every 3 m out to 18 m; beside it, 15 cm higher, sidewalk means (two in
+    /// five); a stray mean 1.4 m above the road (a car roof).
     fn street(sidewalks: bool) -> Vec<[f64; 3]> {
         let road = |x: f64| -0.3 + 0.02 * x;
         let mut means = Vec::new();
