@@ -392,9 +392,9 @@ fn labels_are_trusted_only_where_the_preset_agrees_with_them() {
 
 /// Fitted to labels, a spoiled preset's parameters come back: the held-out scans' agreement
 /// rises by two points and more, to within 0.6 of the unspoiled preset's (measured
-/// 2026-12-03: 90.82 → 93.03 against 92.95), and the elevation offset (spoiled to 3 m) returns to within 0.4 m
-/// of the preset's 0.8 m. The same scans give the same fit on one thread as on the default
-/// pool.
+/// 2026-12-03: 90.82 → 93.03 against 92.95), and the elevation offset (spoiled to 3 m)
+/// returns to within 0.4 m of the preset's 0.8 m. The same scans give the same fit on one
+/// thread as on the default pool.
 #[test]
 fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() {
     let (scans, ground) = synthetic_street();
@@ -711,15 +711,16 @@ fn correct_mode_moves_a_wrong_mount_to_the_observed_one() {
         let (w, c, t) = (tail(&warn, 150), tail(&correct, 150), tail(&exact, 150));
         eprintln!(
             "{sensor} {scene:?}: applied h {:.3} pitch {:.2}° roll {:.2}° after {} corrected \
-             scans ({angle:.2}°, {dh:.3} m from the truth; observed h {:.3} in {} of 200 scans); IoU \
-             over scans 150–199: warn {w:.2}, correct {c:.2}, true mount {t:.2}; all scans: {:.2} \
-             {:.2} {:.2}",
+             scans ({angle:.2}°, {dh:.3} m from the truth; observed h {:.3} in {} of {} \
+             scans); IoU over scans 150–199: warn {w:.2}, correct {c:.2}, true mount {t:.2}; \
+             all scans: {:.2} {:.2} {:.2}",
             seen.applied_height,
             seen.applied_pitch.to_degrees(),
             seen.applied_roll.to_degrees(),
             seen.corrected_scans,
             seen.height,
             seen.scans,
+            g.frames(),
             tail(&warn, 0),
             tail(&correct, 0),
             tail(&exact, 0),
