@@ -197,28 +197,28 @@ impl RangeProfile {
         // Segments are bounded (at most the zone model's outer ring); the cap only guards
         // against an absurd configuration.
         let bands = (((hi - lo) / Self::BAND) as usize + 1).min(1 << 16);
-        let mut lows = vec![f64::INFINITY; bands];
         let last = (bands - 1) as f64;
         let mut band = [0u32; BLOCK];
-        let (mut current, mut low) = (0usize, f64::INFINITY);
+        // Four tables of lows, point i into table i % 4, merged after: a min through memory
+        // waits on the store before it only every fourth point, and outliers (below `cut`)
+        // count as +∞ instead of a branch. A minimum is the same in any order.
+        let mut four = vec![f64::INFINITY; 4 * bands];
         for ((bx, by), bz) in xs.chunks(BLOCK).zip(ys.chunks(BLOCK)).zip(zs.chunks(BLOCK)) {
             for (b, (&x, &y)) in band.iter_mut().zip(bx.iter().zip(by)) {
                 // r ≥ lo, so the band is at least 0, and below 2¹⁶.
                 *b = round_i32(((range(x, y) - lo) / Self::BAND).min(last).floor()) as u32;
             }
-            for (&b, &z) in band[..bz.len()].iter().zip(bz) {
-                if z < cut {
-                    continue;
+            for (i, (&b, &z)) in band[..bz.len()].iter().zip(bz).enumerate() {
+                let z = if z < cut { f64::INFINITY } else { z };
+                if let Some(low) = four.get_mut(4 * b as usize + i % 4) {
+                    *low = if z < *low { z } else { *low };
                 }
-                let b = b as usize;
-                if b != current {
-                    lows[current] = lows[current].min(low);
-                    (current, low) = (b, lows[b]);
-                }
-                low = if z < low { z } else { low };
             }
         }
-        lows[current] = lows[current].min(low);
+        let lows: Vec<f64> = four
+            .chunks_exact(4)
+            .map(|l| l[0].min(l[1]).min(l[2].min(l[3])))
+            .collect();
         let line = Self::envelope(&lows);
         Self { r0: lo, lows, line }
     }
