@@ -545,7 +545,7 @@ struct Cell {
 ///
 /// Every sum is of integers (coordinates in [`SUMMARY_QUANTUM`] about the segment's exact
 /// mean), so a cell's moments do not depend on the order of its points, and cells are
-/// fitted in the order of their hash, then of their index: the fit is exactly independent
+/// fitted in the order of their hash, then of their key: the fit is exactly independent
 /// of the order points arrive in. The cells are laid from the segment's mean, as the
 /// subsample's cubes are, so a scan moved as a whole keeps its summaries.
 fn summarise(
@@ -641,9 +641,9 @@ fn summarise(
         run.ss[5] += l[2] * l[2];
     }
     flush(&run, &mut s.slots, &mut s.cells);
-    // Cells in the order of their hash, then of their index (cells are unique by index):
-    // (hash, place) pairs through the linear-time key sort, not the 96-byte cells through
-    // a comparison sort (2 % of a scan's time on one thread).
+    // Cells in the order of their hash, then of their key (no two cells share one): (hash,
+    // position in `cells`) pairs through the linear-time key sort, not the 96-byte cells
+    // through a comparison sort (2 % of a scan's time on one thread).
     let cells = &s.cells;
     s.spare.clear();
     s.spare.extend(
