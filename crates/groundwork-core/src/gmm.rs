@@ -661,9 +661,9 @@ fn summarise(
     );
     let m = cells.len();
     let sorted = || s.order[..m].iter().map(|&(_, i)| &cells[i as usize]);
-    // The centroid from the exact total of the quantised coordinates.
+    // The centroid from the exact total of the quantised coordinates (integers: any order).
     let mut total = [0i128; 3];
-    for c in sorted() {
+    for c in cells {
         for a in 0..3 {
             total[a] +=
                 i128::from(c.key[a]) * i128::from(edge[a]) * i128::from(c.n) + i128::from(c.s[a]);
