@@ -12,10 +12,12 @@
 //! radius query per point: a wall near the sensor holds hundreds of points per square
 //! metre, which is what makes point-wise radius search (a k-d tree) slow here.
 //!
-//! The grid is sparse: the points are radix-sorted by cell number, the occupied cells form
-//! one sorted list (about 10 000 of the grid's million cells on a KITTI scan), and the
-//! neighbours of each cell are found by one forward-only cursor per row offset walking that
-//! list. Every pass is sequential over a few hundred kilobytes; a dense cell array (13.7 MB)
+//! The grid is sparse: the points are radix-sorted by cell number (the cells in two halves,
+//! split at their median, each gathered, sorted and cut on its own core), the occupied cells
+//! form one sorted list (about 10 000 of the grid's million cells on a KITTI scan), and the
+//! neighbours of each cell are looked up in a ring of the rows within reach, each loaded
+//! once from that list as a bitmap as the cells are visited in order. Every pass is
+//! sequential over a few hundred kilobytes; a dense cell array of the whole grid (13.7 MB)
 //! cost a cache miss per neighbour look and was 2–3× slower.
 
 use crate::config::DetectorConfig;
@@ -31,7 +33,7 @@ struct Segment {
 
 /// A point being bucketed: its cell, its height and its index.
 #[derive(Debug, Clone, Copy, Default)]
-struct Entry {
+pub(crate) struct Entry {
     cell: u32,
     z: f32,
     point: u32,
@@ -77,9 +79,54 @@ const DIGIT_BITS: u32 = 11;
 
 /// Sorts `entries` by cell number (stable LSD radix sort; cell numbers below 2^`bits`).
 fn sort_by_cell(entries: &mut Vec<Entry>, spare: &mut Vec<Entry>, bits: u32) {
+    sort_by_cell_from(0, entries, spare, bits);
+}
+
+/// The entries of `runs` whose cell is in `cells`, each entry's point shifted by its run's
+/// offset, into `entries` sorted by cell number as [`sort_by_cell`] sorts them: its first
+/// pass scatters straight from the runs.
+fn gather_by_cell(
+    runs: &[(&[Entry], u32)],
+    cells: std::ops::Range<u32>,
+    entries: &mut Vec<Entry>,
+    spare: &mut Vec<Entry>,
+    bits: u32,
+) {
+    let runs = if cells.is_empty() { &[][..] } else { runs };
+    let source = || {
+        runs.iter().flat_map(|&(run, offset)| {
+            run.iter()
+                .filter(|e| cells.contains(&e.cell))
+                .map(move |e| Entry {
+                    point: e.point + offset,
+                    ..*e
+                })
+        })
+    };
     let mut counts = [0u32; 1 << DIGIT_BITS];
     let mask = (1u32 << DIGIT_BITS) - 1;
-    for shift in (0..bits).step_by(DIGIT_BITS as usize) {
+    for e in source() {
+        counts[(e.cell & mask) as usize] += 1;
+    }
+    let mut sum = 0;
+    for c in counts.iter_mut() {
+        (*c, sum) = (sum, sum + *c);
+    }
+    entries.clear();
+    entries.resize(sum as usize, Entry::default());
+    for e in source() {
+        let slot = &mut counts[(e.cell & mask) as usize];
+        entries[*slot as usize] = e;
+        *slot += 1;
+    }
+    sort_by_cell_from(DIGIT_BITS, entries, spare, bits);
+}
+
+/// [`sort_by_cell`]'s passes from the digit at bit `first` on (the lower digits sorted).
+fn sort_by_cell_from(first: u32, entries: &mut Vec<Entry>, spare: &mut Vec<Entry>, bits: u32) {
+    let mut counts = [0u32; 1 << DIGIT_BITS];
+    let mask = (1u32 << DIGIT_BITS) - 1;
+    for shift in (first..bits).step_by(DIGIT_BITS as usize) {
         counts.fill(0);
         for e in entries.iter() {
             counts[((e.cell >> shift) & mask) as usize] += 1;
@@ -237,12 +284,40 @@ pub struct ClusterGrid {
     /// One per thread of the join; the first one's union-find holds the merged result.
     bands: Vec<Band>,
     component: Vec<u32>,
-    /// The column segments of each half of the entries, cut on their own core.
-    halves: [Columns; 2],
-    /// Per entry (in cell order), its segment.
-    entry_segment: Vec<u32>,
+    /// The points in two halves of the grid, each gathered, sorted and cut on its own core.
+    halves: [Half; 2],
     /// Fewest entries worth cutting on two cores.
     split_min: usize,
+    /// Every 64th entry's cell, to split the entries at their median cell.
+    sample: Vec<u32>,
+}
+
+/// One half of the grid's cells (those below a split cell, or the others): its entries in
+/// cell order, their column segments, and each entry's segment.
+#[derive(Debug, Clone, Default)]
+struct Half {
+    entries: Vec<Entry>,
+    spare: Vec<Entry>,
+    columns: Columns,
+    segment_of: Vec<u32>,
+}
+
+impl Half {
+    /// Gathers the entries of `runs` (each entry's point shifted by its run's offset) whose
+    /// cell is in `cells`, sorts them by cell and cuts their columns.
+    fn gather_and_cut(
+        &mut self,
+        runs: &[(&[Entry], u32)],
+        cells: std::ops::Range<u32>,
+        bits: u32,
+        grid: &SquareGrid,
+        cfg: &DetectorConfig,
+    ) {
+        gather_by_cell(runs, cells, &mut self.entries, &mut self.spare, bits);
+        self.segment_of.resize(self.entries.len(), 0);
+        self.columns
+            .cut(&mut self.entries, &mut self.segment_of, grid, cfg);
+    }
 }
 
 /// The column segments of a run of entries (whole cells, in cell order), numbered from 0.
@@ -456,6 +531,17 @@ fn link(parent: &mut [u32], root: u32, b: u32) -> u32 {
     }
 }
 
+/// Point number `point` at `p` as an entry of `grid`, if inside it.
+#[inline]
+fn entry_in(grid: &SquareGrid, p: [f32; 3], point: u32) -> Option<Entry> {
+    let (i, j) = grid.cell_of(p[0], p[1])?;
+    Some(Entry {
+        cell: grid.index(i, j) as u32,
+        z: p[2],
+        point,
+    })
+}
+
 impl ClusterGrid {
     /// A grid of `cell` metres covering ±`max_range`.
     pub fn new(cell: f32, max_range: f32) -> Self {
@@ -470,17 +556,21 @@ impl ClusterGrid {
 
     /// `points` inside the grid as entries in cell order (within a cell, input order).
     fn bucket(&mut self, points: &[[f32; 3]]) {
+        let grid = self.grid;
         self.entries.clear();
-        for (k, p) in points.iter().enumerate() {
-            if let Some((i, j)) = self.grid.cell_of(p[0], p[1]) {
-                self.entries.push(Entry {
-                    cell: self.grid.index(i, j) as u32,
-                    z: p[2],
-                    point: k as u32,
-                });
-            }
-        }
+        self.entries.extend(
+            points
+                .iter()
+                .enumerate()
+                .filter_map(|(k, &p)| entry_in(&grid, p, k as u32)),
+        );
         sort_by_cell(&mut self.entries, &mut self.spare, self.cell_bits);
+    }
+
+    /// Point number `point` at `p` as an entry, if inside the grid.
+    #[inline]
+    pub(crate) fn entry(&self, p: [f32; 3], point: u32) -> Option<Entry> {
+        entry_in(&self.grid, p, point)
     }
 
     /// Clusters `points` (ground-aligned x, y, z; finite): writes a component number per
@@ -493,31 +583,62 @@ impl ClusterGrid {
         cfg: &DetectorConfig,
         labels: &mut Vec<u32>,
     ) -> usize {
-        labels.clear();
-        labels.resize(points.len(), u32::MAX);
-        self.bucket(points);
+        let mut entries = std::mem::take(&mut self.entries);
+        entries.clear();
+        entries.extend(
+            points
+                .iter()
+                .enumerate()
+                .filter_map(|(k, &p)| self.entry(p, k as u32)),
+        );
+        let found = self.cluster_runs(&[(&entries, 0)], points.len(), cfg, labels);
+        self.entries = entries;
+        found
+    }
 
-        // Each cell's points by height, cut into segments: the entries in two halves split
-        // at a cell boundary, one per core, each numbering its own segments (the second
-        // half's are then shifted past the first's: the same numbers as one pass gives).
-        let n_entries = self.entries.len();
-        let mid = if n_entries < self.split_min {
-            n_entries
+    /// [`cluster`](Self::cluster) for points given as runs of entries (made by
+    /// [`entry`](Self::entry), numbered within their run) and each run's first point
+    /// number: `points` points in all, numbered in run order.
+    pub(crate) fn cluster_runs(
+        &mut self,
+        runs: &[(&[Entry], u32)],
+        points: usize,
+        cfg: &DetectorConfig,
+        labels: &mut Vec<u32>,
+    ) -> usize {
+        labels.clear();
+        labels.resize(points, u32::MAX);
+
+        // The entries in two halves of the grid split at their median cell, each gathered,
+        // sorted by cell and cut into column segments on its own core (each half numbering
+        // its own segments; the second half's are then shifted past the first's: the same
+        // numbers as one half gives). Whole cells, so the halves' segments are those of
+        // the whole.
+        let n_entries: usize = runs.iter().map(|(r, _)| r.len()).sum();
+        let split = if n_entries < self.split_min || rayon::current_num_threads() == 1 {
+            u32::MAX
         } else {
-            let cell = self.entries[n_entries / 2].cell;
-            n_entries / 2 + self.entries[n_entries / 2..].partition_point(|e| e.cell == cell)
+            self.sample.clear();
+            let mut skip = 0;
+            for (run, _) in runs {
+                self.sample
+                    .extend(run.iter().skip(skip).step_by(64).map(|e| e.cell));
+                skip = (skip + 64 - run.len() % 64) % 64;
+            }
+            let mid = self.sample.len() / 2;
+            *self.sample.select_nth_unstable(mid).1
         };
-        self.entry_segment.resize(n_entries, 0);
-        let (entries, entry_segment) = (&mut self.entries, &mut self.entry_segment);
-        let (e0, e1) = entries.split_at_mut(mid);
-        let (s0, s1) = entry_segment.split_at_mut(mid);
         let [h0, h1] = &mut self.halves;
-        let grid = &self.grid;
-        rayon::join(|| h0.cut(e0, s0, grid, cfg), || h1.cut(e1, s1, grid, cfg));
-        let offset = h0.segments.len() as u32;
-        for s in s1.iter_mut() {
+        let (grid, bits) = (&self.grid, self.cell_bits);
+        rayon::join(
+            || h0.gather_and_cut(runs, 0..split, bits, grid, cfg),
+            || h1.gather_and_cut(runs, split..u32::MAX, bits, grid, cfg),
+        );
+        let offset = h0.columns.segments.len() as u32;
+        for s in h1.segment_of.iter_mut() {
             *s += offset;
         }
+        let (h0, h1) = (&h0.columns, &h1.columns);
         self.segments.clear();
         self.segments.extend_from_slice(&h0.segments);
         self.segments.extend_from_slice(&h1.segments);
@@ -581,8 +702,10 @@ impl ClusterGrid {
             }
             self.component[s as usize] = self.component[root as usize];
         }
-        for (e, &s) in self.entries.iter().zip(&self.entry_segment) {
-            labels[e.point as usize] = self.component[s as usize];
+        for half in &self.halves {
+            for (e, &s) in half.entries.iter().zip(&half.segment_of) {
+                labels[e.point as usize] = self.component[s as usize];
+            }
         }
         components as usize
     }
@@ -724,8 +847,15 @@ mod tests {
             ..split.clone()
         };
         let (mut a, mut b) = (Vec::new(), Vec::new());
-        let n = split.cluster(&pts, &cfg, &mut a);
+        // Split only where there is a second thread: give it one.
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        let n = pool.install(|| split.cluster(&pts, &cfg, &mut a));
         assert!(n > 1 && pts.len() >= split.split_min);
+        let halves = split.halves.each_ref().map(|h| h.entries.len());
+        assert!(halves.iter().all(|&h| h > pts.len() / 4), "{halves:?}");
         assert_eq!(whole.cluster(&pts, &cfg, &mut b), n);
         assert_eq!(a, b);
         assert_eq!(split.segments.len(), whole.segments.len());

@@ -12,7 +12,7 @@ use thiserror::Error;
 use rayon::prelude::*;
 
 use crate::bbox::{Rect, RectScratch, min_area_rect};
-use crate::cluster::ClusterGrid;
+use crate::cluster::{ClusterGrid, Entry};
 use crate::config::DetectorConfig;
 use crate::ground_map::GroundMap;
 
@@ -195,7 +195,7 @@ struct Extent {
 
 impl Extent {
     /// The measures of a cluster's members (sums in their order).
-    fn of(members: &[Maybe]) -> Self {
+    fn of<'a>(members: impl Iterator<Item = &'a Maybe>) -> Self {
         let mut e = Self {
             count: 0,
             sum: [0.0; 3],
@@ -224,6 +224,79 @@ struct Maybe {
     ground: bool,
 }
 
+/// Points grouped by cluster (a stable counting sort): cluster c's are
+/// `items[start[c]..start[c + 1]]`, in input order.
+#[derive(Debug, Default)]
+struct Grouped {
+    start: Vec<usize>,
+    items: Vec<Maybe>,
+}
+
+impl Grouped {
+    /// Groups `labelled` (a point and its cluster, `u32::MAX` for none) by cluster, of
+    /// `clusters` clusters.
+    fn group<'a>(
+        &mut self,
+        labelled: impl Iterator<Item = (&'a Maybe, u32)> + Clone,
+        clusters: usize,
+    ) {
+        self.start.clear();
+        self.start.resize(clusters + 1, 0);
+        for (_, c) in labelled.clone() {
+            if let Some(n) = self.start.get_mut(c as usize + 1) {
+                *n += 1;
+            }
+        }
+        for k in 1..self.start.len() {
+            self.start[k] += self.start[k - 1];
+        }
+        self.items.clear();
+        self.items.resize(self.start[clusters], Maybe::default());
+        let mut slot = self.start.clone();
+        for (m, c) in labelled {
+            if let Some(s) = slot.get_mut(c as usize) {
+                self.items[*s] = *m;
+                *s += 1;
+            }
+        }
+    }
+
+    /// Cluster c's points.
+    fn of(&self, c: u32) -> &[Maybe] {
+        &self.items[self.start[c as usize]..self.start[c as usize + 1]]
+    }
+}
+
+/// The candidates of `pieces` and their clusters (`labels`, in the same order).
+fn labelled<'a>(
+    pieces: &'a [Piece],
+    labels: &'a [u32],
+) -> impl Iterator<Item = (&'a Maybe, u32)> + Clone {
+    let candidates = pieces.iter().flat_map(|p| p.candidates.iter());
+    candidates.zip(labels.iter().copied())
+}
+
+/// The members of the clusters: the candidates (in two parts, the pieces' first ones and
+/// the others, grouped on two cores), then the uncertain ground points joining them.
+#[derive(Debug, Default)]
+struct Members {
+    parts: [Grouped; 2],
+    joiners: Grouped,
+}
+
+impl Members {
+    /// How many candidates cluster c has.
+    fn candidates(&self, c: u32) -> usize {
+        self.parts.iter().map(|p| p.of(c).len()).sum()
+    }
+
+    /// Cluster c's members in input order, then the uncertain ground points joining it.
+    fn of(&self, c: u32) -> impl Iterator<Item = &Maybe> {
+        let [a, b] = &self.parts;
+        a.of(c).iter().chain(b.of(c)).chain(self.joiners.of(c))
+    }
+}
+
 /// Points per piece of the first passes: several pieces per core, so that a core that
 /// wakes late still finds work.
 const PIECE: usize = 16_384;
@@ -238,6 +311,8 @@ struct Piece {
     /// Those of them in the height band: to cluster, and to join.
     candidates: Vec<Maybe>,
     joiners: Vec<Maybe>,
+    /// The candidates' clustering cells (numbered within the piece).
+    entries: Vec<Entry>,
     /// Every point of the piece finite, every probability in [0, 1].
     valid: bool,
 }
@@ -252,17 +327,14 @@ pub struct Detector {
     grid: ClusterGrid,
     ground: GroundMap,
     pieces: Vec<Piece>,
-    candidates: Vec<Maybe>,
+    /// The uncertain ground points in the height band, and their coordinates (looked up
+    /// while the candidates are grouped).
     joiners: Vec<Maybe>,
-    /// The candidates' coordinates.
-    xyz: Vec<[f32; 3]>,
-    /// The joiners' coordinates (a buffer of their own: they are looked up while the
-    /// candidates' labels are still being counted).
     joiner_xyz: Vec<[f32; 3]>,
     labels: Vec<u32>,
     touched: Vec<Option<u32>>,
-    /// The members in cluster order.
-    grouped: Vec<Maybe>,
+    /// The clusters' members, grouped by cluster.
+    members: Members,
     /// The clusters kept, in cluster order, and their measures and boxes.
     live: Vec<u32>,
     measured: Vec<(Extent, Rect)>,
@@ -295,13 +367,11 @@ impl Detector {
             threshold,
             min_range,
             pieces: Vec::new(),
-            candidates: Vec::new(),
             joiners: Vec::new(),
-            xyz: Vec::new(),
             joiner_xyz: Vec::new(),
             labels: Vec::new(),
             touched: Vec::new(),
-            grouped: Vec::new(),
+            members: Members::default(),
             live: Vec::new(),
             measured: Vec::new(),
         })
@@ -415,10 +485,11 @@ impl Detector {
         // Non-ground points within the height band above the local ground are clustered;
         // uncertain ground points there may join a cluster they touch. Where the ground is
         // unknown, the segmenter's word alone decides.
-        let ground = &self.ground;
+        let (ground, grid) = (&self.ground, &self.grid);
         self.pieces[..pieces].par_iter_mut().for_each(|piece| {
             piece.candidates.clear();
             piece.joiners.clear();
+            piece.entries.clear();
             for m in &piece.maybe {
                 if let Some(g) = ground.height(m.xyz[0], m.xyz[1]) {
                     let h = m.xyz[2] - g;
@@ -431,84 +502,74 @@ impl Detector {
                 if m.ground {
                     piece.joiners.push(*m);
                 } else {
+                    // Its cell for the clustering, here on all cores.
+                    let k = piece.candidates.len() as u32;
+                    piece.entries.extend(grid.entry(m.xyz, k));
                     piece.candidates.push(*m);
                 }
             }
         });
-        self.candidates.clear();
         self.joiners.clear();
         for piece in &self.pieces[..pieces] {
-            self.candidates.extend_from_slice(&piece.candidates);
             self.joiners.extend_from_slice(&piece.joiners);
         }
-        self.xyz.clear();
-        self.xyz.extend(self.candidates.iter().map(|m| m.xyz));
-        let found = self.grid.cluster(&self.xyz, cfg, &mut self.labels);
+        let mut candidates = 0;
+        let runs: Vec<(&[Entry], u32)> = self.pieces[..pieces]
+            .iter()
+            .map(|p| {
+                candidates += p.candidates.len() as u32;
+                (&p.entries[..], candidates - p.candidates.len() as u32)
+            })
+            .collect();
+        let candidates = candidates as usize;
+        let found = self
+            .grid
+            .cluster_runs(&runs, candidates, cfg, &mut self.labels);
 
-        // The size of each cluster, and meanwhile on the other core the cluster each
-        // uncertain ground point touches.
+        // The candidates grouped by cluster, in two parts (the first pieces with about half
+        // of them, and the others) on two cores, and meanwhile the cluster each uncertain
+        // ground point touches; then those grouped.
         self.joiner_xyz.clear();
         self.joiner_xyz.extend(self.joiners.iter().map(|m| m.xyz));
         let (grid, joiner_xyz, touched) = (&mut self.grid, &self.joiner_xyz, &mut self.touched);
-        let labels = &self.labels;
-        let ((), sizes) = rayon::join(
-            || grid.touching(joiner_xyz, cfg, touched),
+        let (mut half, mut before) = (0, 0);
+        for p in &self.pieces[..pieces] {
+            if 2 * before >= candidates {
+                break;
+            }
+            (half, before) = (half + 1, before + p.candidates.len());
+        }
+        let (first, second) = self.pieces[..pieces].split_at(half);
+        let (labels0, labels1) = self.labels.split_at(before);
+        let [part0, part1] = &mut self.members.parts;
+        rayon::join(
+            || part0.group(labelled(first, labels0), found),
             || {
-                let mut sizes = vec![0u32; found];
-                for &l in labels {
-                    if l != u32::MAX {
-                        sizes[l as usize] += 1;
-                    }
-                }
-                sizes
+                rayon::join(
+                    || part1.group(labelled(second, labels1), found),
+                    || grid.touching(joiner_xyz, cfg, touched),
+                )
             },
         );
-        let kept = |c: u32| c != u32::MAX && sizes[c as usize] >= cfg.min_points;
-
-        // The members of the clusters kept (small ones dropped) grouped by cluster, each
-        // cluster's candidates in order, then the uncertain ground points that touch it (a
-        // counting sort), then each cluster measured and boxed on all cores.
-        let mut start = vec![0usize; found + 1];
-        for (c, &size) in sizes.iter().enumerate() {
-            if kept(c as u32) {
-                start[c + 1] = size as usize;
-            }
-        }
-        let mut joined = 0;
-        for &c in &self.touched {
-            if let Some(c) = c
-                && kept(c)
-            {
-                start[c as usize + 1] += 1;
-                joined += 1;
-            }
-        }
-        for k in 1..start.len() {
-            start[k] += start[k - 1];
-        }
-        self.grouped.clear();
-        self.grouped.resize(start[found], Maybe::default());
-        let mut slot = start.clone();
         let touching = self.touched.iter().map(|c| c.unwrap_or(u32::MAX));
-        let labelled = self.candidates.iter().zip(self.labels.iter().copied());
-        for (m, c) in labelled.chain(self.joiners.iter().zip(touching)) {
-            if kept(c) {
-                self.grouped[slot[c as usize]] = *m;
-                slot[c as usize] += 1;
-            }
-        }
+        self.members
+            .joiners
+            .group(self.joiners.iter().zip(touching), found);
+
+        // Each cluster kept (small ones dropped) measured and boxed on all cores: its
+        // candidates in order, then the uncertain ground points that touch it.
+        let members = &self.members;
+        let kept = |c: u32| members.candidates(c) >= cfg.min_points as usize;
         self.live.clear();
-        self.live
-            .extend((0..found as u32).filter(|&c| start[c as usize + 1] > start[c as usize]));
-        let grouped = &self.grouped;
+        self.live.extend((0..found as u32).filter(|&c| kept(c)));
+        let joined = self.live.iter().map(|&c| members.joiners.of(c).len()).sum();
         self.live
             .par_iter()
             .map(|&c| {
-                let members = &grouped[start[c as usize]..start[c as usize + 1]];
                 RECT_SCRATCH.with_borrow_mut(|(footprint, s)| {
                     footprint.clear();
-                    footprint.extend(members.iter().map(|m| [m.xyz[0], m.xyz[1]]));
-                    (Extent::of(members), min_area_rect(footprint, s))
+                    footprint.extend(members.of(c).map(|m| [m.xyz[0], m.xyz[1]]));
+                    (Extent::of(members.of(c)), min_area_rect(footprint, s))
                 })
             })
             .collect_into_vec(&mut self.measured);
@@ -532,7 +593,7 @@ impl Detector {
         out.clusters.clear();
         out.clusters.resize(points.len(), 0);
         for &c in &self.live {
-            for m in &self.grouped[start[c as usize]..start[c as usize + 1]] {
+            for m in self.members.of(c) {
                 out.clusters[m.index as usize] = id_of[c as usize];
             }
         }
@@ -566,13 +627,11 @@ impl Detector {
             out.proposals.push(p);
         }
         Ok(DetectionReport {
-            candidates: self.candidates.len(),
+            candidates,
             joined,
             clusters: found,
-            dropped_small: sizes
-                .iter()
-                .filter(|&&s| s > 0 && s < cfg.min_points)
-                .count(),
+            // Every cluster has a candidate: those not kept were too small.
+            dropped_small: found - self.live.len(),
             time: t.elapsed(),
         })
     }

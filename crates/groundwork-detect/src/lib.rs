@@ -11,8 +11,9 @@
 //! it; each cluster becomes a [`Proposal`] with an oriented box ([`bbox`]), and every
 //! point gets its proposal's id (0: none).
 //!
-//! Pure algorithm: no I/O, no IPC. Deterministic; sequential (the budget is a few
-//! milliseconds per scan, which one core meets).
+//! Pure algorithm: no I/O, no IPC. Deterministic: the same output on any number of
+//! threads (the passes over the scan, the clustering's halves and bands and the boxes run
+//! on rayon's pool).
 
 pub mod bbox;
 pub mod cluster;
