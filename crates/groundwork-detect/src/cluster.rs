@@ -542,6 +542,17 @@ fn entry_in(grid: &SquareGrid, p: [f32; 3], point: u32) -> Option<Entry> {
     })
 }
 
+/// `points` inside `grid` as entries, in input order, into `entries`.
+fn entries_of(grid: &SquareGrid, points: &[[f32; 3]], entries: &mut Vec<Entry>) {
+    entries.clear();
+    entries.extend(
+        points
+            .iter()
+            .enumerate()
+            .filter_map(|(k, &p)| entry_in(grid, p, k as u32)),
+    );
+}
+
 impl ClusterGrid {
     /// A grid of `cell` metres covering ±`max_range`.
     pub fn new(cell: f32, max_range: f32) -> Self {
@@ -556,14 +567,7 @@ impl ClusterGrid {
 
     /// `points` inside the grid as entries in cell order (within a cell, input order).
     fn bucket(&mut self, points: &[[f32; 3]]) {
-        let grid = self.grid;
-        self.entries.clear();
-        self.entries.extend(
-            points
-                .iter()
-                .enumerate()
-                .filter_map(|(k, &p)| entry_in(&grid, p, k as u32)),
-        );
+        entries_of(&self.grid, points, &mut self.entries);
         sort_by_cell(&mut self.entries, &mut self.spare, self.cell_bits);
     }
 
@@ -584,13 +588,7 @@ impl ClusterGrid {
         labels: &mut Vec<u32>,
     ) -> usize {
         let mut entries = std::mem::take(&mut self.entries);
-        entries.clear();
-        entries.extend(
-            points
-                .iter()
-                .enumerate()
-                .filter_map(|(k, &p)| self.entry(p, k as u32)),
-        );
+        entries_of(&self.grid, points, &mut entries);
         let found = self.cluster_runs(&[(&entries, 0)], points.len(), cfg, labels);
         self.entries = entries;
         found
