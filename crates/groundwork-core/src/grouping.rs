@@ -7,7 +7,8 @@
 //! counting sort serves both: the query reads its coordinates from the fit's groups, and
 //! only the beyond-range points are stored apart. The sort runs as two tasks, one per
 //! core: the first copies the segments below a split, the second the segments from the
-//! split on while it writes every point's place (see [`group_points`]).
+//! split on while it writes every point's place (see [`group_points`]). On one thread
+//! one task does it all, in one pass over the bins.
 
 use crate::config::BeyondRangePolicy;
 use crate::zones::{BEYOND, NEAR};
@@ -167,12 +168,18 @@ pub(crate) fn group_points(
         v.resize(total, 0.0);
     }
     let start = &sorted.start;
-    // The split: the first segment whose group starts past the first task's share.
-    let share = (total as f64 * FIRST_TASK_SHARE) as u32;
-    let split = start[..segments]
-        .iter()
-        .position(|&a| a >= share)
-        .unwrap_or(segments);
+    // The split: the first segment whose group starts past the first task's share. On one
+    // thread the task that must read every point (the second, with a policy) takes all
+    // segments, and the other, empty, reads nothing: one pass over the bins, not two.
+    let split = if rayon::current_num_threads() == 1 {
+        if policy.is_some() { 0 } else { segments }
+    } else {
+        let share = (total as f64 * FIRST_TASK_SHARE) as u32;
+        start[..segments]
+            .iter()
+            .position(|&a| a >= share)
+            .unwrap_or(segments)
+    };
     let at = start[split] as usize;
     let (x0, x1) = sorted.xs.split_at_mut(at);
     let (y0, y1) = sorted.ys.split_at_mut(at);
@@ -221,6 +228,9 @@ impl Copy<'_> {
     /// Copies the task's points.
     fn run(self, bins: &[u32], ground: &GroundPoints) {
         let (lo, hi) = (self.segments.start, self.segments.end);
+        if lo == hi {
+            return;
+        }
         let base = self.start[lo] as usize;
         let mut cursor: Vec<usize> = self.start[lo..hi]
             .iter()
@@ -372,6 +382,17 @@ mod tests {
 
     #[test]
     fn one_sort_gives_the_fits_groups_and_the_querys_places() {
+        // Two tasks split by share on two threads, one task on one thread.
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(groups_and_places_match_a_stable_sort);
+        }
+    }
+
+    fn groups_and_places_match_a_stable_sort() {
         for segments in [1u32, 5, 37, 200] {
             let (bins, ground) = scan(segments, 5000);
             let counts = SegmentCounts::of(&bins, segments as usize);
