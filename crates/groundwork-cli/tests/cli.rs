@@ -1414,49 +1414,50 @@ fn a_mount_that_disagrees_with_the_ground_is_reported_once() {
     assert!(!stderr.contains("disagrees"), "{stderr}");
 }
 
-/// The multi-frame query's AVX-512 copy, turned off by the environment, gives the same bits
-/// (the switch exists to measure what a CPU without AVX-512 gets).
+/// The AVX-512 copies (the multi-frame query's, the PseudoLabeler network's), turned off by
+/// the environment, give the same bits (the switch exists to measure what a CPU without
+/// AVX-512 gets).
 #[test]
 fn turning_avx512_off_changes_no_output_bit() {
     let tmp = tempfile::tempdir().unwrap();
-    let mut logs = Vec::new();
-    for (name, off) in [("on", false), ("off", true)] {
-        let mut cmd = bin();
-        cmd.args(["segment", "--out"])
-            .arg(tmp.path().join(name))
-            .arg(data())
-            .env("RUST_LOG", "info");
-        if off {
-            cmd.env("GROUNDWORK_DISABLE_CPU_FEATURES", "sse4, AVX512");
+    for method in ["gmm", "pseudolabeler"] {
+        let mut logs = Vec::new();
+        for name in ["on", "off"] {
+            let mut cmd = bin();
+            cmd.args(["segment", "--method", method, "--out"])
+                .arg(tmp.path().join(method).join(name))
+                .arg(data())
+                .env("RUST_LOG", "info");
+            if name == "off" {
+                cmd.env("GROUNDWORK_DISABLE_CPU_FEATURES", "sse4, AVX512");
+            }
+            let o = cmd.output().unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            logs.push(String::from_utf8_lossy(&o.stderr).into_owned());
         }
-        let o = cmd.output().unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        logs.push(String::from_utf8_lossy(&o.stderr).into_owned());
-    }
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512dq") {
-        assert!(!logs[0].contains("turned off"), "{}", logs[0]);
-        assert!(
-            logs[1].contains("AVX-512 present but turned off"),
-            "{}",
-            logs[1]
-        );
-    }
-    let mut names: Vec<_> = fs::read_dir(tmp.path().join("on"))
-        .unwrap()
-        .map(|e| e.unwrap().file_name())
-        .collect();
-    names.sort();
-    assert_eq!(names.len(), 12, "{names:?}");
-    for n in names {
-        let (a, b) = (
-            tmp.path().join("on").join(&n),
-            tmp.path().join("off").join(&n),
-        );
-        assert!(
-            fs::read(a).unwrap() == fs::read(b).unwrap(),
-            "{n:?} differs"
-        );
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512dq") {
+            assert!(!logs[0].contains("turned off"), "{}", logs[0]);
+            assert!(
+                logs[1].contains("AVX-512 present but turned off"),
+                "{method}: {}",
+                logs[1]
+            );
+        }
+        let dir = tmp.path().join(method);
+        let mut names: Vec<_> = fs::read_dir(dir.join("on"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        names.sort();
+        assert_eq!(names.len(), 12, "{names:?}");
+        for n in names {
+            let (a, b) = (dir.join("on").join(&n), dir.join("off").join(&n));
+            assert!(
+                fs::read(a).unwrap() == fs::read(b).unwrap(),
+                "{method}: {n:?} differs"
+            );
+        }
     }
 }
 

@@ -6,8 +6,10 @@
 //! exit with a clear error instead. The check itself uses only `cpuid` and integer tests, so
 //! it runs on any x86-64 CPU.
 //!
-//! Beyond that level, one loop has a second copy chosen at run time: the multi-frame
-//! query's past components, in 512-bit registers where the CPU has AVX-512 (`query::avx512`).
+//! Beyond that level, some loops have a second copy chosen at run time ([`avx512`]): the
+//! multi-frame query's past components (`query::avx512`) and the PseudoLabeler's network
+//! layers, in 512-bit registers where the CPU has AVX-512. Each copy does the same
+//! operations per value as the portable one: the same bits either way.
 //!
 //! aarch64 builds target Armv8-A with NEON, which every 64-bit Arm Linux CPU has, so the
 //! default build checks nothing. A build for a newer core (`-C target-cpu=cortex-a78ae` for
@@ -91,6 +93,45 @@ impl std::fmt::Display for MissingCpuFeatures {
 
 impl std::error::Error for MissingCpuFeatures {}
 
+/// The environment variable that turns run-time CPU features off (comma-separated, e.g.
+/// `avx512`), as NumPy's `NPY_DISABLE_CPU_FEATURES` does: to measure what a CPU without
+/// them gets, on one that has them. The results are the same bits either way.
+pub const DISABLE_CPU_FEATURES: &str = "GROUNDWORK_DISABLE_CPU_FEATURES";
+
+/// Whether the comma-separated list `value` names AVX-512 (any case, spaces ignored).
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+fn names_avx512(value: &str) -> bool {
+    value
+        .split(',')
+        .any(|f| f.trim().eq_ignore_ascii_case("avx512"))
+}
+
+/// Whether the run-time AVX-512 copies may run: the CPU has AVX-512 F, VL, BW and DQ (what
+/// they are compiled with) and [`DISABLE_CPU_FEATURES`] does not turn them off. Decided
+/// once per process; always false off x86-64.
+#[inline]
+pub fn avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *AVAILABLE.get_or_init(|| {
+            let cpu = std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512vl")
+                && std::is_x86_feature_detected!("avx512bw")
+                && std::is_x86_feature_detected!("avx512dq");
+            let off = std::env::var(DISABLE_CPU_FEATURES).is_ok_and(|v| names_avx512(&v));
+            if cpu && off {
+                tracing::info!("AVX-512 present but turned off by {DISABLE_CPU_FEATURES}");
+            }
+            cpu && !off
+        })
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Whether this CPU has every feature the build targets.
 #[inline(never)]
 pub fn check() -> Result<(), MissingCpuFeatures> {
@@ -165,5 +206,15 @@ mod tests {
             "{s}"
         );
         assert!(s.contains("target-cpu=native"), "{s}");
+    }
+
+    #[test]
+    fn the_switch_names_avx512_in_a_list() {
+        for on in ["avx512", "AVX512", " avx512 ", "sse4,avx512", "avx512,"] {
+            assert!(super::names_avx512(on), "{on:?}");
+        }
+        for off in ["", "avx2", "avx5120", "avx512f", "noavx512"] {
+            assert!(!super::names_avx512(off), "{off:?}");
+        }
     }
 }

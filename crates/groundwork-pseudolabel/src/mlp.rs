@@ -10,13 +10,18 @@
 //!
 //! Every sum runs in a fixed order that depends on the widths and the number of points
 //! only, with fused multiply-adds (x86-64-v3 and aarch64 both have them): the same bits on
-//! every machine these builds run on.
+//! every machine these builds run on. Where the CPU has AVX-512 the per-point passes (the
+//! layers, σ, SiLU) take 16 points a register instead of 8 (`avx512`): each point's value is
+//! the same operations in the same order, so the bits are the same too.
 //!
 //! Parameters live in one flat vector (per layer: weights out × in, row-major, then
 //! biases), which keeps the optimiser a single loop.
 
 use rand::Rng;
 use wide::f32x8;
+
+#[cfg(target_arch = "x86_64")]
+mod avx512;
 
 /// Points per vector.
 const LANES: usize = 8;
@@ -78,8 +83,30 @@ fn lane_sum(v: f32x8) -> f32 {
 
 /// z = W · a (+ bias) for every block of points: `wk` holds W by input (q × p: the weights
 /// of input k to the p outputs, contiguous), `a` has q features and `z` gets p. Each output
-/// sums its q terms in input order, starting from its bias.
+/// sums its q terms in input order, starting from its bias. In 512-bit registers where the
+/// CPU has AVX-512 (the same bits).
 fn layer(wk: &[f32], bias: Option<&[f32]>, p: usize, q: usize, a: &[f32x8], z: &mut [f32x8]) {
+    #[cfg(target_arch = "x86_64")]
+    if groundwork_core::cpu::avx512() {
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has every feature `avx512::layer` is compiled with.
+        unsafe {
+            avx512::layer(wk, bias, p, q, a, z)
+        };
+        return;
+    }
+    layer_portable(wk, bias, p, q, a, z);
+}
+
+/// [`layer`] in `wide`'s vectors of 8.
+fn layer_portable(
+    wk: &[f32],
+    bias: Option<&[f32]>,
+    p: usize,
+    q: usize,
+    a: &[f32x8],
+    z: &mut [f32x8],
+) {
     debug_assert!(wk.len() == p * q && a.len() / q == z.len() / p);
     for (a, z) in a
         .chunks_exact(q * ROW_BLOCK)
@@ -193,6 +220,50 @@ fn row(block: &[f32x8], r: usize) -> &[f32x8; ROW_BLOCK] {
         .get(r * ROW_BLOCK..)
         .and_then(|v| v.first_chunk::<ROW_BLOCK>())
         .unwrap_or(NONE)
+}
+
+/// A hidden layer's activation: σ(z) into `s` and SiLU, z σ(z), into `next`.
+fn activate(z: &[f32x8], s: &mut Vec<f32x8>, next: &mut Vec<f32x8>) {
+    #[cfg(target_arch = "x86_64")]
+    if groundwork_core::cpu::avx512() {
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has every feature `avx512::activate` is compiled with.
+        unsafe {
+            avx512::activate(z, s, next)
+        };
+        return;
+    }
+    activate_portable(z, s, next);
+}
+
+/// [`activate`] in `wide`'s vectors of 8.
+fn activate_portable(z: &[f32x8], s: &mut Vec<f32x8>, next: &mut Vec<f32x8>) {
+    s.clear();
+    s.extend(z.iter().map(|&z| sigmoid(z)));
+    next.clear();
+    next.extend(z.iter().zip(s.iter()).map(|(&z, &s)| z * s));
+}
+
+/// The backward pass through SiLU: `d` ×= silu'(z) = σ(z)(1 + z(1 − σ(z))).
+fn silu_backward(d: &mut [f32x8], z: &[f32x8], s: &[f32x8]) {
+    #[cfg(target_arch = "x86_64")]
+    if groundwork_core::cpu::avx512() {
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has every feature `avx512::silu_backward` is compiled with.
+        unsafe {
+            avx512::silu_backward(d, z, s)
+        };
+        return;
+    }
+    silu_backward_portable(d, z, s);
+}
+
+/// [`silu_backward`] in `wide`'s vectors of 8.
+fn silu_backward_portable(d: &mut [f32x8], z: &[f32x8], s: &[f32x8]) {
+    let one = f32x8::ONE;
+    for ((d, &z), &s) in d.iter_mut().zip(z).zip(s) {
+        *d *= s * z.mul_add(one - s, one);
+    }
 }
 
 /// σ(z) for every lane.
@@ -350,13 +421,7 @@ impl Mlp {
             if last {
                 ws.output = z;
             } else {
-                let s = &mut ws.sigmoids[l];
-                s.clear();
-                s.extend(z.iter().map(|&z| sigmoid(z)));
-                // SiLU: z σ(z).
-                let next = &mut ws.inputs[l + 1];
-                next.clear();
-                next.extend(z.iter().zip(s.iter()).map(|(&z, &s)| z * s));
+                activate(&z, &mut ws.sigmoids[l], &mut ws.inputs[l + 1]);
                 ws.pre[l] = z;
             }
         }
@@ -402,11 +467,7 @@ impl Mlp {
             // (`layer` writes every element.)
             let a = &mut da[..i * vecs];
             layer(&self.params[wo..bo], None, i, o, d, a);
-            let (z, s) = (&ws.pre[l - 1], &ws.sigmoids[l - 1]);
-            let one = f32x8::ONE;
-            for ((d, &z), &s) in a.iter_mut().zip(z).zip(s) {
-                *d *= s * z.mul_add(one - s, one);
-            }
+            silu_backward(a, &ws.pre[l - 1], &ws.sigmoids[l - 1]);
             std::mem::swap(&mut dz, &mut da);
         }
         ws.grad_a = dz;
@@ -540,6 +601,88 @@ mod tests {
         let mut p = vec![0.0f32];
         opt.step(&mut p, &[3.0], 0.1);
         assert!((p[0] + 0.1).abs() < 1e-5, "{p:?}");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    /// Vectors of values spread over what the network sees and beyond: small and large,
+    /// both signs, the sigmoid's clamps, zeros of both signs.
+    fn values(n: usize, rng: &mut ChaCha8Rng) -> Vec<f32x8> {
+        let mut v: Vec<f32> = (0..n * LANES)
+            .map(|i| match i % 7 {
+                0 => rng.random_range(-100.0f32..100.0),
+                1 => rng.random_range(-1e-3f32..1e-3),
+                _ => rng.random_range(-4.0f32..4.0),
+            })
+            .collect();
+        for (i, x) in [0.0, -0.0, 87.5, -87.5, 80.0, -80.0, 1e30, -1e30]
+            .into_iter()
+            .enumerate()
+        {
+            v[i * 5] = x;
+        }
+        v.chunks_exact(LANES)
+            .map(|c| f32x8::from(<[f32; LANES]>::try_from(c).unwrap_or_default()))
+            .collect()
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    fn bits(v: &[f32x8]) -> Vec<u32> {
+        v.iter()
+            .flat_map(|v| v.to_array().map(f32::to_bits))
+            .collect()
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_avx512_passes_give_the_portable_bits() {
+        if !groundwork_core::cpu::avx512() {
+            eprintln!("no AVX-512 here (or turned off): only the portable passes run");
+            return;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        // Widths as the network's (2 → 32 → 32 → 1) and odd ones (single outputs left
+        // after blocks of four), with and without a bias; three blocks of points.
+        for (p, q) in [(32, 2), (32, 32), (1, 32), (2, 32), (7, 5), (5, 1)] {
+            let blocks = 3;
+            let a = values(q * ROW_BLOCK * blocks, &mut rng);
+            let wk: Vec<f32> = (0..p * q).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let b: Vec<f32> = (0..p).map(|_| rng.random_range(-1.0..1.0)).collect();
+            for bias in [Some(&b[..]), None] {
+                let mut want = vec![f32x8::ZERO; p * ROW_BLOCK * blocks];
+                let mut got = want.clone();
+                layer_portable(&wk, bias, p, q, &a, &mut want);
+                #[allow(unsafe_code)]
+                // SAFETY: the CPU has AVX-512 (checked above).
+                unsafe {
+                    avx512::layer(&wk, bias, p, q, &a, &mut got)
+                };
+                assert_eq!(
+                    bits(&got),
+                    bits(&want),
+                    "layer {p} × {q}, bias {}",
+                    bias.is_some()
+                );
+            }
+        }
+        let z = values(4 * 40, &mut rng);
+        let (mut s0, mut n0, mut s1, mut n1) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        activate_portable(&z, &mut s0, &mut n0);
+        #[allow(unsafe_code)]
+        // SAFETY: as above.
+        unsafe {
+            avx512::activate(&z, &mut s1, &mut n1)
+        };
+        assert_eq!(bits(&s1), bits(&s0), "σ");
+        assert_eq!(bits(&n1), bits(&n0), "SiLU");
+        let d = values(z.len(), &mut rng);
+        let (mut d0, mut d1) = (d.clone(), d);
+        silu_backward_portable(&mut d0, &z, &s0);
+        #[allow(unsafe_code)]
+        // SAFETY: as above.
+        unsafe {
+            avx512::silu_backward(&mut d1, &z, &s0)
+        };
+        assert_eq!(bits(&d1), bits(&d0), "SiLU backward");
     }
 
     #[test]

@@ -22,35 +22,10 @@ use super::{LOG_FLOOR, QComp};
 use crate::fastmath::{EXP2_POLY, EXP2_ROUND};
 use crate::simd::Vf;
 
-/// The environment variable that turns run-time CPU features off (comma-separated, e.g.
-/// `avx512`), as NumPy's `NPY_DISABLE_CPU_FEATURES` does: to measure what a CPU without
-/// them gets, on one that has them. The results are the same bits either way.
-const DISABLE_CPU_FEATURES: &str = "GROUNDWORK_DISABLE_CPU_FEATURES";
-
-/// Whether the comma-separated list `value` names AVX-512 (any case, spaces ignored).
-pub(crate) fn names_avx512(value: &str) -> bool {
-    value
-        .split(',')
-        .any(|f| f.trim().eq_ignore_ascii_case("avx512"))
-}
-
-/// Whether this CPU runs `eval_run_avx512` and [`add_fixed`], and
-/// [`DISABLE_CPU_FEATURES`] does not turn them off (decided once per process).
+/// Whether this CPU runs `eval_run_avx512` and [`add_fixed`] (see [`crate::cpu::avx512`]).
 #[inline]
 pub(super) fn available() -> bool {
-    static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *AVAILABLE.get_or_init(|| {
-        // What `eval_run_avx512` is compiled with.
-        let cpu = std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512vl")
-            && std::is_x86_feature_detected!("avx512bw")
-            && std::is_x86_feature_detected!("avx512dq");
-        let off = std::env::var(DISABLE_CPU_FEATURES).is_ok_and(|v| names_avx512(&v));
-        if cpu && off {
-            tracing::info!("AVX-512 present but turned off by {DISABLE_CPU_FEATURES}");
-        }
-        cpu && !off
-    })
+    crate::cpu::avx512()
 }
 
 #[inline(always)]
@@ -221,16 +196,6 @@ mod tests {
     use super::*;
     use crate::query::{LaneSums, log_density, regrid};
     use proptest::prelude::*;
-
-    #[test]
-    fn the_switch_names_avx512_in_a_list() {
-        for on in ["avx512", "AVX512", " avx512 ", "sse4,avx512", "avx512,"] {
-            assert!(names_avx512(on), "{on:?}");
-        }
-        for off in ["", "avx2", "avx5120", "avx512f", "noavx512"] {
-            assert!(!names_avx512(off), "{off:?}");
-        }
-    }
 
     fn comp() -> impl Strategy<Value = QComp> {
         (
