@@ -103,50 +103,52 @@ fn gather_by_cell(
                 })
         })
     };
-    let mut counts = [0u32; 1 << DIGIT_BITS];
-    let mask = (1u32 << DIGIT_BITS) - 1;
-    for e in source() {
-        counts[(e.cell & mask) as usize] += 1;
-    }
-    let mut sum = 0;
-    for c in counts.iter_mut() {
-        (*c, sum) = (sum, sum + *c);
-    }
-    entries.clear();
-    entries.resize(sum as usize, Entry::default());
-    for e in source() {
-        let slot = &mut counts[(e.cell & mask) as usize];
-        entries[*slot as usize] = e;
-        *slot += 1;
-    }
+    scatter_by_digit(source, 0, entries, false);
     sort_by_cell_from(DIGIT_BITS, entries, spare, bits);
 }
 
 /// [`sort_by_cell`]'s passes from the digit at bit `first` on (the lower digits sorted).
 fn sort_by_cell_from(first: u32, entries: &mut Vec<Entry>, spare: &mut Vec<Entry>, bits: u32) {
+    for shift in (first..bits).step_by(DIGIT_BITS as usize) {
+        if scatter_by_digit(|| entries.iter().copied(), shift, spare, true) {
+            std::mem::swap(entries, spare);
+        }
+    }
+}
+
+/// One stable counting pass: the entries `source` yields (it is read twice: counted, then
+/// placed) into `out`, ordered by the digit of their cell at bit `shift`. With
+/// `skip_one_bucket`, entries that all share that digit are not moved; returns whether
+/// `out` was written.
+#[inline(always)]
+fn scatter_by_digit<I: Iterator<Item = Entry>>(
+    source: impl Fn() -> I,
+    shift: u32,
+    out: &mut Vec<Entry>,
+    skip_one_bucket: bool,
+) -> bool {
     let mut counts = [0u32; 1 << DIGIT_BITS];
     let mask = (1u32 << DIGIT_BITS) - 1;
-    for shift in (first..bits).step_by(DIGIT_BITS as usize) {
-        counts.fill(0);
-        for e in entries.iter() {
-            counts[((e.cell >> shift) & mask) as usize] += 1;
-        }
-        if counts.iter().any(|&c| c as usize == entries.len()) {
-            continue; // one bucket: nothing moves
-        }
-        let mut sum = 0;
-        for c in counts.iter_mut() {
-            (*c, sum) = (sum, sum + *c);
-        }
-        spare.clear();
-        spare.resize(entries.len(), Entry::default());
-        for e in entries.iter() {
-            let slot = &mut counts[((e.cell >> shift) & mask) as usize];
-            spare[*slot as usize] = *e;
-            *slot += 1;
-        }
-        std::mem::swap(entries, spare);
+    let mut n = 0u32;
+    for e in source() {
+        counts[((e.cell >> shift) & mask) as usize] += 1;
+        n += 1;
     }
+    if skip_one_bucket && counts.contains(&n) {
+        return false; // one bucket: nothing moves
+    }
+    let mut sum = 0;
+    for c in counts.iter_mut() {
+        (*c, sum) = (sum, sum + *c);
+    }
+    out.clear();
+    out.resize(n as usize, Entry::default());
+    for e in source() {
+        let slot = &mut counts[((e.cell >> shift) & mask) as usize];
+        out[*slot as usize] = e;
+        *slot += 1;
+    }
+    true
 }
 
 /// Sorts one cell's entries by height, ties in input order (they arrive in input order: the

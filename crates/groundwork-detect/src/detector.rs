@@ -240,12 +240,13 @@ impl Grouped {
         labelled: impl Iterator<Item = (&'a Maybe, u32)> + Clone,
         clusters: usize,
     ) {
+        // Points of no cluster (`u32::MAX`) are left out; a label beyond `clusters` (none
+        // is) would be too.
+        let labelled = labelled.filter(move |&(_, c)| (c as usize) < clusters);
         self.start.clear();
         self.start.resize(clusters + 1, 0);
         for (_, c) in labelled.clone() {
-            if let Some(n) = self.start.get_mut(c as usize + 1) {
-                *n += 1;
-            }
+            self.start[c as usize + 1] += 1;
         }
         for k in 1..self.start.len() {
             self.start[k] += self.start[k - 1];
@@ -254,10 +255,9 @@ impl Grouped {
         self.items.resize(self.start[clusters], Maybe::default());
         let mut slot = self.start.clone();
         for (m, c) in labelled {
-            if let Some(s) = slot.get_mut(c as usize) {
-                self.items[*s] = *m;
-                *s += 1;
-            }
+            let s = &mut slot[c as usize];
+            self.items[*s] = *m;
+            *s += 1;
         }
     }
 
