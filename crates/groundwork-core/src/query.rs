@@ -396,7 +396,7 @@ fn eval_run(asked: &Asked<'_>, run: Run<'_>, past: &mut SegmentRuns) {
     // With one frame there are no past components, and the AVX-512 build of the rest
     // measured 1–4 % slower.
     #[cfg(target_arch = "x86_64")]
-    if (asked.frames.len() > 1 || asked.regridded.is_some()) && avx512::available() {
+    if (asked.frames.len() > 1 || asked.regridded.is_some()) && crate::cpu::avx512() {
         #[allow(unsafe_code)]
         // SAFETY: the CPU has every feature eval_run_avx512 is compiled with.
         unsafe {
@@ -657,7 +657,7 @@ impl LaneSums {
             let sums = [self.sum, self.flat, self.orient, self.elev];
             #[allow(unsafe_code)]
             // SAFETY: `AVX512` is set only inside `eval_run_avx512`, which is compiled with
-            // AVX-512F and called only after `avx512::available`.
+            // AVX-512F and called only after `cpu::avx512`.
             let [sum, flat, orient, elev] =
                 unsafe { avx512::add_fixed(comps, p, reference, hit, sums) };
             (self.sum, self.flat, self.orient, self.elev) = (sum, flat, orient, elev);

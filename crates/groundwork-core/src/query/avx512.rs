@@ -22,12 +22,6 @@ use super::{LOG_FLOOR, QComp};
 use crate::fastmath::{EXP2_POLY, EXP2_ROUND};
 use crate::simd::Vf;
 
-/// Whether this CPU runs `eval_run_avx512` and [`add_fixed`] (see [`crate::cpu::avx512`]).
-#[inline]
-pub(super) fn available() -> bool {
-    crate::cpu::avx512()
-}
-
 #[inline(always)]
 fn wide(v: Vf) -> __m512 {
     // SAFETY: both are 16 f32 lanes in 64 bytes (`wide`'s is `repr(C)`: lanes 0–7, then
@@ -48,7 +42,7 @@ pub(super) type Sums = [Vf; 4];
 /// `p` relative to `reference`, as the portable loop in `LaneSums::add_segment` does.
 ///
 /// # Safety
-/// The CPU must have AVX-512F ([`available`]). Call it only from a function compiled with
+/// The CPU must have AVX-512F ([`crate::cpu::avx512`]). Call it only from a function compiled with
 /// AVX-512F enabled: it is inlined there, and its intrinsics with it (a caller without the
 /// feature gets no inlined intrinsics, only slow calls).
 #[inline(always)]
@@ -223,7 +217,7 @@ mod tests {
             size in proptest::array::uniform3(0.0f32..5.0),
             floor in -60.0f32..10.0,
         ) {
-            if !available() {
+            if !crate::cpu::avx512() {
                 return Ok(());
             }
             let hi = std::array::from_fn(|k| lo[k] + size[k]);
@@ -246,7 +240,7 @@ mod tests {
             hit in proptest::array::uniform16(proptest::bool::ANY),
             start in proptest::array::uniform4(0.0f32..2.0),
         ) {
-            if !available() {
+            if !crate::cpu::avx512() {
                 return Ok(());
             }
             let p = xyz.map(Vf::new);

@@ -245,7 +245,7 @@ pub(super) fn list_reaching<const AVX512: bool>(
     if AVX512 {
         #[allow(unsafe_code)]
         // SAFETY: `AVX512` is set only inside code compiled with AVX-512F and run after
-        // `avx512::available` (as for `LaneSums::add_fixed`).
+        // `cpu::avx512` (as for `LaneSums::add_fixed`).
         return unsafe { super::avx512::list_reaching(blocks, lo, hi, floor, live) };
     }
     let mut n = 0;
