@@ -23,6 +23,24 @@ use wide::f32x8;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
 
+/// Calls `avx512::$fast` where the CPU has AVX-512 ([`groundwork_core::cpu::avx512`]) and
+/// returns; otherwise falls through to the portable code after it. The copies give the same
+/// bits, so the choice changes only the time.
+macro_rules! avx512_if_present {
+    ($fast:ident($($arg:expr),*)) => {
+        #[cfg(target_arch = "x86_64")]
+        if groundwork_core::cpu::avx512() {
+            #[allow(unsafe_code)]
+            // SAFETY: every function of `avx512` is compiled with exactly the features
+            // `cpu::avx512` checks for.
+            unsafe {
+                avx512::$fast($($arg),*)
+            };
+            return;
+        }
+    };
+}
+
 /// Points per vector.
 const LANES: usize = 8;
 /// Vectors of points per block: a pass's points are padded to a multiple of
@@ -86,15 +104,7 @@ fn lane_sum(v: f32x8) -> f32 {
 /// sums its q terms in input order, starting from its bias. In 512-bit registers where the
 /// CPU has AVX-512 (the same bits).
 fn layer(wk: &[f32], bias: Option<&[f32]>, p: usize, q: usize, a: &[f32x8], z: &mut [f32x8]) {
-    #[cfg(target_arch = "x86_64")]
-    if groundwork_core::cpu::avx512() {
-        #[allow(unsafe_code)]
-        // SAFETY: the CPU has every feature `avx512::layer` is compiled with.
-        unsafe {
-            avx512::layer(wk, bias, p, q, a, z)
-        };
-        return;
-    }
+    avx512_if_present!(layer(wk, bias, p, q, a, z));
     layer_portable(wk, bias, p, q, a, z);
 }
 
@@ -224,15 +234,7 @@ fn row(block: &[f32x8], r: usize) -> &[f32x8; ROW_BLOCK] {
 
 /// A hidden layer's activation: σ(z) into `s` and SiLU, z σ(z), into `next`.
 fn activate(z: &[f32x8], s: &mut Vec<f32x8>, next: &mut Vec<f32x8>) {
-    #[cfg(target_arch = "x86_64")]
-    if groundwork_core::cpu::avx512() {
-        #[allow(unsafe_code)]
-        // SAFETY: the CPU has every feature `avx512::activate` is compiled with.
-        unsafe {
-            avx512::activate(z, s, next)
-        };
-        return;
-    }
+    avx512_if_present!(activate(z, s, next));
     activate_portable(z, s, next);
 }
 
@@ -246,15 +248,7 @@ fn activate_portable(z: &[f32x8], s: &mut Vec<f32x8>, next: &mut Vec<f32x8>) {
 
 /// The backward pass through SiLU: `d` ×= silu'(z) = σ(z)(1 + z(1 − σ(z))).
 fn silu_backward(d: &mut [f32x8], z: &[f32x8], s: &[f32x8]) {
-    #[cfg(target_arch = "x86_64")]
-    if groundwork_core::cpu::avx512() {
-        #[allow(unsafe_code)]
-        // SAFETY: the CPU has every feature `avx512::silu_backward` is compiled with.
-        unsafe {
-            avx512::silu_backward(d, z, s)
-        };
-        return;
-    }
+    avx512_if_present!(silu_backward(d, z, s));
     silu_backward_portable(d, z, s);
 }
 
