@@ -64,18 +64,12 @@ impl SegmentCounts {
     pub(crate) fn of(bins: &[u32], segments: usize) -> Self {
         let mut counts = vec![0; 2 * segments];
         // Consecutive points mostly share a segment (a sensor sweeps one sector after the
-        // other): a run is counted in a register and added once. A memory increment per
-        // point waited on the previous one's store.
-        let (mut run_key, mut run) = (0usize, 0u32);
-        for key in bins.iter().filter_map(|&b| bin_key(b, segments)) {
-            if key != run_key {
-                counts[run_key] += run;
-                (run_key, run) = (key, 0);
+        // other): a run is counted once. A memory increment per point waited on the
+        // previous one's store.
+        for (b, run) in runs(bins) {
+            if let Some(key) = bin_key(b, segments) {
+                counts[key] += run.len() as u32;
             }
-            run += 1;
-        }
-        if let Some(c) = counts.get_mut(run_key) {
-            *c += run;
         }
         Self { counts }
     }
@@ -237,24 +231,14 @@ impl Copy<'_> {
             .map(|&a| a as usize - base)
             .collect();
         let [xs, ys, zs] = self.out;
-        // Consecutive points mostly share a segment: the current run's cursor stays in a
-        // register (a memory increment per point waited on the previous one's store).
-        let (mut run_seg, mut j) = (usize::MAX, 0usize);
-        for (i, &b) in bins.iter().enumerate() {
+        for (b, run) in runs(bins) {
             let seg = b as usize;
             if b & BEYOND != 0 || seg < lo || seg >= hi {
                 continue;
             }
-            if seg != run_seg {
-                if let Some(c) = cursor.get_mut(run_seg.wrapping_sub(lo)) {
-                    *c = j;
-                }
-                (run_seg, j) = (seg, cursor[seg - lo]);
-            }
-            xs[j] = ground.x[i];
-            ys[j] = ground.y[i];
-            zs[j] = ground.z[i];
-            j += 1;
+            let j = cursor[seg - lo];
+            cursor[seg - lo] = j + run.len();
+            copy_run([xs, ys, zs], j, ground, run);
         }
     }
 
@@ -286,33 +270,57 @@ impl Copy<'_> {
             .collect();
         let [xs, ys, zs] = self.out;
         let QueryGroups { place, beyond, .. } = q;
-        let (mut run_key, mut j) = (usize::MAX, 0usize);
-        for (i, (&b, place)) in bins.iter().zip(place.iter_mut()).enumerate() {
+        let GroundPoints {
+            x: bx,
+            y: by,
+            z: bz,
+        } = beyond;
+        for (b, run) in runs(bins) {
             // Beyond-range points are asked only under the outer-ring policy.
             let key = bin_key(b, segments).filter(|&k| k < segments || outer_ring);
             let Some(key) = key else {
-                *place = UNQUERIED;
+                place[run].fill(UNQUERIED);
                 continue;
             };
-            if key != run_key {
-                if let Some(c) = cursor.get_mut(run_key) {
-                    *c = j;
-                }
-                (run_key, j) = (key, cursor[key]);
-            }
+            let j = cursor[key];
+            cursor[key] = j + run.len();
             if key >= segments {
-                let k = j - total;
-                beyond.x[k] = ground.x[i];
-                beyond.y[k] = ground.y[i];
-                beyond.z[k] = ground.z[i];
+                copy_run([bx, by, bz], j - total, ground, run.clone());
             } else if key >= lo && key < hi {
-                let k = j - base;
-                xs[k] = ground.x[i];
-                ys[k] = ground.y[i];
-                zs[k] = ground.z[i];
+                copy_run([xs, ys, zs], j - base, ground, run.clone());
             }
-            *place = j as u32;
-            j += 1;
+            for (p, k) in place[run].iter_mut().zip(j as u32..) {
+                *p = k;
+            }
+        }
+    }
+}
+
+/// The runs of equal bins in `bins`: a sensor sweeps one sector after the other, so
+/// consecutive points mostly share a segment (about 20 to a run on KITTI scans). A run is
+/// looked up and copied once, where a point at a time tested its key and moved a cursor
+/// (one thread: 0.94–0.95 of the scan's time on KITTI, 1.00 on the same scans shuffled).
+fn runs(bins: &[u32]) -> impl Iterator<Item = (u32, std::ops::Range<usize>)> + '_ {
+    let mut i = 0;
+    std::iter::from_fn(move || {
+        let &b = bins.get(i)?;
+        let len = bins[i..]
+            .iter()
+            .position(|&c| c != b)
+            .unwrap_or(bins.len() - i);
+        let run = i..i + len;
+        i += len;
+        Some((b, run))
+    })
+}
+
+/// Copies the coordinates of input points `run` to `out` from position `at` on.
+#[inline(always)]
+fn copy_run(out: [&mut [f64]; 3], at: usize, ground: &GroundPoints, run: std::ops::Range<usize>) {
+    let to = at..at + run.len();
+    for (o, v) in out.into_iter().zip([&ground.x, &ground.y, &ground.z]) {
+        for (o, v) in o[to.clone()].iter_mut().zip(&v[run.clone()]) {
+            *o = *v;
         }
     }
 }
@@ -415,6 +423,8 @@ mod tests {
                 group_points(&mut sorted, &mut q, &ground, &bins, &counts, s, policy);
                 let xs: Vec<f64> = inside.iter().map(|&i| i as f64).collect();
                 assert_eq!(sorted.xs, xs, "{segments} segments, {policy:?}");
+                let ys: Vec<f64> = inside.iter().map(|&i| -(i as f64)).collect();
+                assert_eq!(sorted.ys, ys);
                 let zs: Vec<f64> = inside.iter().map(|&i| i as f64 * 0.5).collect();
                 assert_eq!(sorted.zs, zs);
                 for w in sorted.start.windows(2).enumerate() {
@@ -434,6 +444,10 @@ mod tests {
                     }
                     let bx: Vec<f64> = outside.iter().map(|&i| i as f64).collect();
                     assert_eq!(q.beyond.x, bx);
+                    let by: Vec<f64> = outside.iter().map(|&i| -(i as f64)).collect();
+                    assert_eq!(q.beyond.y, by);
+                    let bz: Vec<f64> = outside.iter().map(|&i| i as f64 * 0.5).collect();
+                    assert_eq!(q.beyond.z, bz);
                     assert_eq!(q.beyond_start.last().copied(), Some(outside.len() as u32));
                 } else {
                     assert!(q.beyond.x.is_empty());
