@@ -1,7 +1,8 @@
 //! What every method here does before it looks at a scan: check it, and move it into the
 //! ground-aligned frame of the sensor's mount (x forward, y left, z up), leaving out the
-//! ego vehicle's own returns. The same sensor standardisation as the GMM segmenter's, for
-//! the methods beside it (PseudoLabeler, RANSAC) and the detector.
+//! ego vehicle's own returns and the no-return placeholders some drivers send at the
+//! sensor's origin. The same sensor standardisation as the GMM segmenter's, for the methods
+//! beside it (PseudoLabeler, RANSAC) and the detector.
 
 use crate::config::mount_transform;
 use crate::error::{ConfigError, SegmentError};
@@ -22,7 +23,9 @@ pub struct GroundFrame {
 pub struct Prepared {
     /// Every point, transformed, in input order.
     pub xyz: Vec<[f32; 3]>,
-    /// Whether a point takes part (false: inside the ego radius; probability 0).
+    /// Whether a point takes part (false: inside the ego radius, or exactly at the sensor's
+    /// origin, the placeholder Ouster and Livox drivers send for a missing return;
+    /// probability 0).
     pub usable: Vec<bool>,
 }
 
@@ -111,11 +114,50 @@ impl GroundFrame {
             });
         }
         self.check(points)?;
-        let xyz: Vec<[f32; 3]> = points.par_iter().map(|p| self.to_ground(p.xyz())).collect();
-        let usable = xyz
-            .iter()
-            .map(|q| q[0] * q[0] + q[1] * q[1] >= self.ego_radius_sq)
-            .collect();
+        let (xyz, usable) = points
+            .par_iter()
+            .map(|p| {
+                let s = p.xyz();
+                let q = self.to_ground(s);
+                let usable = s != [0.0; 3] && q[0] * q[0] + q[1] * q[1] >= self.ego_radius_sq;
+                (q, usable)
+            })
+            .unzip();
         Ok(Prepared { xyz, usable })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::MountConfig;
+
+    #[test]
+    fn placeholders_at_the_origin_and_the_ego_disc_are_left_out() {
+        let mount = MountConfig {
+            height: 1.4,
+            pitch: 0.1,
+            ..Default::default()
+        };
+        let pose = mount_transform(&mount).unwrap();
+        let points = [
+            [0.0f32, 0.0, 0.0],
+            [-0.0, 0.0, -0.0],
+            [1e-3, 0.0, 0.0],
+            [5.0, 1.0, -1.4],
+        ];
+        // No ego radius: only the exact origin is a placeholder (a Livox or Ouster driver's
+        // missing return), not a point a millimetre from it.
+        let p = GroundFrame::new(&pose, 0.0, 10)
+            .prepare(&points, &[0.0; 4])
+            .unwrap();
+        assert_eq!(p.usable, [false, false, true, true]);
+        // The origin is moved like any point (it sits at the sensor's height).
+        assert!((p.xyz[0][2] - 1.4).abs() < 1e-6);
+        // With an ego radius, the disc too.
+        let p = GroundFrame::new(&pose, 2.0, 10)
+            .prepare(&points, &[0.0; 4])
+            .unwrap();
+        assert_eq!(p.usable, [false, false, false, true]);
     }
 }
