@@ -494,6 +494,55 @@ fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() 
     assert_eq!(one.held_out_after, fit.held_out_after);
 }
 
+/// A sample with hardly any trusted ground (a sensor that first sees ground beyond the
+/// first trusted ring: here the street's points within 9.5 m dropped, so the first ring holds
+/// what falls between 9.5 and 10 m) is not fitted: the preset stays, no search runs, and the
+/// report says how few points there were. Without the minimum the search runs on them.
+#[test]
+fn a_sample_with_too_few_trusted_points_keeps_the_preset_unsearched() {
+    let (scans, ground) = synthetic_street();
+    let (far, far_ground): (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>) = scans
+        .iter()
+        .zip(&ground)
+        .map(|(s, g)| {
+            s.iter()
+                .zip(g)
+                .filter(|(p, _)| f64::from(p[0]).hypot(f64::from(p[1])) >= 9.5)
+                .map(|(p, &g)| (*p, g))
+                .unzip()
+        })
+        .unzip();
+    let sample = groundwork_calibrate::LabeledScan::pair(&far, &far_ground);
+    let base = spoiled_vlp16();
+    let default = groundwork_calibrate::ParamSearchConfig::default();
+    let fit = groundwork_calibrate::fit_parameters(&base, &sample, &default, |_, _| {}).unwrap();
+    eprintln!(
+        "{:.0} trusted points a scan within {} m ({:?})",
+        fit.trusted_points_per_scan, fit.trusted_range, fit.ring_agreement
+    );
+    assert!(fit.too_few_trusted_points, "{:?}", fit.history);
+    assert!(fit.trusted_points_per_scan < default.min_trusted_points as f64);
+    assert!(fit.kept_preset && fit.config == base && fit.changed.is_empty());
+    assert_eq!((fit.evaluations, fit.history.len()), (1, 1));
+    // The same sample with no minimum: the search runs.
+    let no_minimum = groundwork_calibrate::ParamSearchConfig {
+        min_trusted_points: 0,
+        ..default
+    };
+    let searched =
+        groundwork_calibrate::fit_parameters(&base, &sample, &no_minimum, |_, _| {}).unwrap();
+    assert!(!searched.too_few_trusted_points);
+    assert!(searched.evaluations > 1, "{:?}", searched.history);
+    // The whole street holds thousands a scan there: fitted as before.
+    let whole = groundwork_calibrate::LabeledScan::pair(&scans, &ground);
+    let fit = groundwork_calibrate::fit_parameters(&base, &whole, &default, |_, _| {}).unwrap();
+    assert!(
+        !fit.too_few_trusted_points && fit.trusted_points_per_scan > 1000.0,
+        "{}",
+        fit.trusted_points_per_scan
+    );
+}
+
 /// The held-out part decides: where its labels contradict the fitted part's (here, every
 /// held-out label inverted, a labeler wrong on those scans), what the search gains on the
 /// fitted part is not kept, and the preset's parameters come back unchanged.

@@ -257,7 +257,8 @@ fn history_maps_points_through_mount_and_turning_poses() {
 /// The PseudoLabeler's defaults, unchanged, on sensors other than the HDL-64E: the tilted
 /// (3° pitch) forward-facing Livox-like sensor in the street, an Ouster off-road, a VLP-16
 /// in a car park (terraseg protocol, frames 0–3, seed 1). Measured mIoU (pseudolabeler /
-/// ransac / gmm): livox urban 96.22 / 91.67 / 97.24; os1-64 offroad 73.52 / 48.96 / 78.62;
+/// ransac / gmm): livox urban 96.27 / 91.73 / 97.24 (96.22 / 91.67 before 2026-12-04, when
+/// the placeholders at the origin were still fitted); os1-64 offroad 73.52 / 48.96 / 78.62;
 /// vlp16 parking 91.93 / 97.55 / 92.20 (a flat car park is RANSAC's best case). The gmm
 /// figures, for comparison only, are `groundwork synth --frames 4 --seed 1` then `groundwork
 /// eval --protocol terraseg` with the presets of 2026-11-30 (default history). Thresholds are
@@ -772,7 +773,12 @@ fn fitted_to_pseudolabels(
             .skip(1)
             .map(|r| r.held_out_iou)
             .fold(fit.held_out_before.iou(), f64::max),
-        if fit.kept_preset {
+        if fit.too_few_trusted_points {
+            format!(
+                "kept the preset: too few trusted points ({:.0} a scan)",
+                fit.trusted_points_per_scan
+            )
+        } else if fit.kept_preset {
             "kept the preset".to_owned()
         } else {
             fit.changed

@@ -250,7 +250,15 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .collect();
     let (parameters, parameters_refused) = match (&result, a.keep_params) {
         (Ok(est), false) => match fit_params(&methods, est, &sample, &search) {
-            Ok(fit) => (Some(fit), None),
+            Ok(fit) => {
+                if fit.too_few_trusted_points {
+                    warn!(
+                        "parameters not fitted, the preset's kept: {}",
+                        too_few_words(&fit)
+                    );
+                }
+                (Some(fit), None)
+            }
             Err(e) => {
                 // The preset's parameters are a valid outcome (as with --keep-params);
                 // the file and the report say why.
@@ -481,10 +489,17 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
         fit_figures(fit)
     );
     if fit.kept_preset {
-        s += if labels_hold_no_ground(fit) {
+        s += &if fit.too_few_trusted_points {
+            format!(
+                "# {}.\n# The preset's parameters are kept.\n",
+                too_few_words(fit)
+            )
+        } else if labels_hold_no_ground(fit) {
             "# The PseudoLabeler called nothing ground there: the preset's parameters are kept.\n"
+                .to_owned()
         } else {
             "# No change agreed better with the held-out scans: the preset's parameters are kept.\n"
+                .to_owned()
         };
         return s;
     }
@@ -496,6 +511,15 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
         let _ = writeln!(s, "{} = {}  # was {}", c.key, c.new, c.old);
     }
     s
+}
+
+/// Why a sample with too few trusted points was not fitted, in a sentence.
+fn too_few_words(fit: &ParamFit) -> String {
+    format!(
+        "Only {:.0} points a scan are ground within {} m, where the labels are trusted ({} \
+         needed): too few to fit to",
+        fit.trusted_points_per_scan, fit.trusted_range, fit.trusted_points_needed
+    )
 }
 
 /// Whether the PseudoLabeler's labels of the sample hold no ground within the trusted range:
@@ -514,12 +538,18 @@ fn params_summary(fit: &ParamFit) -> String {
         fit.evaluations
     );
     if fit.kept_preset {
-        s += if labels_hold_no_ground(fit) {
+        s += &if fit.too_few_trusted_points {
+            format!(
+                "  kept the preset's: {}\n",
+                too_few_words(fit).to_lowercase()
+            )
+        } else if labels_hold_no_ground(fit) {
             "  kept the preset's: the PseudoLabeler called nothing ground where its labels are \
              trusted, so they cannot teach (it can lose the ground where the terrain falls far \
              below the road: docs/offline-labels.md)\n"
+                .to_owned()
         } else {
-            "  kept the preset's: no change agreed better with the held-out scans\n"
+            "  kept the preset's: no change agreed better with the held-out scans\n".to_owned()
         };
     }
     for c in &fit.changed {
@@ -699,6 +729,9 @@ mod tests {
             rounds: 1,
             kept_round: 0,
             kept_preset: true,
+            trusted_points_per_scan: 0.0,
+            too_few_trusted_points: false,
+            trusted_points_needed: 500,
             history: Vec::new(),
             trusted_range: 10.0,
             ring_agreement: vec![0.0],
@@ -715,6 +748,18 @@ mod tests {
         };
         assert!(params_summary(&fit).contains("no change agreed better"));
         assert!(params_text(&base, &fit).contains("No change agreed better"));
+        // Too few trusted points: said with the figures.
+        let sparse = ParamFit {
+            trusted_points_per_scan: 115.4,
+            too_few_trusted_points: true,
+            ..fit
+        };
+        let said = params_summary(&sparse);
+        assert!(
+            said.contains("only 115 points a scan") && said.contains("500 needed"),
+            "{said}"
+        );
+        assert!(params_text(&base, &sparse).contains("# Only 115 points a scan"));
     }
 
     #[test]

@@ -998,6 +998,8 @@ fn param_fit_dict<'py>(
     };
     let d = PyDict::new(py);
     d.set_item("kept_preset", fit.kept_preset)?;
+    d.set_item("trusted_points_per_scan", fit.trusted_points_per_scan)?;
+    d.set_item("too_few_trusted_points", fit.too_few_trusted_points)?;
     let changed = pyo3::types::PyList::empty(py);
     for c in &fit.changed {
         let item = [("old", c.old), ("new", c.new)].into_py_dict(py)?;

@@ -215,7 +215,9 @@ def calibrate(
     `groundwork calibrate` does: {"ground": {...}} in the configuration where the fit was
     kept; report["parameters"]: kept_preset, changed [{name, old, new}], the agreement
     (both, segmenter_only, reference_only, iou) fitted and held out, before and after,
-    trusted_range; or report["parameters_refused"], the reason. fit_zones (not with
+    trusted_range, trusted_points_per_scan and too_few_trusted_points (fewer than 500 points
+    a scan ground there: no search, the preset kept); or report["parameters_refused"], the
+    reason. fit_zones (not with
     keep_params): the inner zones' layout fitted with the parameters, {"zones": {"min_range",
     "boundaries", "rings", "sectors"}} where it changed (`--fit-zones`). Raises ValueError,
     with the reason, when the scans cannot determine the mount."""
