@@ -491,7 +491,7 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
     if fit.kept_preset {
         s += &if fit.too_few_trusted_points {
             format!(
-                "# {}.\n# The preset's parameters are kept.\n",
+                "# Not fitted: {}.\n# The preset's parameters are kept.\n",
                 too_few_words(fit)
             )
         } else if labels_hold_no_ground(fit) {
@@ -516,7 +516,7 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
 /// Why a sample with too few trusted points was not fitted, in a sentence.
 fn too_few_words(fit: &ParamFit) -> String {
     format!(
-        "Only {:.0} points a scan are ground within {} m, where the labels are trusted ({} \
+        "only {:.0} points a scan are ground within {} m, where the labels are trusted ({} \
          needed): too few to fit to",
         fit.trusted_points_per_scan, fit.trusted_range, fit.trusted_points_needed
     )
@@ -539,10 +539,7 @@ fn params_summary(fit: &ParamFit) -> String {
     );
     if fit.kept_preset {
         s += &if fit.too_few_trusted_points {
-            format!(
-                "  kept the preset's: {}\n",
-                too_few_words(fit).to_lowercase()
-            )
+            format!("  kept the preset's: {}\n", too_few_words(fit))
         } else if labels_hold_no_ground(fit) {
             "  kept the preset's: the PseudoLabeler called nothing ground where its labels are \
              trusted, so they cannot teach (it can lose the ground where the terrain falls far \
@@ -759,7 +756,7 @@ mod tests {
             said.contains("only 115 points a scan") && said.contains("500 needed"),
             "{said}"
         );
-        assert!(params_text(&base, &sparse).contains("# Only 115 points a scan"));
+        assert!(params_text(&base, &sparse).contains("# Not fitted: only 115 points a scan"));
     }
 
     #[test]
