@@ -213,16 +213,21 @@ pub(crate) struct AnchoredFrame<'a> {
     pub transform: &'a Isometry3<f64>,
 }
 
-/// Ground probability from a point's final sums: the product of the three
-/// responsibility-weighted likelihoods.
-#[inline]
-fn probability(sum: f32, flat: f32, orient: f32, elev: f32) -> f32 {
-    if sum > 0.0 {
-        let inv = 1.0 / sum;
-        ((flat * inv) * (orient * inv) * (elev * inv)).clamp(0.0, 1.0)
-    } else {
-        0.0
-    }
+/// Ground probabilities of a vector of points from their final sums: per lane the product
+/// of the three responsibility-weighted likelihoods, in [0, 1]; 0 where nothing answered.
+/// Written out in vectors: the AVX-512 build of the query left the lane-by-lane form scalar
+/// (a division per point, 15 % of its time with two frames on an Intel Xeon), where the
+/// portable build vectorised it. The sums are finite and ≥ +0 (weights and likelihoods
+/// are), so this is the scalar `if sum > 0 { (flat/sum · orient/sum · elev/sum).clamp(0, 1) }
+/// else { 0 }` bit for bit: the same correctly rounded division and products in the same
+/// order, and no NaN or −0 for `fast_max`/`fast_min` to treat differently.
+#[inline(always)]
+fn probabilities(s: &LaneSums) -> Vf {
+    let inv = Vf::ONE / s.sum;
+    let p = (s.flat * inv) * (s.orient * inv) * (s.elev * inv);
+    s.sum
+        .simd_gt(Vf::ZERO)
+        .select(p.fast_max(Vf::ZERO).fast_min(Vf::ONE), Vf::ZERO)
 }
 
 /// Reusable buffers of the query.
@@ -548,11 +553,7 @@ fn eval_run_with<const AVX512: bool>(
             }
         }
         // The sums are final: every frame has been asked for these points.
-        let (sum, flat) = (sums.sum.to_array(), sums.flat.to_array());
-        let (orient, elev) = (sums.orient.to_array(), sums.elev.to_array());
-        for (k, p) in prob[j..j + w].iter_mut().enumerate() {
-            *p = probability(sum[k], flat[k], orient[k], elev[k]);
-        }
+        prob[j..j + w].copy_from_slice(&probabilities(&sums).to_array()[..w]);
     }
 }
 
