@@ -802,6 +802,75 @@ mod tests {
         assert_eq!(most_recent_first([1, 2, 3], 9), [9, 1, 2]);
     }
 
+    /// The scalar form [`probabilities`] stands for, a lane at a time.
+    fn probability(sum: f32, flat: f32, orient: f32, elev: f32) -> f32 {
+        if sum > 0.0 {
+            let inv = 1.0 / sum;
+            ((flat * inv) * (orient * inv) * (elev * inv)).clamp(0.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// [`probabilities`] as the AVX-512 query compiles it.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq")]
+    fn probabilities_avx512(s: &LaneSums) -> Vf {
+        probabilities(s)
+    }
+
+    proptest::proptest! {
+        /// Sums as the query builds them (a lane's sum 0, or at least the reference's 1
+        /// and up to thousands; each weighted likelihood between 0 and its sum): the
+        /// vectors give the scalar form's bits, in the portable build and in the AVX-512
+        /// one where the CPU has it.
+        #[test]
+        fn a_vector_of_probabilities_is_the_scalar_form_lane_by_lane(
+            lanes in proptest::collection::vec(
+                (
+                    proptest::prop_oneof![
+                        1 => proptest::strategy::Just(0.0f32),
+                        4 => 1.0f32..4096.0,
+                        1 => 1e-30f32..1.0,
+                    ],
+                    proptest::array::uniform3(0.0f32..=1.0),
+                ),
+                LANES,
+            )
+        ) {
+            // Lane i's sum and its k-th weighted likelihood (k = 3: the sum itself).
+            let get = |k: usize| {
+                Vf::new(std::array::from_fn(|i| {
+                    let (sum, shares) = lanes[i];
+                    if k == 3 { sum } else { sum * shares[k] }
+                }))
+            };
+            let sums = LaneSums {
+                max: Vf::ZERO,
+                sum: get(3),
+                flat: get(0),
+                orient: get(1),
+                elev: get(2),
+            };
+            let expected: Vec<u32> = (0..LANES)
+                .map(|i| {
+                    let at = |v: Vf| v.to_array()[i];
+                    probability(at(sums.sum), at(sums.flat), at(sums.orient), at(sums.elev))
+                        .to_bits()
+                })
+                .collect();
+            let bits = |v: Vf| v.to_array().map(f32::to_bits).to_vec();
+            proptest::prop_assert_eq!(bits(probabilities(&sums)), expected.clone());
+            #[cfg(target_arch = "x86_64")]
+            if crate::cpu::avx512() {
+                #[allow(unsafe_code)]
+                // SAFETY: the CPU has every feature the function is compiled with.
+                let v = unsafe { probabilities_avx512(&sums) };
+                proptest::prop_assert_eq!(bits(v), expected);
+            }
+        }
+    }
+
     /// [`Bin`] in the packed form (for the direct evaluation in tests).
     fn pack(bin: Bin) -> u32 {
         match bin {
