@@ -228,6 +228,46 @@ fn kitti_in_a_tilted_mount_is_calibrated() {
     assert!(precision >= 99.3, "{precision:.2}");
 }
 
+/// Scans of two mounts in one calibration (KITTI's, and the same frames 0.6 m higher): a
+/// few are outvoted and named by their place; a quarter or more is a refusal that says the
+/// inputs are of more than one mount.
+#[test]
+fn scans_of_another_mount_are_named_or_refused() {
+    let hdl64e = sensor_preset("hdl64e").unwrap().sensor.mount;
+    let cfg = MountSearchConfig::default();
+    let higher = MountConfig {
+        height: hdl64e.height + 0.6,
+        ..hdl64e.clone()
+    };
+    let (own, high) = (
+        xyz(&kitti_seen_from(&hdl64e)),
+        xyz(&kitti_seen_from(&higher)),
+    );
+    // Twelve scans of KITTI's mount, one of the higher one at place 5.
+    let mut mixed: Vec<Vec<[f32; 3]>> = own.iter().chain(&own).cloned().collect();
+    mixed.insert(5, high[0].clone());
+    let found = calibrate(&mixed, &hdl64e, &cfg).unwrap();
+    assert_eq!(found.disagreeing, [5], "{found:?}");
+    assert!(
+        (found.height.value - hdl64e.height).abs() < 0.06,
+        "{found:?}"
+    );
+    // Twelve and four: refused, with the heights.
+    mixed.extend(high[1..4].iter().cloned());
+    let e = calibrate(&mixed, &hdl64e, &cfg).unwrap_err().to_string();
+    assert!(
+        e.contains("4 of 16 scans") && e.contains("more than one"),
+        "{e}"
+    );
+    // One mount: nobody is named.
+    assert!(
+        calibrate(&own, &hdl64e, &cfg)
+            .unwrap()
+            .disagreeing
+            .is_empty()
+    );
+}
+
 /// The segmenter observes the mount in the ground it fits: told a mount 4° off in pitch and
 /// 20 cm off in height, it sees the true one (within 1° and 10 cm: it is a check, not a
 /// calibration; in this urban scene the crown and the lawns tilt its plane by 0.8°; the

@@ -1102,6 +1102,36 @@ fn a_stage_that_exits_while_the_pipeline_runs_is_restarted_or_fails_it() {
     assert!(pl.log().contains("restarting"), "{}", pl.log());
     let out = std::fs::read_to_string(tmp.path().join("pipeline.out")).unwrap();
     assert!(out.contains("2 segmenter run(s)"), "{out}");
+
+    // The consumer is the stage whose end ends the pipeline: stopped by a signal before its
+    // count, it did not finish (exit 4), so the pipeline fails or restarts it.
+    for (sig, restart) in [(Signal::TERM, false), (Signal::INT, true)] {
+        let p = prefix(&format!("term-consumer-{restart}"));
+        let args: &[&str] = if restart {
+            &["--count", "60", "--restart", "3"]
+        } else {
+            &["--count", "60"]
+        };
+        let mut pl = pipeline(tmp.path(), &p, args, false);
+        let pid = stage_pid(&p, "consumer");
+        sleep(2.0);
+        signal(pid, sig);
+        let st = pl.wait(Duration::from_secs(60));
+        let log = pl.log();
+        assert!(
+            log.contains("stopped by a signal before it finished"),
+            "{log}"
+        );
+        if restart {
+            assert!(st.success(), "{log}");
+            assert!(
+                log.contains("restarting") && log.contains("stage=\"consumer\""),
+                "{log}"
+            );
+        } else {
+            assert_eq!(st.code(), Some(1), "{log}");
+        }
+    }
 }
 
 #[test]

@@ -170,6 +170,11 @@ pub struct MountEstimate {
     pub frames: usize,
     /// Set when the scans saw the ground on one side only: what the mount assumes.
     pub one_sided: Option<OneSidedGround>,
+    /// The scans (places in the list given to [`combine`]) whose height is further from the
+    /// one found than the search's height tolerance: another sensor or mount among the
+    /// inputs. Outvoted by the median, and named so the user can see them.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub disagreeing: Vec<usize>,
 }
 
 impl MountEstimate {
@@ -245,6 +250,7 @@ pub fn combine(
         frames_used: good.len(),
         frames: frames.len(),
         one_sided: one_sided(&good, cfg),
+        disagreeing: Vec::new(),
     };
     let worst = est.roll.spread.max(est.pitch.spread);
     if worst > cfg.max_angle_spread || est.height.spread > cfg.max_height_spread {
@@ -260,6 +266,35 @@ pub fn combine(
             cfg.max_height_spread,
         )));
     }
+    let disagreeing: Vec<usize> = frames
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| {
+            f.as_ref()
+                .is_ok_and(|f| (f.height - est.height.value).abs() > cfg.max_height_spread)
+        })
+        .map(|(k, _)| k)
+        .collect();
+    // A quarter or more: no mount the inputs share, whatever the median says.
+    if 4 * disagreeing.len() >= good.len() {
+        let heights: Vec<String> = disagreeing
+            .iter()
+            .take(5)
+            .filter_map(|&k| frames[k].as_ref().ok())
+            .map(|f| format!("{:.2} m", f.height))
+            .collect();
+        return Err(CalibrateError::Refused(format!(
+            "{} of {} scans put the sensor more than {:.2} m from the median height {:.3} m \
+             ({}{}): scans of more than one sensor or mount; calibrate each apart",
+            disagreeing.len(),
+            good.len(),
+            cfg.max_height_spread,
+            est.height.value,
+            heights.join(", "),
+            if disagreeing.len() > 5 { ", …" } else { "" }
+        )));
+    }
+    let est = MountEstimate { disagreeing, ..est };
     Ok(est)
 }
 

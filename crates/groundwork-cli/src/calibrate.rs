@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use groundwork_calibrate::mount::{Estimate, FrameMount};
 use groundwork_calibrate::{
     FitProgress, HeightScale, MountEstimate, MountSearchConfig, MountZones, NearEdgeConfig,
@@ -111,11 +111,6 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_string());
     let methods = crate::common::load_methods(&a.sensor.into(), None)?;
     let cfg = methods.segmenter.clone();
-    for out in std::iter::once(&a.out).chain(a.report.as_ref()) {
-        if out.exists() && !a.overwrite {
-            bail!("{}: exists; pass --overwrite to replace it", out.display());
-        }
-    }
     anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");
     anyhow::ensure!(a.param_scans > 0, "--param-scans must be at least 1");
     let search = ParamSearchConfig {
@@ -140,10 +135,20 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         ..MountSearchConfig::default()
     };
     settings.validate()?;
-    let (sequences, skipped_inputs) = open_inputs(&a.inputs, None, None, a.topic.as_deref());
-    if sequences.is_empty() {
-        bail!("no readable input among {} given", a.inputs.len());
+    let (sequences, skipped_inputs) = open_inputs(&a.inputs, None, None, a.topic.as_deref())?;
+    // The file and the report: never an input, never the same file, never half-written.
+    let mut outputs =
+        groundwork_io::OutputFiles::new(&crate::common::input_files(&a.inputs, &sequences));
+    for out in std::iter::once(&a.out).chain(a.report.as_ref()) {
+        outputs.claim(out)?;
     }
+    if let (Some(first), false) = (outputs.existing().first(), a.overwrite) {
+        bail!(
+            "{}: exists; pass --overwrite to replace it",
+            first.display()
+        );
+    }
+    outputs.warn_replaced();
     // Spread the scans looked at over the whole inputs where their length is known.
     let total: Option<usize> = sequences.iter().map(|s| s.len_hint()).sum();
     let stride = total.map_or(1, |n| n.div_ceil(a.max_scans).max(1));
@@ -209,9 +214,34 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     pb.finish_and_clear();
     views.sort_by_key(|v| v.k);
     let unreadable = views.iter().filter(|v| v.view.is_none()).count();
-    let frames: Vec<Result<FrameMount, NoGround>> =
-        views.iter_mut().filter_map(|v| v.view.take()).collect();
+    let (frames, names): (Vec<Result<FrameMount, NoGround>>, Vec<&str>) = views
+        .iter_mut()
+        .filter_map(|v| Some((v.view.take()?, v.line.scan.as_str())))
+        .unzip();
     let result = combine(&frames, &prior, &settings);
+    if let Ok(est) = &result
+        && !est.disagreeing.is_empty()
+    {
+        let named: Vec<String> = est
+            .disagreeing
+            .iter()
+            .filter_map(|&k| {
+                Some(format!(
+                    "{} ({:.2} m)",
+                    names[k],
+                    frames[k].as_ref().ok()?.height
+                ))
+            })
+            .collect();
+        warn!(
+            "{} of {} scans disagree with the mount found by more than {:.2} m in height, and \
+             were outvoted: {}; scans of another sensor or mount among the inputs?",
+            named.len(),
+            est.frames_used,
+            settings.max_height_spread,
+            named.join(", ")
+        );
+    }
     let near = combine_near_ground(views.iter().filter_map(|v| v.near).collect());
     // The zones follow the mount found (not with --keep-zones): the near edge where the
     // scans first see ground, the inner boundaries the height against the preset's.
@@ -284,9 +314,8 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         seconds: t.elapsed().as_secs_f64(),
     };
     if let Some(path) = &a.report {
-        let json = serde_json::to_string_pretty(&report)?;
-        std::fs::write(path, json + "\n")
-            .with_context(|| format!("{}: cannot write", path.display()))?;
+        let json = serde_json::to_string_pretty(&report)? + "\n";
+        outputs.write(path, json.as_bytes())?;
     }
     let est = match result {
         Ok(e) => e,
@@ -316,7 +345,7 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
             "\n# Parameters not fitted (the preset's are kept): {why}"
         );
     }
-    std::fs::write(&a.out, &text).with_context(|| format!("{}: cannot write", a.out.display()))?;
+    outputs.write(&a.out, text.as_bytes())?;
     print!("{}", summary(&base, &prior_mount, &est));
     match &report.near_edge {
         Some(NearEdge {
@@ -593,6 +622,13 @@ fn summary(base: &str, prior: &MountConfig, est: &MountEstimate) -> String {
     if let Some(o) = &est.one_sided {
         let _ = writeln!(s, "  caveat: {o}");
     }
+    if !est.disagreeing.is_empty() {
+        let _ = writeln!(
+            s,
+            "  caveat: {} scan(s) disagree in height and were outvoted (named above)",
+            est.disagreeing.len()
+        );
+    }
     s
 }
 
@@ -703,6 +739,7 @@ mod tests {
             frames_used: 5,
             frames: 6,
             one_sided: None,
+            disagreeing: Vec::new(),
         }
     }
 

@@ -32,6 +32,7 @@ pub fn sample_data() -> Result<PathBuf> {
             "GROUNDWORK_DATA={}: no such folder or recording",
             d.display()
         );
+        groundwork_io::ScanSource::open(&d, None).context("GROUNDWORK_DATA")?;
         return Ok(d);
     }
     let exe = std::env::current_exe().context("cannot find this executable")?;
@@ -96,13 +97,14 @@ pub fn load_methods(
 
 /// Opens each input (a scan file, a folder or a recording; a folder may carry poses for
 /// history) as a sequence. An input that cannot be used is reported and counted, and the
-/// others still run: the sequences, and how many inputs were skipped.
+/// others still run: the sequences, and how many inputs were skipped. When none can be
+/// used, nothing runs: an error (exit 2) before any output is created or replaced.
 pub fn open_inputs(
     inputs: &[PathBuf],
     poses: Option<&Path>,
     calib: Option<&Path>,
     topic: Option<&str>,
-) -> (Vec<Sequence>, usize) {
+) -> Result<(Vec<Sequence>, usize)> {
     let mut skipped = 0;
     let mut sequences = Vec::new();
     for path in inputs {
@@ -114,7 +116,12 @@ pub fn open_inputs(
             }
         }
     }
-    (sequences, skipped)
+    anyhow::ensure!(
+        !sequences.is_empty(),
+        "no readable input among the {} given (each is named above): nothing was run",
+        inputs.len()
+    );
+    Ok((sequences, skipped))
 }
 
 /// The output of an offline run, refused before anything is written where it would destroy
@@ -135,7 +142,7 @@ pub fn create_output(
     if is_recording {
         if out.is_file() {
             warn!(
-                "{}: exists, and is replaced by this run's recording when it ends",
+                "{}: exists, and is replaced by this run's recording when it ends (if any scan is segmented)",
                 out.display()
             );
         }
@@ -143,23 +150,24 @@ pub fn create_output(
         let sources: Vec<_> = sequences.iter().map(|s| &s.source).collect();
         groundwork_io::check_output_names(&sources)?;
         let earlier = groundwork_io::earlier_outputs(out, &sources, suffixes);
-        if let Some(first) = earlier.first() {
-            warn!(
-                "{}: {} file(s) of an earlier run are replaced as this run writes them (first \
-                 {}); --out another folder keeps them",
-                out.display(),
-                earlier.len(),
-                first.file_name().unwrap_or_default().to_string_lossy()
-            );
-        }
+        groundwork_io::warn_replaced(out, &earlier);
     }
+    Ok(groundwork_io::OutputTarget::create(
+        out,
+        &input_files(inputs, sequences),
+    )?)
+}
+
+/// Every file a run over `inputs` reads: the inputs as given, and the scan files their
+/// folders hold. An output is checked against these (see [`groundwork_io::OutputFiles`]).
+pub fn input_files(inputs: &[PathBuf], sequences: &[Sequence]) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = inputs.to_vec();
     for s in sequences {
         if let groundwork_io::ScanSource::Files(f) = &s.source {
             files.extend(f.iter().cloned());
         }
     }
-    Ok(groundwork_io::OutputTarget::create(out, &files)?)
+    files
 }
 
 /// Makes a recording output place every scan frame on the ground frame by `mount` (a

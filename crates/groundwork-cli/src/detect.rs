@@ -42,7 +42,7 @@ pub fn run(job: &DetectJob<'_>) -> Result<ExitCode> {
     let mut detector = Detector::new(job.config.detector.clone(), &job.config.segmenter)?;
     let max = job.config.segmenter.sensor.max_points;
     let (sequences, mut failed) =
-        crate::common::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref());
+        crate::common::open_inputs(job.inputs, job.poses, job.calib, job.topic.as_deref())?;
     if !matches!(
         crate::common::create_output(
             job.out,

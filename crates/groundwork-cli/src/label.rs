@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use groundwork_core::{Point, SegmentError};
 use groundwork_eval::MethodsConfig;
 use groundwork_io::{InputKind, outputs_complete, read_scan, scan_stem};
@@ -91,6 +91,13 @@ pub fn collect_scans(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
         if input.is_dir() {
             let velodyne = input.join("velodyne");
             let dir = if velodyne.is_dir() { &velodyne } else { input };
+            if let Some(rec) = groundwork_io::list_recordings(dir)?.first() {
+                bail!(
+                    "{}: label takes scan files; a recording is labelled by \
+                     `groundwork segment --method pseudolabeler --out X.mcap`",
+                    rec.display()
+                );
+            }
             files.extend(groundwork_io::list_scans(dir)?);
         } else {
             if matches!(InputKind::detect(input)?, InputKind::Recording) {
@@ -148,7 +155,16 @@ pub fn run(
         .filter(|&(k, _)| shard.contains(k))
         .map(|(_, f)| f)
         .collect();
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    // The folder as every offline command takes it (never an input, writable), and the
+    // summary through the one output path.
+    groundwork_io::OutputTarget::create(out, &all)?;
+    let summary_path = out.join(if shard.count == 1 {
+        "label-summary.json".to_string()
+    } else {
+        format!("label-summary-{}-of-{}.json", shard.index, shard.count)
+    });
+    let mut outputs = groundwork_io::OutputFiles::new(&all);
+    outputs.claim(&summary_path)?;
     info!(
         method = %format!("{method:?}").to_lowercase(),
         shard = %shard,
@@ -269,13 +285,8 @@ pub fn run(
         0.0
     };
     s.median_ms_per_scan = groundwork_eval::median(times);
-    let name = if shard.count == 1 {
-        "label-summary.json".to_string()
-    } else {
-        format!("label-summary-{}-of-{}.json", shard.index, shard.count)
-    };
-    let path = out.join(name);
-    groundwork_io::write_atomic(&path, serde_json::to_string_pretty(&s)?.as_bytes())?;
+    let path = summary_path;
+    outputs.write(&path, serde_json::to_string_pretty(&s)?.as_bytes())?;
     println!(
         "label ({}, shard {}): {} scans labelled, {} already complete, {} failed; {} points in the complete scans, {:.1} % ground; {:.1} s, {:.2} scans/s; summary {}",
         s.method,

@@ -6,7 +6,7 @@ use anyhow::{Context, Result, anyhow, bail};
 use groundwork_core::GroundFrame;
 use groundwork_detect::{Detections, Detector, Proposal};
 use groundwork_eval::MethodsConfig;
-use groundwork_io::{LabelMap, read_prob, read_scan, scan_stem, write_atomic};
+use groundwork_io::{LabelMap, read_prob, read_scan, scan_stem};
 use groundwork_viz::{Colouring, Scene, View, render};
 
 use crate::args::ColourArg;
@@ -54,6 +54,16 @@ fn label_candidates(scan: &Path) -> Vec<PathBuf> {
 
 pub fn run(job: &RenderJob<'_>) -> Result<()> {
     let cfg = &job.config.segmenter;
+    // The picture is never one of the files it is drawn from.
+    let read: Vec<PathBuf> = [Some(job.scan), job.mask, job.proposals, job.labels]
+        .into_iter()
+        .flatten()
+        .map(Path::to_path_buf)
+        .chain(label_candidates(job.scan))
+        .collect();
+    let mut outputs = groundwork_io::OutputFiles::new(&read);
+    outputs.claim(job.out)?;
+    outputs.warn_replaced();
     let scan = read_scan(job.scan, cfg.sensor.max_points)?;
     let n = scan.points.len();
     let probs: Vec<f32> = match job.mask {
@@ -137,10 +147,7 @@ pub fn run(job: &RenderJob<'_>) -> Result<()> {
         proposals: &proposals,
     };
     let png = render(&scene, colouring, job.view)?.to_png()?;
-    if let Some(dir) = job.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("{}", dir.display()))?;
-    }
-    write_atomic(job.out, &png)?;
+    outputs.write(job.out, &png)?;
     tracing::info!(
         out = %job.out.display(),
         points = n,

@@ -197,7 +197,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         common.poses.as_deref(),
         common.calib.as_deref(),
         common.topic.as_deref(),
-    );
+    )?;
     let mut output = crate::common::create_output(out, inputs, &sequences, &[".prob", ".ground"])?;
     crate::common::place_scans_by_mount(&mut output, &cfg.sensor.mount)?;
     let (mut engines, threshold) = match method {
@@ -278,8 +278,15 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         Ok::<_, anyhow::Error>(tallies)
     })?;
     pb.finish_and_clear();
-    if let OutputTarget::Recording(w) = output {
-        w.finish()?;
+    if let OutputTarget::Recording(w) = output
+        && !w.finish_unless_empty()?
+    {
+        // Nothing segmented: an earlier recording at --out is worth more than an empty one.
+        error!(
+            "{}: no scan could be segmented, so no recording was written (a file there is \
+             left as it was)",
+            out.display()
+        );
     }
     let failed = skipped_inputs + failed_writes + tallies.iter().map(|t| t.failed).sum::<usize>();
     scans += tallies.iter().map(|t| t.failed).sum::<usize>();

@@ -8,8 +8,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use groundwork_service::{check_shared_memory, consumer, launcher, producer, segmenter};
-use tracing::{error, info};
+use groundwork_service::{check_shared_memory, consumer, launcher, producer, segmenter, signals};
+use tracing::{error, info, warn};
 
 use crate::args::{
     Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, Ros2Args, Ros2CmdArgs,
@@ -237,6 +237,18 @@ pub fn consumer(a: ConsumerArgs) -> Result<ExitCode> {
             mount: Some(mount),
         },
     )?;
+    // Stopped by a signal before its end (its count, or the pipeline's own stop): it did
+    // not finish, and a launcher must not take it for finished.
+    let short = a.count.is_some_and(|n| report.masks < n);
+    if signals::stop_requested() && (short || signals::under_launcher()) {
+        warn!(
+            masks = report.masks,
+            count = ?a.count,
+            "stopped by a signal before the end: exit {}",
+            signals::STOPPED_EXIT_CODE
+        );
+        return Ok(ExitCode::from(signals::STOPPED_EXIT_CODE));
+    }
     // Asked to write and could not: the run did not do what it was asked.
     Ok(if report.write_failures > 0 {
         ExitCode::from(1)
@@ -310,6 +322,9 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
             "{}: no such folder or recording",
             data.display()
         );
+        // Something to replay, checked before any stage starts (an empty folder would
+        // otherwise be found by the producer after the others are up).
+        groundwork_io::ScanSource::open(data, None)?;
         if let Some(o) = &out {
             groundwork_io::check_not_an_input(o, std::slice::from_ref(data))?;
         }

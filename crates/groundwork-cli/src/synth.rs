@@ -42,30 +42,53 @@ fn synth(
     let period_ns = (synth.pattern.period * 1e9).round() as u64;
     let generator = Generator::new(synth, frames)?;
     let (velodyne, labels) = (out.join("velodyne"), out.join("labels"));
-    for dir in [&velodyne, &labels] {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let (poses_path, calib_path, times_path) = (
+        out.join("poses.txt"),
+        out.join("calib.txt"),
+        out.join("times.txt"),
+    );
+    // Every file claimed before the first is written: none is the configuration read, and
+    // a sequence written over an earlier one says so first.
+    let mut outputs = groundwork_io::OutputFiles::new(
+        &config
+            .map(Path::to_path_buf)
+            .into_iter()
+            .collect::<Vec<_>>(),
+    );
+    let stems: Vec<String> = (0..frames).map(|i| format!("{i:06}")).collect();
+    for stem in &stems {
+        outputs.claim(&velodyne.join(format!("{stem}.bin")))?;
+        outputs.claim(&labels.join(format!("{stem}.label")))?;
     }
+    for p in [&poses_path, &calib_path, &times_path] {
+        outputs.claim(p)?;
+    }
+    outputs.warn_replaced();
     info!(sensor, scene, frames, seed, out = %out.display(), "generating a synthetic sequence");
     let pb = progress(frames, "synth");
     let mut poses = Vec::with_capacity(frames);
     let mut points = 0;
-    for i in 0..frames {
+    for (i, stem) in stems.iter().enumerate() {
         let scan = generator.scan(i);
-        let stem = format!("{i:06}");
-        groundwork_io::write_kitti_bin(&velodyne.join(format!("{stem}.bin")), &scan.points)?;
-        groundwork_io::write_labels(&labels.join(format!("{stem}.label")), &scan.labels)?;
+        let bin = groundwork_io::kitti_bin_bytes(&scan.points);
+        outputs.write(&velodyne.join(format!("{stem}.bin")), &bin)?;
+        let label = groundwork_io::labels_bytes(&scan.labels);
+        outputs.write(&labels.join(format!("{stem}.label")), &label)?;
         poses.push(scan.pose_matrix());
         points += scan.points.len();
         pb.inc(1);
     }
     pb.finish_and_clear();
-    groundwork_io::write_poses(&out.join("poses.txt"), &poses)?;
+    outputs.write(&poses_path, groundwork_io::poses_text(&poses).as_bytes())?;
     // The poses are the LiDAR's own: Tr is the identity.
     let identity = std::array::from_fn(|r| std::array::from_fn(|c| f64::from(u8::from(r == c))));
-    groundwork_io::write_calib_tr(&out.join("calib.txt"), &identity)?;
+    outputs.write(
+        &calib_path,
+        groundwork_io::calib_tr_text(&identity).as_bytes(),
+    )?;
     // Scan times from 0 at the pattern's rate, as KITTI's times.txt.
     let times: Vec<u64> = (0..frames as u64).map(|i| i * period_ns).collect();
-    groundwork_io::write_times(&out.join("times.txt"), &times)?;
+    outputs.write(&times_path, groundwork_io::times_text(&times).as_bytes())?;
     info!(frames, points, "synthetic sequence written");
     Ok(())
 }

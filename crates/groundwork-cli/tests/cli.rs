@@ -972,6 +972,23 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
         text(&bad_env)
     );
 
+    // An empty folder: refused by name before any stage starts.
+    let empty = tmp.path().join("empty");
+    fs::create_dir_all(&empty).unwrap();
+    for (env, extra) in [
+        (Some(empty.as_path()), vec![]),
+        (None, vec![os("--data"), empty.as_os_str()]),
+    ] {
+        let o = pipe(env, &extra);
+        let said = text(&o);
+        assert_eq!(o.status.code(), Some(2), "{said}");
+        assert!(
+            said.contains("empty") && said.contains("scan files"),
+            "{said}"
+        );
+        assert!(!said.contains("started"), "no stage starts: {said}");
+    }
+
     // The samples in --data, in $GROUNDWORK_DATA, and installed beside the binary.
     let samples = tmp.path().join("samples");
     fs::create_dir_all(&samples).unwrap();

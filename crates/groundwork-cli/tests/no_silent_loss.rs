@@ -507,3 +507,342 @@ fn errors_are_said_once_in_words() {
         "{err}"
     );
 }
+
+/// Every command that writes a file takes the one output path: an output that is an input
+/// (by name, or through a link) or named twice is refused before anything is read (exit 2),
+/// and the input is left as it was.
+#[test]
+fn every_command_refuses_an_output_that_is_an_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let scans = d.join("c");
+    for n in 0..3 {
+        copy_scan(n, &scans);
+    }
+    let scan = scans.join("000000.bin");
+    let before = fs::read(&scan).unwrap();
+    std::os::unix::fs::symlink(&scan, d.join("link.bin")).unwrap();
+    let calibrate = || {
+        let mut c = bin();
+        c.args(["calibrate", "--keep-params", "--overwrite"]);
+        c
+    };
+    let cases: Vec<(&str, Command, &str)> = vec![
+        (
+            "calibrate --out",
+            {
+                let mut c = calibrate();
+                c.arg("--out").arg(&scan).arg(&scans);
+                c
+            },
+            "destroy",
+        ),
+        (
+            "calibrate --out link",
+            {
+                let mut c = calibrate();
+                c.arg("--out").arg(d.join("link.bin")).arg(&scans);
+                c
+            },
+            "destroy",
+        ),
+        (
+            "calibrate --report",
+            {
+                let mut c = calibrate();
+                c.arg("--out")
+                    .arg(d.join("x.toml"))
+                    .arg("--report")
+                    .arg(&scan)
+                    .arg(&scans);
+                c
+            },
+            "destroy",
+        ),
+        (
+            "calibrate --out X --report X",
+            {
+                let mut c = calibrate();
+                c.arg("--out")
+                    .arg(d.join("x.toml"))
+                    .arg("--report")
+                    .arg(d.join("x.toml"))
+                    .arg(&scans);
+                c
+            },
+            "named twice",
+        ),
+        (
+            "render",
+            {
+                let mut c = bin();
+                c.args(["render", "--out"]).arg(&scan).arg(&scan);
+                c
+            },
+            "destroy",
+        ),
+        (
+            "label",
+            {
+                let mut c = bin();
+                c.args(["label", "--out"]).arg(&scan).arg(&scans);
+                c
+            },
+            "destroy",
+        ),
+    ];
+    for (what, mut cmd, says) in cases {
+        let o = run(&mut cmd, Duration::from_secs(60));
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{what}: {err}");
+        assert!(err.contains(says), "{what}: {err}");
+        assert_eq!(
+            fs::read(&scan).unwrap(),
+            before,
+            "{what}: the input is untouched"
+        );
+    }
+    assert!(!d.join("x.toml").exists());
+    // The consumer's report and its recording are one file: refused before it starts.
+    let o = run(
+        bin()
+            .args([
+                "consumer",
+                "--prefix",
+                "gw-test-outputs-twice",
+                "--count",
+                "1",
+            ])
+            .arg("--out")
+            .arg(d.join("r.mcap"))
+            .arg("--report-json")
+            .arg(d.join("r.mcap")),
+        Duration::from_secs(30),
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("named twice"), "{}", stderr(&o));
+}
+
+/// A full disk under the newer commands: `calibrate` leaves neither an empty configuration
+/// nor a cut report, and a re-run elsewhere is not blocked; `synth` leaves no cut scan that
+/// would read as a shorter one. And an empty configuration is refused wherever it is met.
+#[test]
+fn a_full_disk_leaves_no_empty_configuration_and_no_cut_scan() {
+    let tmp = tempfile::tempdir().unwrap();
+    let empty = tmp.path().join("empty.toml");
+    fs::write(&empty, "").unwrap();
+    let scan = copy_scan(0, &tmp.path().join("in"));
+    let o = run(
+        bin()
+            .args(["segment", "--config"])
+            .arg(&empty)
+            .arg("--out")
+            .arg(tmp.path().join("o"))
+            .arg(&scan),
+        Duration::from_secs(60),
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("empty.toml: sets nothing"),
+        "{}",
+        stderr(&o)
+    );
+
+    let syn = tmp.path().join("syn");
+    let o = run(
+        bin()
+            .args(["synth", "--sensor", "vlp16", "--frames", "3", "--out"])
+            .arg(&syn),
+        Duration::from_secs(60),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let Some(disk) = Tmpfs::mount(&tmp.path().join("disk"), 16) else {
+        return;
+    };
+    // Every page taken (a byte into the fourth of four).
+    fs::write(disk.0.join("fill"), vec![7u8; 12_289]).unwrap();
+    let calibrate = |out: &Path, report: &Path| {
+        run(
+            bin()
+                .args(["calibrate", "--sensor", "vlp16", "--keep-params", "--out"])
+                .arg(out)
+                .arg("--report")
+                .arg(report)
+                .arg(&syn),
+            Duration::from_secs(60),
+        )
+    };
+    let o = calibrate(&disk.0.join("x.toml"), &disk.0.join("r.json"));
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("No space left"), "{err}");
+    assert_eq!(
+        files_in(&disk.0),
+        ["fill"],
+        "no empty x.toml, no cut r.json"
+    );
+    // The same command with room: nothing left in the way ("exists").
+    fs::remove_file(disk.0.join("fill")).unwrap();
+    let o = calibrate(&disk.0.join("x.toml"), &tmp.path().join("r.json"));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = fs::read_to_string(disk.0.join("x.toml")).unwrap();
+    assert!(text.contains("height"), "{text}");
+
+    // synth: the first scan (about 400 KB) does not fit in 16 KB; nothing cut is left.
+    fs::remove_file(disk.0.join("x.toml")).unwrap();
+    let o = run(
+        bin()
+            .args(["synth", "--sensor", "vlp16", "--frames", "2", "--out"])
+            .arg(disk.0.join("s")),
+        Duration::from_secs(60),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("No space left"), "{err}");
+    assert!(files_in(&disk.0.join("s/velodyne")).is_empty());
+}
+
+/// A recording in a folder is never passed over: beside scan files it is refused by name
+/// (the folder is one sequence); alone it is the folder's sequence.
+#[test]
+fn a_recording_in_a_folder_is_read_or_refused_by_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mixed = tmp.path().join("mixed");
+    fs::create_dir_all(&mixed).unwrap();
+    fs::copy(fixture("kitti_pointcloud2.mcap"), mixed.join("rec.mcap")).unwrap();
+    fs::copy(fixture("kitti_binary.pcd"), mixed.join("000000_pcdbin.pcd")).unwrap();
+    for command in ["segment", "detect"] {
+        let o = run(
+            bin()
+                .args([command, "--frames", "1", "--out"])
+                .arg(tmp.path().join(format!("out-{command}")))
+                .arg(&mixed),
+            Duration::from_secs(60),
+        );
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{command}: {err}");
+        assert!(
+            err.contains("rec.mcap") && err.contains("input of its own"),
+            "{command}: {err}"
+        );
+    }
+    let o = run(bin().args(["eval"]).arg(&mixed), Duration::from_secs(60));
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("rec.mcap"), "{}", stderr(&o));
+    let o = run(
+        bin()
+            .args(["label", "--out"])
+            .arg(tmp.path().join("l"))
+            .arg(&mixed),
+        Duration::from_secs(60),
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("rec.mcap"), "{}", stderr(&o));
+    // Alone in its folder, the recording is read.
+    fs::remove_file(mixed.join("000000_pcdbin.pcd")).unwrap();
+    let out = tmp.path().join("alone");
+    let o = run(
+        bin()
+            .args(["segment", "--frames", "1", "--out"])
+            .arg(&out)
+            .arg(&mixed),
+        Duration::from_secs(60),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        files_in(&out).contains(&"rec_000000.prob".to_string()),
+        "{:?}",
+        files_in(&out)
+    );
+}
+
+/// Nothing to run is an error before any output exists (exit 2, not "some input was bad");
+/// a run whose every scan failed leaves an earlier recording as it was.
+#[test]
+fn nothing_segmented_replaces_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("e1");
+    let o = run(
+        bin()
+            .args(["segment", "--out"])
+            .arg(&out)
+            .arg(tmp.path().join("does/not/exist")),
+        Duration::from_secs(60),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("no readable input"), "{err}");
+    assert!(!out.exists());
+
+    let prev = tmp.path().join("prev.mcap");
+    let scan = copy_scan(0, &tmp.path().join("in"));
+    let o = run(
+        bin()
+            .args(["segment", "--frames", "1", "--out"])
+            .arg(&prev)
+            .arg(&scan),
+        Duration::from_secs(60),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let before = fs::read(&prev).unwrap();
+    let bad = tmp.path().join("bad");
+    fs::create_dir_all(&bad).unwrap();
+    fs::write(bad.join("000000.bin"), [1u8, 2, 3]).unwrap();
+    fs::write(bad.join("000001.bin"), []).unwrap();
+    let o = run(
+        bin().args(["segment", "--out"]).arg(&prev).arg(&bad),
+        Duration::from_secs(60),
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("no recording was written"), "{err}");
+    assert_eq!(
+        fs::read(&prev).unwrap(),
+        before,
+        "the earlier recording is kept"
+    );
+    assert_eq!(
+        files_in(tmp.path())
+            .iter()
+            .filter(|f| f.ends_with(".partial"))
+            .count(),
+        0
+    );
+}
+
+/// Scans of two sensors in one calibration (the HDL-64E preset, whose point limit takes
+/// both): the few of the other mount are named, in the log and in the summary.
+#[test]
+fn calibrate_names_scans_of_another_mount() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mix = tmp.path().join("mix");
+    fs::create_dir_all(&mix).unwrap();
+    for (sensor, frames, prefix) in [("vlp16", "8", "a"), ("hdl64e", "2", "b")] {
+        let syn = tmp.path().join(sensor);
+        let o = run(
+            bin()
+                .args(["synth", "--sensor", sensor, "--frames", frames, "--out"])
+                .arg(&syn),
+            Duration::from_secs(60),
+        );
+        assert!(o.status.success(), "{}", stderr(&o));
+        for f in fs::read_dir(syn.join("velodyne")).unwrap() {
+            let f = f.unwrap();
+            let name = format!("{prefix}{}", f.file_name().to_string_lossy());
+            fs::copy(f.path(), mix.join(name)).unwrap();
+        }
+    }
+    let o = run(
+        bin()
+            .args(["calibrate", "--keep-params", "--out"])
+            .arg(tmp.path().join("cal.toml"))
+            .arg(&mix),
+        Duration::from_secs(120),
+    );
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("2 of 10 scans disagree"), "{err}");
+    assert!(err.contains("b000000") && err.contains("b000001"), "{err}");
+    assert!(!err.contains("a000003 ("), "{err}");
+    assert!(String::from_utf8_lossy(&o.stdout).contains("2 scan(s) disagree"));
+}

@@ -54,15 +54,21 @@ pub fn implausible_layout(points: &[Point]) -> Option<String> {
     })
 }
 
-/// Writes a KITTI `.bin` scan (used by tests and tools that generate scans).
+/// Writes a KITTI `.bin` scan (used by tests and tools that generate scans) through a
+/// temporary name: a failed write leaves no cut scan that would read as a shorter one.
 pub fn write_kitti_bin(path: &Path, points: &[Point]) -> Result<(), FormatError> {
+    crate::output::write_atomic(path, &kitti_bin_bytes(points))
+}
+
+/// The bytes [`write_kitti_bin`] writes.
+pub fn kitti_bin_bytes(points: &[Point]) -> Vec<u8> {
     let mut bytes = Vec::with_capacity(points.len() * 16);
     for p in points {
         for v in [p.x, p.y, p.z, p.intensity] {
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
-    std::fs::write(path, bytes).map_err(|e| FormatError::io(path, e))
+    bytes
 }
 
 #[cfg(test)]

@@ -103,8 +103,7 @@ pub fn load_layers(
     let mut merged = parse_table(&preset_path, base)?;
     let mut named = preset_path;
     if let Some(path) = path {
-        let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
-        merge(&mut merged, parse_table(path, &text)?);
+        merge(&mut merged, read_table(path)?);
         named = path.to_path_buf();
     }
     if let Some((source, table)) = overlay {
@@ -112,6 +111,30 @@ pub fn load_layers(
         named = PathBuf::from(source);
     }
     Ok((named, merged))
+}
+
+/// A configuration file as a table. A file that sets nothing (empty, or only comments) is
+/// refused: it is what a failed write leaves, and laid over a preset it would run the
+/// preset while the user believes the file is in use.
+pub fn read_table(path: &Path) -> Result<toml::Table, FormatError> {
+    let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
+    let table = parse_table(path, &text)?;
+    if table.is_empty() {
+        return Err(FormatError::Config {
+            path: path.to_path_buf(),
+            message: format!(
+                "sets nothing ({} bytes{}): an empty configuration is refused, as it is \
+                 what a failed write leaves",
+                text.len(),
+                if text.trim().is_empty() {
+                    ""
+                } else {
+                    ", only comments"
+                }
+            ),
+        });
+    }
+    Ok(table)
 }
 
 /// TOML text as a table; `path` names it in errors.
@@ -171,8 +194,7 @@ fn merge(base: &mut toml::Table, overlay: toml::Table) {
 /// Parses and validates a segmenter configuration. Unknown keys, wrong types and
 /// inconsistent values are errors naming the file (and the key, where TOML knows it).
 pub fn load_config(path: &Path) -> Result<SegmenterConfig, FormatError> {
-    let text = crate::file::read_text(path, crate::file::MAX_TEXT_BYTES)?;
-    parse_config(path, &text)
+    segmenter_config(path, read_table(path)?)
 }
 
 /// Parses configuration text (method sections set aside); `path` is only used in error
@@ -221,6 +243,20 @@ mod tests {
             c.sensor.mount.height,
             sensor_preset("livox").unwrap().sensor.mount.height
         );
+    }
+
+    #[test]
+    fn a_file_that_sets_nothing_is_refused_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        for (name, text) in [("empty.toml", ""), ("comments.toml", "# nothing\n\n")] {
+            let p = dir.path().join(name);
+            fs::write(&p, text).unwrap();
+            let e = load_config_over(Some("vlp16"), Some(&p))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(name) && e.contains("sets nothing"), "{e}");
+            assert!(load_config(&p).is_err());
+        }
     }
 
     #[test]

@@ -144,6 +144,28 @@ pub fn list_scans(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
     Ok(files)
 }
 
+/// The MCAP recordings of a folder (by extension, or by magic bytes for a regular file
+/// without one), sorted by name.
+pub fn list_recordings(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
+    let mut found = Vec::new();
+    for entry in fs::read_dir(dir).map_err(|e| FormatError::io(dir, e))? {
+        let path = entry.map_err(|e| FormatError::io(dir, e))?.path();
+        let recording = match InputKind::from_name(&path) {
+            Some(kind) => kind == InputKind::Recording,
+            None => {
+                path.extension().is_none()
+                    && path.is_file()
+                    && matches!(InputKind::detect(&path), Ok(InputKind::Recording))
+            }
+        };
+        if recording {
+            found.push(path);
+        }
+    }
+    found.sort();
+    Ok(found)
+}
+
 fn is_scan_file(path: &Path) -> bool {
     match InputKind::from_name(path) {
         Some(kind) => matches!(kind, InputKind::Scan(_)),
@@ -216,13 +238,50 @@ impl ScanSource {
                 path.to_path_buf()
             };
             let files = list_scans(&dir)?;
-            if files.is_empty() {
-                return Err(FormatError::Unsupported {
+            let recordings = list_recordings(&dir)?;
+            let names = || {
+                let n: Vec<String> = recordings
+                    .iter()
+                    .map(|r| {
+                        r.file_name()
+                            .unwrap_or_default()
+                            .to_string_lossy()
+                            .into_owned()
+                    })
+                    .collect();
+                n.join(", ")
+            };
+            // A folder is one sequence: its scan files, or its one recording. A recording
+            // beside scan files is refused by name, never passed over in silence.
+            return match (files.is_empty(), recordings.len()) {
+                (false, 0) => Ok(Self::Files(files)),
+                (true, 1) => Ok(Self::Recording {
+                    path: recordings[0].clone(),
+                    topic: topic.map(str::to_string),
+                }),
+                (true, 0) => Err(FormatError::Unsupported {
                     path: dir,
                     expected: "a folder holding scan files",
-                });
-            }
-            return Ok(Self::Files(files));
+                }),
+                (true, _) => Err(FormatError::malformed(
+                    &dir,
+                    format!(
+                        "holds the recordings {} and no scan files: a folder is one sequence, \
+                         so give each recording as an input of its own",
+                        names()
+                    ),
+                )),
+                (false, _) => Err(FormatError::malformed(
+                    &dir,
+                    format!(
+                        "holds {} scan file(s) and the recording(s) {}: a folder is one \
+                         sequence of scan files, so give each recording as an input of its own \
+                         (and the scans in a folder without it)",
+                        files.len(),
+                        names()
+                    ),
+                )),
+            };
         }
         match InputKind::detect(path)? {
             InputKind::Recording => Ok(Self::Recording {
@@ -491,6 +550,26 @@ mod tests {
         assert_eq!(items[1].name, "drive_000001");
         assert_eq!(items[1].log_time_ns, Some(100));
         assert_eq!(items[1].scan.as_ref().unwrap().points[0].x, 2.0);
+
+        // A folder is one sequence: a recording beside its scans is refused by name, a
+        // folder holding only one recording is that recording.
+        let e = ScanSource::open(dir.path(), None).unwrap_err().to_string();
+        assert!(
+            e.contains("drive.mcap") && e.contains("3 scan file(s)"),
+            "{e}"
+        );
+        let only = tempfile::tempdir().unwrap();
+        std::fs::copy(&rec, only.path().join("drive.mcap")).unwrap();
+        assert_eq!(
+            ScanSource::open(only.path(), Some("/lidar")).unwrap(),
+            ScanSource::Recording {
+                path: only.path().join("drive.mcap"),
+                topic: Some("/lidar".into())
+            }
+        );
+        std::fs::copy(&rec, only.path().join("again.mcap")).unwrap();
+        let e = ScanSource::open(only.path(), None).unwrap_err().to_string();
+        assert!(e.contains("again.mcap, drive.mcap"), "{e}");
 
         // A folder with nothing to read, and a recording that is not one.
         let empty = tempfile::tempdir().unwrap();

@@ -1,6 +1,5 @@
 //! SemanticKITTI labels and KITTI odometry poses and calibration.
 
-use std::fs;
 use std::path::Path;
 
 use groundwork_core::{Pose, pose_from_matrix};
@@ -154,11 +153,15 @@ fn exact_ns(text: &str) -> Option<u64> {
 /// Writes a `times.txt` in seconds with nine decimals (KITTI's own files use `1.036224e-01`;
 /// both read back, these exactly).
 pub fn write_times(path: &Path, times_ns: &[u64]) -> Result<(), FormatError> {
-    let text: String = times_ns
+    crate::output::write_atomic(path, times_text(times_ns).as_bytes())
+}
+
+/// The text [`write_times`] writes.
+pub fn times_text(times_ns: &[u64]) -> String {
+    times_ns
         .iter()
         .map(|&t| format!("{}.{:09}\n", t / 1_000_000_000, t % 1_000_000_000))
-        .collect();
-    fs::write(path, text).map_err(|e| FormatError::io(path, e))
+        .collect()
 }
 
 /// Reads `Tr` (velodyne → camera) from a KITTI odometry `calib.txt`.
@@ -182,13 +185,22 @@ pub fn lidar_poses(camera: &[Pose], tr: &Pose) -> Vec<Pose> {
 /// Writes a SemanticKITTI `.label` file: one little-endian u32 per point (class id in the
 /// low 16 bits, instance id in the high 16).
 pub fn write_labels(path: &Path, labels: &[u32]) -> Result<(), FormatError> {
-    let bytes: Vec<u8> = labels.iter().flat_map(|l| l.to_le_bytes()).collect();
-    fs::write(path, bytes).map_err(|e| FormatError::io(path, e))
+    crate::output::write_atomic(path, &labels_bytes(labels))
+}
+
+/// The bytes [`write_labels`] writes.
+pub fn labels_bytes(labels: &[u32]) -> Vec<u8> {
+    labels.iter().flat_map(|l| l.to_le_bytes()).collect()
 }
 
 /// Writes KITTI odometry `poses.txt`: one pose per line, the top three rows of a
 /// row-major 4×4 matrix.
 pub fn write_poses(path: &Path, poses: &[[[f64; 4]; 4]]) -> Result<(), FormatError> {
+    crate::output::write_atomic(path, poses_text(poses).as_bytes())
+}
+
+/// The text [`write_poses`] writes.
+pub fn poses_text(poses: &[[[f64; 4]; 4]]) -> String {
     let mut text = String::new();
     for m in poses {
         let row: Vec<String> = m[..3]
@@ -199,23 +211,29 @@ pub fn write_poses(path: &Path, poses: &[[[f64; 4]; 4]]) -> Result<(), FormatErr
         text.push_str(&row.join(" "));
         text.push('\n');
     }
-    fs::write(path, text).map_err(|e| FormatError::io(path, e))
+    text
 }
 
 /// Writes a KITTI odometry `calib.txt` holding only `Tr` (velodyne → camera), for
 /// sequences whose poses are the LiDAR's own (`Tr` = identity).
 pub fn write_calib_tr(path: &Path, tr: &[[f64; 4]; 4]) -> Result<(), FormatError> {
+    crate::output::write_atomic(path, calib_tr_text(tr).as_bytes())
+}
+
+/// The text [`write_calib_tr`] writes.
+pub fn calib_tr_text(tr: &[[f64; 4]; 4]) -> String {
     let row: Vec<String> = tr[..3]
         .iter()
         .flatten()
         .map(|v| format!("{v:.9e}"))
         .collect();
-    fs::write(path, format!("Tr: {}\n", row.join(" "))).map_err(|e| FormatError::io(path, e))
+    format!("Tr: {}\n", row.join(" "))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs;
 
     #[test]
     fn kitti_times_read_in_ns_and_bad_ones_name_their_line() {

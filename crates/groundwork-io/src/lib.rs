@@ -55,23 +55,24 @@ pub mod recording;
 pub mod scan;
 pub mod transform;
 
-pub use bin::write_kitti_bin;
+pub use bin::{kitti_bin_bytes, write_kitti_bin};
 pub use config::{
     DEFAULT_SENSOR, METHOD_SECTIONS, SENSOR_PRESETS, config_error, load_config, load_config_over,
-    load_layers, parse_config, parse_table, segmenter_config, sensor_preset,
+    load_layers, parse_config, parse_table, read_table, segmenter_config, sensor_preset,
 };
 pub use error::FormatError;
 pub use input::{
-    InputKind, ScanFormat, ScanItem, ScanIter, ScanSource, list_scans, read_scan, scan_stem,
+    InputKind, ScanFormat, ScanItem, ScanIter, ScanSource, list_recordings, list_scans, read_scan,
+    scan_stem,
 };
 pub use kitti::{
-    lidar_poses, read_calib_tr, read_labels, read_poses, read_times, write_calib_tr, write_labels,
-    write_poses, write_times,
+    calib_tr_text, labels_bytes, lidar_poses, poses_text, read_calib_tr, read_labels, read_poses,
+    read_times, times_text, write_calib_tr, write_labels, write_poses, write_times,
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap};
 pub use output::{
-    OutputTarget, check_not_an_input, check_output_names, earlier_outputs, outputs_complete,
-    read_clusters, read_prob, write_atomic, write_outputs,
+    OutputFiles, OutputTarget, check_not_an_input, check_output_names, earlier_outputs,
+    outputs_complete, read_clusters, read_prob, warn_replaced, write_atomic, write_outputs,
 };
 pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
 pub use scan::Scan;

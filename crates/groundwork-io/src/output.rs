@@ -86,6 +86,125 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
     result
 }
 
+/// The files one run writes besides its per-scan outputs (a configuration, a report, a
+/// picture, a synthetic sequence, a summary): the one output path every command takes.
+///
+/// Each file is claimed before anything is read or written, which refuses an output that
+/// is one of the run's inputs (the same file however named, links followed) or that the
+/// run names twice (`--out X --report X`), and notes one that exists (the run replaces it,
+/// and [`OutputFiles::warn_replaced`] says so first). [`OutputFiles::write`] writes through a
+/// temporary name and a rename, so a failed write (a full disk) leaves neither a partial nor
+/// an empty file behind, and the error names the file.
+#[derive(Debug, Default)]
+pub struct OutputFiles {
+    inputs: Vec<PathBuf>,
+    /// Claimed, as given.
+    claimed: std::collections::HashSet<PathBuf>,
+    /// Each claimed file by where it is (folder resolved through links), and by its
+    /// (device, inode) where it exists: two names of one place are one output.
+    places: std::collections::HashMap<PathBuf, PathBuf>,
+    inodes: std::collections::HashMap<(u64, u64), PathBuf>,
+    existing: Vec<PathBuf>,
+}
+
+impl OutputFiles {
+    /// The outputs of a run that reads `inputs` (every file it reads: scans, masks,
+    /// configuration).
+    pub fn new(inputs: &[PathBuf]) -> Self {
+        Self {
+            inputs: inputs.to_vec(),
+            ..Self::default()
+        }
+    }
+
+    /// Claims `path` as one of the run's outputs (see the type's documentation).
+    pub fn claim(&mut self, path: &Path) -> Result<(), FormatError> {
+        use std::os::unix::fs::MetadataExt;
+        check_not_an_input(path, &self.inputs)?;
+        if path.is_dir() {
+            return Err(FormatError::Collision {
+                path: path.to_path_buf(),
+                message: "is a folder: this output is a file".into(),
+            });
+        }
+        let place = resolved(path);
+        let inode = fs::metadata(path).ok().map(|m| (m.dev(), m.ino()));
+        let other = self
+            .places
+            .get(&place)
+            .or_else(|| inode.and_then(|i| self.inodes.get(&i)));
+        if let Some(other) = other {
+            return Err(FormatError::Collision {
+                path: path.to_path_buf(),
+                message: format!(
+                    "is named twice as an output of this run ({} too): one would overwrite the other",
+                    other.display()
+                ),
+            });
+        }
+        if fs::symlink_metadata(path).is_ok() {
+            self.existing.push(path.to_path_buf());
+        }
+        self.places.insert(place, path.to_path_buf());
+        if let Some(i) = inode {
+            self.inodes.insert(i, path.to_path_buf());
+        }
+        self.claimed.insert(path.to_path_buf());
+        Ok(())
+    }
+
+    /// The claimed files that exist now: the run replaces them.
+    pub fn existing(&self) -> &[PathBuf] {
+        &self.existing
+    }
+
+    /// Says, before anything is written, which existing files the run replaces.
+    pub fn warn_replaced(&self) {
+        if let Some(first) = self.existing.first() {
+            let place = first.parent().unwrap_or(Path::new("."));
+            warn_replaced(place, &self.existing);
+        }
+    }
+
+    /// Writes a claimed file: a temporary name, then a rename (its folder created first).
+    pub fn write(&self, path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+        if !self.claimed.contains(path) {
+            return Err(FormatError::Collision {
+                path: path.to_path_buf(),
+                message: "an output written without being claimed first (a bug)".into(),
+            });
+        }
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            fs::create_dir_all(dir).map_err(|e| FormatError::io(dir, e))?;
+        }
+        write_atomic(path, bytes)
+    }
+}
+
+/// The warning a run gives before it replaces files an earlier run left in `place`.
+pub fn warn_replaced(place: &Path, files: &[PathBuf]) {
+    if let [one] = files {
+        tracing::warn!("{}: exists, and is replaced by this run", one.display());
+    } else if let Some(first) = files.first() {
+        tracing::warn!(
+            "{}: {} file(s) of an earlier run are replaced as this run writes them (first {}); \
+             write elsewhere to keep them",
+            place.display(),
+            files.len(),
+            first.file_name().unwrap_or_default().to_string_lossy()
+        );
+    }
+}
+
+/// Where an output name points: its folder resolved through links, and its file name.
+fn resolved(p: &Path) -> PathBuf {
+    let dir = p.parent().filter(|d| !d.as_os_str().is_empty());
+    let dir = dir.unwrap_or(Path::new("."));
+    fs::canonicalize(dir)
+        .unwrap_or_else(|_| dir.to_path_buf())
+        .join(p.file_name().unwrap_or_default())
+}
+
 /// Refuses an output path that names the same file as an input (`--out rec.mcap rec.mcap`,
 /// or through a link): writing it would destroy the input before it is read.
 pub fn check_not_an_input(out: &Path, inputs: &[PathBuf]) -> Result<(), FormatError> {
@@ -286,6 +405,52 @@ mod tests {
             ["000000.ground", "000000.prob", "drive_000003.ground"]
         );
         assert!(earlier_outputs(&dir.path().join("absent"), &[&files], &[".prob"]).is_empty());
+    }
+
+    #[test]
+    fn an_output_file_is_never_an_input_nor_claimed_twice() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let scan = d.join("000000.bin");
+        fs::write(&scan, [0u8; 16]).unwrap();
+        std::os::unix::fs::symlink(&scan, d.join("link.bin")).unwrap();
+        std::os::unix::fs::symlink(d, d.join("again")).unwrap();
+        let mut out = OutputFiles::new(std::slice::from_ref(&scan));
+        // The input, by its name or through a link to it or to its folder.
+        for name in ["000000.bin", "link.bin", "again/000000.bin"] {
+            let e = out.claim(&d.join(name)).unwrap_err().to_string();
+            assert!(e.contains("destroy"), "{name}: {e}");
+        }
+        // One output under two names.
+        out.claim(&d.join("cal.toml")).unwrap();
+        let e = out
+            .claim(&d.join("again/cal.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("named twice") && e.contains("cal.toml"), "{e}");
+        // A folder is no output file.
+        assert!(out.claim(d).is_err());
+        // An existing file is noted as replaced; an unclaimed one is never written.
+        fs::write(d.join("report.json"), "{}").unwrap();
+        out.claim(&d.join("report.json")).unwrap();
+        assert_eq!(out.existing(), [d.join("report.json")]);
+        assert!(out.write(&d.join("other.txt"), b"x").is_err());
+        out.write(&d.join("cal.toml"), b"a = 1\n").unwrap();
+        assert_eq!(fs::read(d.join("cal.toml")).unwrap(), b"a = 1\n");
+        assert_eq!(fs::read(&scan).unwrap(), [0u8; 16]);
+    }
+
+    #[test]
+    fn a_failed_write_leaves_neither_name() {
+        let dir = tempfile::tempdir().unwrap();
+        // A folder under the temporary name: the write fails as a full disk would.
+        let target = dir.path().join("x.png");
+        fs::create_dir(crate::file::partial_name(&target)).unwrap();
+        let mut out = OutputFiles::new(&[]);
+        out.claim(&target).unwrap();
+        let e = out.write(&target, b"png").unwrap_err().to_string();
+        assert!(e.contains("x.png.partial"), "{e}");
+        assert!(!target.exists());
     }
 
     #[test]

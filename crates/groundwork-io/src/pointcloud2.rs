@@ -284,6 +284,41 @@ pub fn decode_cloud(
     decode_with(label, cloud, max_points, "intensity").map(|(scan, _)| scan)
 }
 
+/// The field table as the message definition means it: every field a known datatype, at
+/// least one element, inside a record, and named once (a second `x` would make which one
+/// is read a matter of search order).
+fn check_fields(label: &Path, fields: &[PointField], point_step: usize) -> Result<(), FormatError> {
+    let bad = |m: String| FormatError::malformed(label, m);
+    let mut seen = std::collections::HashSet::new();
+    for f in fields {
+        let name = &f.name;
+        if !seen.insert(name.as_str()) {
+            return Err(bad(format!(
+                "field {name:?} appears twice in the field table"
+            )));
+        }
+        let size = datatype_size(f.datatype).ok_or_else(|| {
+            bad(format!(
+                "field {name:?} has unknown datatype {}",
+                f.datatype
+            ))
+        })?;
+        if f.count == 0 {
+            return Err(bad(format!("field {name:?} has count 0 (no element)")));
+        }
+        let end = (f.count as usize)
+            .checked_mul(size)
+            .and_then(|n| n.checked_add(f.offset as usize));
+        if end.is_none_or(|e| e > point_step) {
+            return Err(bad(format!(
+                "field {name:?} ({} × {size} bytes at offset {}) does not fit in point_step {point_step}",
+                f.count, f.offset
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// The checked geometry of a cloud's records.
 #[derive(Debug)]
 struct Layout {
@@ -314,6 +349,7 @@ impl Layout {
                 "row_step {row_step} is shorter than width {w} × point_step {point_step}"
             )));
         }
+        check_fields(label, cloud.fields, point_step)?;
         let need = (h - 1) * row_step + w * point_step;
         if cloud.data.len() < need {
             return Err(bad(format!(
@@ -1100,6 +1136,31 @@ mod tests {
         assert_eq!(scan.source_index, Some(vec![0, 1, 3]));
         // A count that does not match the records is an error, not a short cloud.
         assert!(with_probability(Path::new("c"), &input, &[0.5; 3], 10).is_err());
+    }
+
+    #[test]
+    fn a_malformed_field_table_is_refused_with_the_field_named() {
+        let (fields, data) = organized();
+        type Spoil = fn(&mut Vec<PointField>);
+        let cases: [(&str, Spoil, &str); 4] = [
+            ("count 4e9", |f| f[3].count = 4_000_000_000, "does not fit"),
+            ("count 0", |f| f[1].count = 0, "count 0"),
+            ("x twice", |f| f[3].name = "x".into(), "appears twice"),
+            ("datatype 9", |f| f[3].datatype = 9, "unknown datatype"),
+        ];
+        for (what, spoil, says) in cases {
+            let mut bad = fields.clone();
+            spoil(&mut bad);
+            let cloud = view(&bad, &data);
+            for e in [
+                decode_cloud(Path::new("c"), &cloud, 10).unwrap_err(),
+                with_probability(Path::new("c"), &cloud, &[0.5; 4], 10).unwrap_err(),
+            ] {
+                let e = e.to_string();
+                assert!(e.contains(says) && e.contains("field \""), "{what}: {e}");
+            }
+        }
+        assert!(decode_cloud(Path::new("c"), &view(&fields, &data), 10).is_ok());
     }
 
     #[test]

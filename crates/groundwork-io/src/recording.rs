@@ -438,6 +438,8 @@ pub struct RecordingWriter {
     mount: Option<StaticTransform>,
     /// Frames whose transform is written.
     placed: BTreeSet<String>,
+    /// Scans written.
+    scans: u64,
 }
 
 impl std::fmt::Debug for RecordingWriter {
@@ -473,6 +475,7 @@ impl RecordingWriter {
             sequence: 0,
             mount: None,
             placed: BTreeSet::new(),
+            scans: 0,
         })
     }
 
@@ -581,7 +584,9 @@ impl RecordingWriter {
         }
         let channel = self.channel(topic, self.schema)?;
         let data = pointcloud2::encode(scan, probabilities, stamp, frame);
-        self.write_message(channel, log_time_ns, &data)
+        self.write_message(channel, log_time_ns, &data)?;
+        self.scans += 1;
+        Ok(())
     }
 
     /// The TFMessage schema's id (registered on first use).
@@ -592,6 +597,21 @@ impl RecordingWriter {
         writer
             .add_schema(TF_SCHEMA_NAME, "ros2msg", TF_SCHEMA_TEXT.as_bytes())
             .map_err(|e| mcap_error(&self.path, &e))
+    }
+
+    /// Scans written so far.
+    pub fn scans_written(&self) -> u64 {
+        self.scans
+    }
+
+    /// [`Self::finish`] when at least one scan was written; otherwise the partial file is
+    /// removed and whatever `path` held before (an earlier run's recording) is left as it
+    /// was. Whether the recording was written.
+    pub fn finish_unless_empty(self) -> Result<bool, FormatError> {
+        if self.scans == 0 {
+            return Ok(false);
+        }
+        self.finish().map(|()| true)
     }
 
     /// Writes the summary, flushes, and renames the file to its final name.

@@ -91,10 +91,12 @@ pub fn check_rate(name: &str, rate: f64) -> anyhow::Result<()> {
 impl ServiceConfig {
     /// Reads and validates a service configuration; errors name the file and the key.
     pub fn load(path: &Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        let cfg: Self = toml::from_str(&text)
-            .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.to_string().trim_end()))?;
+        let cfg: Self =
+            groundwork_io::read_table(path)?
+                .try_into()
+                .map_err(|e: toml::de::Error| {
+                    anyhow::anyhow!("{}: {}", path.display(), e.to_string().trim_end())
+                })?;
         cfg.validate()
             .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         Ok(cfg)

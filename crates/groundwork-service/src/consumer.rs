@@ -8,10 +8,9 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use groundwork_eval::{Confusion, Metrics, Protocol};
 use groundwork_io::{LabelClass, LabelMap, OutputTarget, Scan};
 use groundwork_msg::{MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint, ScanSource};
@@ -387,11 +386,16 @@ impl ConsumerStage {
 
     /// Ends the run: scans still waiting for a mask are unanswered; a recording is closed.
     pub fn finish(mut self, seconds: f64) -> ConsumerReport {
-        if let Some(OutputTarget::Recording(writer)) = self.out.take()
-            && let Err(e) = writer.finish()
-        {
-            self.report.write_failures += 1;
-            warn!("{e}");
+        if let Some(OutputTarget::Recording(writer)) = self.out.take() {
+            match writer.finish_unless_empty() {
+                Ok(true) => {}
+                // An earlier recording at the path is worth more than an empty one.
+                Ok(false) => warn!("no scan was recorded: no recording written"),
+                Err(e) => {
+                    self.report.write_failures += 1;
+                    warn!("{e}");
+                }
+            }
         }
         self.report.scan_fate.unanswered += self.pending.len() as u64;
         self.report.dropped_scans = self.report.scan_fate.dropped;
@@ -477,15 +481,15 @@ pub fn summary(r: &ConsumerReport, stats: &str) -> String {
     s
 }
 
-fn write_report(path: &Path, r: &ConsumerReport) -> anyhow::Result<()> {
-    std::fs::write(path, serde_json::to_string_pretty(r)?)
-        .with_context(|| format!("{}: cannot write report", path.display()))
-}
+/// How long a consumer with an idle timeout waits for its first mask.
+const FIRST_MASK_WAIT: Duration = Duration::from_secs(30);
 
 /// The consumer as the service runs it: the stage, when to stop, and what each stage's
 /// process costs.
 #[derive(Debug)]
 pub struct Consumer {
+    /// The report's file, claimed at the start.
+    files: groundwork_io::OutputFiles,
     stage: ConsumerStage,
     opts: ConsumerOptions,
     cfg: ServiceConfig,
@@ -502,6 +506,16 @@ impl Consumer {
     /// A consumer of `cfg`'s pipeline; its output (if any) is created here, so that a bad
     /// `--out` fails before anything runs.
     pub fn new(cfg: &ServiceConfig, opts: &ConsumerOptions) -> anyhow::Result<Self> {
+        // The report through the one output path: never the labels read, never the
+        // recording written, never half-written.
+        let mut files =
+            groundwork_io::OutputFiles::new(&opts.labels.iter().cloned().collect::<Vec<_>>());
+        if let Some(out) = opts.out.as_deref().filter(|o| !o.is_dir()) {
+            files.claim(out)?;
+        }
+        if let Some(report) = &opts.report_json {
+            files.claim(report)?;
+        }
         let mut output = opts
             .out
             .as_deref()
@@ -511,6 +525,7 @@ impl Consumer {
             w.set_mount(groundwork_io::transform::StaticTransform::of_mount(mount)?);
         }
         Ok(Self {
+            files,
             stage: ConsumerStage::new(opts.labels.clone(), output, opts.warmup),
             opts: opts.clone(),
             cfg: cfg.clone(),
@@ -587,6 +602,17 @@ impl Stage for Consumer {
             info!("no mask for {t:?}: stopping");
             return false;
         }
+        // Before the first mask the stages may still be starting: a longer wait, but not
+        // forever (a consumer restarted after the producer's last scan would wait for ever).
+        if let (Some(t), None) = (self.opts.idle_timeout, self.first)
+            && self.last_mask.elapsed() > t.max(FIRST_MASK_WAIT)
+        {
+            warn!(
+                "no mask in the first {:?}: stopping",
+                t.max(FIRST_MASK_WAIT)
+            );
+            return false;
+        }
         if let Some(after) = self.opts.stall_after
             && !self.stalled
             && self.stage.report().masks >= after
@@ -643,7 +669,8 @@ impl Stage for Consumer {
         }
         // The machine-readable report first: stdout may be a terminal that is gone (SIGHUP).
         if let Some(p) = &self.opts.report_json {
-            write_report(p, &report)?;
+            let json = serde_json::to_string_pretty(&report)? + "\n";
+            self.files.write(p, json.as_bytes())?;
         }
         let _ = std::io::stdout().write_all(summary(&report, &table).as_bytes());
         info!(

@@ -36,6 +36,9 @@ pub struct StageOutcome {
     pub name: &'static str,
     /// Its last process's exit status (None: could not be collected).
     pub status: Option<ExitStatus>,
+    /// It ended while the pipeline was being stopped (a signal to the launcher, or another
+    /// stage's failure): "stopped by a signal" is then the stop asked for.
+    pub stopped_with_pipeline: bool,
     /// Times it was started again after dying.
     pub restarts: u32,
     /// Why it failed the pipeline, if it did.
@@ -52,9 +55,14 @@ pub struct Outcome {
 impl Outcome {
     /// Whether the run succeeded: no stage failed and every stage ended with exit code 0.
     pub fn success(&self) -> bool {
-        self.stages
-            .iter()
-            .all(|s| s.failure.is_none() && s.status.is_some_and(|st| st.success()))
+        self.stages.iter().all(|s| {
+            s.failure.is_none()
+                && s.status.is_some_and(|st| {
+                    st.success()
+                        || (s.stopped_with_pipeline
+                            && st.code() == Some(i32::from(signals::STOPPED_EXIT_CODE)))
+                })
+        })
     }
 }
 
@@ -69,6 +77,9 @@ pub fn describe(status: &ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;
     match (status.code(), status.signal()) {
         (_, Some(sig)) => format!("killed by signal {sig}"),
+        (Some(c), _) if c == i32::from(signals::STOPPED_EXIT_CODE) => {
+            format!("exited with code {c} (stopped by a signal before it finished)")
+        }
         (Some(c), _) => format!("exited with code {c}"),
         _ => status.to_string(),
     }
@@ -81,9 +92,14 @@ struct Running {
     restarts: u32,
     status: Option<ExitStatus>,
     failure: Option<String>,
+    /// Ended while the pipeline was stopping.
+    stopped_with_pipeline: bool,
 }
 
 fn terminate(stages: &mut [Running], grace: Duration) {
+    for s in stages.iter_mut().filter(|s| s.status.is_none()) {
+        s.stopped_with_pipeline = true;
+    }
     for s in stages.iter_mut() {
         if s.status.is_none() && matches!(s.child.try_wait(), Ok(None)) {
             info!(stage = s.name, "sending SIGTERM");
@@ -145,6 +161,7 @@ pub fn run(
                     restarts: 0,
                     status: None,
                     failure: None,
+                    stopped_with_pipeline: false,
                 });
                 // Give each reader time to attach before the next stage starts.
                 signals::sleep(Duration::from_millis(300));
@@ -164,6 +181,12 @@ pub fn run(
             let Ok(Some(status)) = s.child.try_wait() else {
                 continue;
             };
+            // A signal to the whole group (Ctrl-C in a terminal) reaches the stages too,
+            // and one may end before the launcher sees the signal: the stop asked for.
+            if signals::stop_requested() {
+                info!("stop requested: stopping the pipeline");
+                break 'supervise;
+            }
             if s.name == finisher && finished(&status) {
                 if status.code() == Some(1) {
                     warn!(stage = s.name, "finished with bad input (see its log)");
@@ -212,6 +235,7 @@ pub fn run(
             .map(|s| StageOutcome {
                 name: s.name,
                 status: s.status,
+                stopped_with_pipeline: s.stopped_with_pipeline,
                 restarts: s.restarts,
                 failure: s.failure,
             })

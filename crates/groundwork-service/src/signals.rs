@@ -67,6 +67,16 @@ pub fn sleep(d: Duration) -> bool {
     }
 }
 
+/// The exit code of a stage that a signal stopped before it finished its work (the
+/// consumer before its `--count`, or any stage the launcher runs and did not stop itself):
+/// the launcher restarts it or fails the pipeline, as for a death.
+pub const STOPPED_EXIT_CODE: u8 = 4;
+
+/// Whether this process was started by the launcher.
+pub fn under_launcher() -> bool {
+    std::env::var_os(PARENT_ENV).is_some()
+}
+
 /// The environment variable through which the launcher tells a stage its pid.
 pub const PARENT_ENV: &str = "GROUNDWORK_LAUNCHER_PID";
 
