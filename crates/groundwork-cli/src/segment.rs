@@ -38,6 +38,7 @@ struct Job {
 
 /// A segmented scan on its way to the writer.
 struct Segmented {
+    input: usize,
     k: usize,
     item: ScanItem,
     probs: Vec<f32>,
@@ -123,6 +124,7 @@ impl Engine {
                         });
                     }
                     let segmented = Segmented {
+                        input: job.input,
                         k: job.k,
                         item: job.item,
                         probs,
@@ -170,6 +172,48 @@ fn read_all(sequences: &[Sequence], max_points: usize, jobs: &SyncSender<Job>, p
     }
 }
 
+/// Copies every message of the recording inputs on topics other than their scans' into the
+/// output recording, unchanged (a `/chatter`, the vehicle's `/tf`, camera images): a
+/// recording written from a recording loses nothing. Says what it passed, and what it could
+/// not (a message past a broken part of the input is named in a warning).
+fn pass_through(
+    w: &mut groundwork_io::RecordingWriter,
+    sequences: &[Sequence],
+    scan_topics: &std::collections::BTreeMap<usize, String>,
+    max_points: usize,
+) {
+    for (input, topic) in scan_topics {
+        let Some(groundwork_io::ScanSource::Recording { path, .. }) =
+            sequences.get(*input).map(|s| &s.source)
+        else {
+            continue;
+        };
+        let (mut passed, mut topics) = (0usize, std::collections::BTreeSet::new());
+        let result =
+            groundwork_io::RecordingReader::others(path, topic, max_points).and_then(|it| {
+                for m in it {
+                    let m = m?;
+                    w.write_other(&m)?;
+                    passed += 1;
+                    topics.insert(m.topic);
+                }
+                Ok(())
+            });
+        if let Err(e) = result {
+            warn!("{e}: other topics passed through up to here ({passed} messages)");
+        }
+        if passed > 0 {
+            let topics: Vec<String> = topics.into_iter().collect();
+            info!(
+                from = %path.display(),
+                messages = passed,
+                topics = %topics.join(", "),
+                "other topics passed through"
+            );
+        }
+    }
+}
+
 /// Writes one segmented scan: one value per record of the input (placeholders get 0).
 fn write_one(output: &mut OutputTarget, s: &Segmented, threshold: f32) -> Result<usize> {
     let scan = s.item.scan.as_ref().map_err(|e| anyhow!("{e}"))?;
@@ -182,7 +226,11 @@ fn write_one(output: &mut OutputTarget, s: &Segmented, threshold: f32) -> Result
             // Scans without a time (no recording, no times.txt): 10 Hz from 0, in
             // processing order (the documentation says so).
             let t = s.item.log_time_ns.unwrap_or(s.k as u64 * 100_000_000);
-            w.write(topic, scan, &s.probs, t)?
+            match &s.item.message {
+                // From a recording: its cloud as it was, every field kept.
+                Some(m) => w.write_over(topic, Path::new(&s.item.name), m, scan, &s.probs, t)?,
+                None => w.write(topic, scan, &s.probs, t)?,
+            }
         }
     }
     Ok(scan.skipped())
@@ -241,6 +289,8 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
     let (done_tx, done_rx) = sync_channel::<Segmented>(2);
     let jobs = Arc::new(Mutex::new(job_rx));
     let (mut scans, mut failed_writes, mut placeholders) = (0usize, 0usize, 0usize);
+    // The topic each recording input's scans came from: its other topics pass through.
+    let mut scan_topics: std::collections::BTreeMap<usize, String> = Default::default();
     let tallies = std::thread::scope(|s| {
         // The reader owns the jobs' sender: when it is done, the workers' channel closes.
         let (seqs, reader_pb) = (&sequences, pb.clone());
@@ -256,6 +306,11 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         drop(done_tx);
         for segmented in done_rx {
             scans += 1;
+            if let Some(t) = &segmented.item.topic {
+                scan_topics
+                    .entry(segmented.input)
+                    .or_insert_with(|| t.clone());
+            }
             match write_one(&mut output, &segmented, threshold) {
                 Ok(p) => placeholders += p,
                 Err(e) => {
@@ -278,6 +333,9 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
         Ok::<_, anyhow::Error>(tallies)
     })?;
     pb.finish_and_clear();
+    if let OutputTarget::Recording(w) = &mut output {
+        pass_through(w, &sequences, &scan_topics, max);
+    }
     if let OutputTarget::Recording(w) = output
         && !w.finish_unless_empty()?
     {

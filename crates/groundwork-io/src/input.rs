@@ -224,6 +224,9 @@ pub struct ScanItem {
     pub log_time_ns: Option<u64>,
     /// Topic (recordings only).
     pub topic: Option<String>,
+    /// The recorded message the scan was decoded from (recordings only): a recording
+    /// written from it keeps every field.
+    pub message: Option<std::sync::Arc<[u8]>>,
 }
 
 impl ScanSource {
@@ -359,6 +362,7 @@ impl Iterator for ScanIter {
                     scan: read_scan(path, *max_points),
                     log_time_ns: None,
                     topic: None,
+                    message: None,
                 };
                 *next += 1;
                 Some(item)
@@ -373,6 +377,7 @@ impl Iterator for ScanIter {
                             scan: Err(e),
                             log_time_ns: None,
                             topic: None,
+                            message: None,
                         }
                     }
                     Ok(r) => {
@@ -384,6 +389,7 @@ impl Iterator for ScanIter {
                                 scan: Ok(rec.scan),
                                 log_time_ns: Some(rec.log_time_ns),
                                 topic: Some(rec.topic),
+                                message: Some(rec.message),
                             },
                             Err(e) => ScanItem {
                                 index,
@@ -391,6 +397,7 @@ impl Iterator for ScanIter {
                                 scan: Err(e),
                                 log_time_ns: None,
                                 topic: r.topic().map(str::to_string),
+                                message: None,
                             },
                         }
                     }

@@ -74,5 +74,7 @@ pub use output::{
     OutputFiles, OutputTarget, check_not_an_input, check_output_names, earlier_outputs,
     outputs_complete, read_clusters, read_prob, warn_replaced, write_atomic, write_outputs,
 };
-pub use recording::{RecordedScan, RecordingReader, RecordingWriter};
+pub use recording::{
+    OtherMessage, OtherMessages, RecordedScan, RecordingReader, RecordingWriter, SchemaRecord,
+};
 pub use scan::Scan;

@@ -815,6 +815,32 @@ pub fn with_probability(
     })
 }
 
+/// A cloud of the input's header (its stamp and frame as they were) as a little-endian CDR
+/// PointCloud2: what [`with_probability`] or [`select_records`] made of an input cloud,
+/// written to a recording.
+pub fn encode_data(input: &CloudRef<'_>, cloud: &CloudData) -> Vec<u8> {
+    let mut out = cdr::message();
+    put_u32(&mut out, input.stamp_sec as u32);
+    put_u32(&mut out, input.stamp_nanosec);
+    put_string(&mut out, input.frame_id);
+    put_u32(&mut out, cloud.height);
+    put_u32(&mut out, cloud.width);
+    put_u32(&mut out, cloud.fields.len() as u32);
+    for f in &cloud.fields {
+        put_string(&mut out, &f.name);
+        put_u32(&mut out, f.offset);
+        out.push(f.datatype);
+        put_u32(&mut out, f.count);
+    }
+    out.push(u8::from(input.is_bigendian));
+    put_u32(&mut out, cloud.point_step);
+    put_u32(&mut out, cloud.row_step);
+    put_u32(&mut out, cloud.data.len() as u32);
+    out.extend_from_slice(&cloud.data);
+    out.push(u8::from(cloud.is_dense));
+    out
+}
+
 /// The records `keep` selects (one flag per record), every field as it was, as an
 /// unorganized cloud (height 1).
 pub fn select_records(

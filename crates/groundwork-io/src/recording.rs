@@ -35,6 +35,9 @@ pub struct RecordedScan {
     pub topic: String,
     /// The decoded scan.
     pub scan: Scan,
+    /// The message it was decoded from (CDR PointCloud2): a recording written from this
+    /// one keeps every field of it.
+    pub message: std::sync::Arc<[u8]>,
 }
 
 /// A channel as far as the reader needs it.
@@ -43,6 +46,36 @@ struct ChannelInfo {
     topic: String,
     encoding: String,
     schema: Option<String>,
+    schema_id: u16,
+}
+
+/// A schema record: its name, encoding and definition.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SchemaRecord {
+    /// `sensor_msgs/msg/PointCloud2`, …
+    pub name: String,
+    /// `ros2msg`, `protobuf`, … (empty: none).
+    pub encoding: String,
+    /// The definition.
+    pub data: Vec<u8>,
+}
+
+/// A message of a recording on a topic other than the scans read: what a recording written
+/// from it passes through unchanged.
+#[derive(Debug, Clone)]
+pub struct OtherMessage {
+    /// Its topic.
+    pub topic: String,
+    /// Its schema (None: schemaless).
+    pub schema: Option<SchemaRecord>,
+    /// Its channel's message encoding (`cdr`, `json`, …).
+    pub encoding: String,
+    /// Log time, ns.
+    pub log_time_ns: u64,
+    /// Publish time, ns.
+    pub publish_time_ns: u64,
+    /// The message, as recorded.
+    pub data: Vec<u8>,
 }
 
 /// Streams the PointCloud2 messages of one topic of an MCAP file.
@@ -59,9 +92,11 @@ pub struct RecordingReader {
     path: PathBuf,
     file: BufReader<fs::File>,
     reader: LinearReader,
-    schemas: BTreeMap<u16, String>,
+    schemas: BTreeMap<u16, SchemaRecord>,
     channels: BTreeMap<u16, ChannelInfo>,
     topic: Option<String>,
+    /// Reading the messages of every other topic instead of the scans of this one.
+    others_of: Option<String>,
     max_points: usize,
     next_index: usize,
     other_clouds: BTreeSet<String>,
@@ -128,6 +163,7 @@ impl RecordingReader {
             channels: BTreeMap::new(),
             topic: topic.map(str::to_string),
             max_points,
+            others_of: None,
             next_index: 0,
             other_clouds: BTreeSet::new(),
             done: false,
@@ -292,6 +328,7 @@ enum Step {
     EndOfData,
     Broken(String),
     Scan(Result<RecordedScan, FormatError>),
+    Other(OtherMessage),
 }
 
 impl RecordingReader {
@@ -299,10 +336,23 @@ impl RecordingReader {
         let mut f = Fields(data);
         match opcode {
             op::SCHEMA => {
-                let (Some(id), Some(name)) = (f.u16(), f.string()) else {
+                let parsed = (|| {
+                    let id = f.u16()?;
+                    let (name, encoding) = (f.string()?, f.string()?);
+                    let n = f.u32()? as usize;
+                    Some((id, name, encoding, f.take(n)?.to_vec()))
+                })();
+                let Some((id, name, encoding, data)) = parsed else {
                     return Step::Broken("malformed schema record".into());
                 };
-                self.schemas.insert(id, name);
+                self.schemas.insert(
+                    id,
+                    SchemaRecord {
+                        name,
+                        encoding,
+                        data,
+                    },
+                );
             }
             op::CHANNEL => {
                 let parsed = (|| {
@@ -310,21 +360,22 @@ impl RecordingReader {
                     let schema = f.u16()?;
                     Some((id, schema, f.string()?, f.string()?))
                 })();
-                let Some((id, schema, topic, encoding)) = parsed else {
+                let Some((id, schema_id, topic, encoding)) = parsed else {
                     return Step::Broken("malformed channel record".into());
                 };
-                let schema = self.schemas.get(&schema).cloned();
+                let schema = self.schemas.get(&schema_id).map(|s| s.name.clone());
                 self.channels.insert(
                     id,
                     ChannelInfo {
                         topic,
                         encoding,
                         schema,
+                        schema_id,
                     },
                 );
             }
             op::MESSAGE => {
-                let (Some(channel), Some(_sequence), Some(log_time), Some(_publish)) =
+                let (Some(channel), Some(_sequence), Some(log_time), Some(publish)) =
                     (f.u16(), f.u32(), f.u64(), f.u64())
                 else {
                     return Step::Broken("malformed message record".into());
@@ -332,6 +383,19 @@ impl RecordingReader {
                 let Some(ch) = self.channels.get(&channel) else {
                     return Step::Broken(format!("message on unknown channel {channel}"));
                 };
+                if let Some(skip) = &self.others_of {
+                    if ch.topic == *skip {
+                        return Step::Continue;
+                    }
+                    return Step::Other(OtherMessage {
+                        topic: ch.topic.clone(),
+                        schema: self.schemas.get(&ch.schema_id).cloned(),
+                        encoding: ch.encoding.clone(),
+                        log_time_ns: log_time,
+                        publish_time_ns: publish,
+                        data: f.0.to_vec(),
+                    });
+                }
                 let is_cloud = ch.schema.as_deref() == Some(SCHEMA_NAME);
                 let chosen = match &self.topic {
                     Some(t) => *t == ch.topic,
@@ -371,6 +435,7 @@ impl RecordingReader {
                         log_time_ns: log_time,
                         topic: ch.topic,
                         scan,
+                        message: f.0.into(),
                     }),
                 );
             }
@@ -382,11 +447,10 @@ impl RecordingReader {
     }
 }
 
-impl Iterator for RecordingReader {
-    type Item = Result<RecordedScan, FormatError>;
-
-    fn next(&mut self) -> Option<Self::Item> {
-        while !self.done {
+impl RecordingReader {
+    /// The next record that is not [`Step::Continue`]; an I/O error ends the stream.
+    fn step(&mut self) -> Result<Step, FormatError> {
+        loop {
             let step = match self.reader.next_event() {
                 None => Step::EndOfData,
                 Some(Err(e)) => Step::Broken(e.to_string()),
@@ -397,7 +461,7 @@ impl Iterator for RecordingReader {
                             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                             Err(e) => {
                                 self.done = true;
-                                return Some(Err(FormatError::io(&self.path, e)));
+                                return Err(FormatError::io(&self.path, e));
                             }
                         }
                     };
@@ -411,11 +475,59 @@ impl Iterator for RecordingReader {
                     self.record(opcode, &data)
                 }
             };
-            match step {
-                Step::Continue => {}
-                Step::EndOfData => return self.end_of_data(),
-                Step::Broken(what) => return Some(Err(self.broken(what))),
-                Step::Scan(item) => return Some(item),
+            if !matches!(step, Step::Continue) {
+                return Ok(step);
+            }
+        }
+    }
+
+    /// The messages of `path` on every topic but `topic`, in the order recorded (with the
+    /// same bounds as the scans' reader): what a recording written from this one passes
+    /// through.
+    pub fn others(
+        path: &Path,
+        topic: &str,
+        max_points: usize,
+    ) -> Result<OtherMessages, FormatError> {
+        let mut reader = Self::open(path, Some(topic), max_points)?;
+        reader.others_of = Some(topic.to_string());
+        Ok(OtherMessages(reader))
+    }
+}
+
+impl Iterator for RecordingReader {
+    type Item = Result<RecordedScan, FormatError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        while !self.done {
+            match self.step() {
+                Err(e) => return Some(Err(e)),
+                Ok(Step::Continue | Step::Other(_)) => {}
+                Ok(Step::EndOfData) => return self.end_of_data(),
+                Ok(Step::Broken(what)) => return Some(Err(self.broken(what))),
+                Ok(Step::Scan(item)) => return Some(item),
+            }
+        }
+        None
+    }
+}
+
+/// The messages of a recording on every topic but the scans' ([`RecordingReader::others`]).
+#[derive(Debug)]
+pub struct OtherMessages(RecordingReader);
+
+impl Iterator for OtherMessages {
+    type Item = Result<OtherMessage, FormatError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let r = &mut self.0;
+        while !r.done {
+            match r.step() {
+                Err(e) => return Some(Err(e)),
+                Ok(Step::Continue | Step::Scan(_)) => {}
+                Ok(Step::EndOfData) => r.done = true,
+                Ok(Step::Broken(what)) => return Some(Err(r.broken(what))),
+                Ok(Step::Other(m)) => return Some(Ok(m)),
             }
         }
         None
@@ -440,6 +552,8 @@ pub struct RecordingWriter {
     placed: BTreeSet<String>,
     /// Scans written.
     scans: u64,
+    /// Channels of messages passed through, by (topic, schema name, encoding).
+    passed: BTreeMap<(String, String, String), u16>,
 }
 
 impl std::fmt::Debug for RecordingWriter {
@@ -476,6 +590,7 @@ impl RecordingWriter {
             mount: None,
             placed: BTreeSet::new(),
             scans: 0,
+            passed: BTreeMap::new(),
         })
     }
 
@@ -573,19 +688,98 @@ impl RecordingWriter {
             .as_deref()
             .unwrap_or(crate::transform::SENSOR_FRAME);
         let stamp = scan.stamp_ns.unwrap_or(log_time_ns);
+        self.place(frame, stamp, log_time_ns)?;
+        let channel = self.channel(topic, self.schema)?;
+        let data = pointcloud2::encode(scan, probabilities, stamp, frame);
+        self.write_message(channel, log_time_ns, &data)?;
+        self.scans += 1;
+        Ok(())
+    }
+
+    /// [`Self::write`] for a scan decoded from the PointCloud2 `message` (CDR): the cloud
+    /// written is that message with every record and field as it was (rings, times, an
+    /// organized layout, its byte order) and `ground_probability` appended. `label` names
+    /// the message in errors.
+    pub fn write_over(
+        &mut self,
+        topic: &str,
+        label: &Path,
+        message: &[u8],
+        scan: &Scan,
+        probabilities: &[f32],
+        log_time_ns: u64,
+    ) -> Result<(), FormatError> {
+        let parsed = pointcloud2::parse(label, message)?;
+        let cloud = parsed.cloud();
+        let per_record = scan.expand(probabilities, 0.0);
+        let out = pointcloud2::with_probability(label, &cloud, &per_record, per_record.len())?;
+        let frame = cloud.frame_id;
+        self.place(frame, cloud.stamp_ns().unwrap_or(log_time_ns), log_time_ns)?;
+        let channel = self.channel(topic, self.schema)?;
+        let data = pointcloud2::encode_data(&cloud, &out);
+        self.write_message(channel, log_time_ns, &data)?;
+        self.scans += 1;
+        Ok(())
+    }
+
+    /// Passes a message of another recording through unchanged (its topic, schema and
+    /// encoding; its own channel, apart from the scans' and the transforms' here).
+    pub fn write_other(&mut self, m: &OtherMessage) -> Result<(), FormatError> {
+        let key = (
+            m.topic.clone(),
+            m.schema
+                .as_ref()
+                .map(|s| s.name.clone())
+                .unwrap_or_default(),
+            m.encoding.clone(),
+        );
+        let channel = match self.passed.get(&key) {
+            Some(&c) => c,
+            None => {
+                let path = self.path.clone();
+                let Some(writer) = self.writer.as_mut() else {
+                    return Err(FormatError::malformed(&path, "MCAP: already finished"));
+                };
+                let err = |e: mcap::McapError| mcap_error(&path, &e);
+                let schema = match &m.schema {
+                    Some(s) => writer
+                        .add_schema(&s.name, &s.encoding, &s.data)
+                        .map_err(err)?,
+                    None => 0,
+                };
+                let c = writer
+                    .add_channel(schema, &m.topic, &m.encoding, &BTreeMap::new())
+                    .map_err(err)?;
+                self.passed.insert(key, c);
+                c
+            }
+        };
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
+        };
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: self.sequence,
+            log_time: m.log_time_ns,
+            publish_time: m.publish_time_ns,
+        };
+        self.sequence = self.sequence.wrapping_add(1);
+        writer
+            .write_to_known_channel(&header, &m.data)
+            .map_err(|e| mcap_error(&self.path, &e))
+    }
+
+    /// Writes the mount's transform for `frame` before its first scan.
+    fn place(&mut self, frame: &str, stamp_ns: u64, log_time_ns: u64) -> Result<(), FormatError> {
         if let Some(mount) = &self.mount
             && !self.placed.contains(frame)
         {
-            let data = encode_static_transform(mount, frame, stamp);
+            let data = encode_static_transform(mount, frame, stamp_ns);
             let schema = self.tf_schema()?;
             let channel = self.channel(TF_STATIC_TOPIC, schema)?;
             self.write_message(channel, log_time_ns, &data)?;
             self.placed.insert(frame.to_string());
         }
-        let channel = self.channel(topic, self.schema)?;
-        let data = pointcloud2::encode(scan, probabilities, stamp, frame);
-        self.write_message(channel, log_time_ns, &data)?;
-        self.scans += 1;
         Ok(())
     }
 

@@ -615,6 +615,45 @@ def test_recordings_keep_the_input_stamps_and_frames(cli: Path, tmp_path: Path) 
     assert read_clouds(seg) == [(t, t, "lidar") for t in times]
 
 
+def test_a_recording_from_a_recording_keeps_every_field_and_topic(cli: Path, tmp_path: Path) -> None:
+    """Written by mcap-ros2-support: clouds with a `ring` field and padding, one organized
+    with placeholders, one big-endian, and a `/chatter` topic. Read back by `mcap`."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    def messages(path: Path) -> list:
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            return [(ch.topic, msg.log_time, msg.data, decoded)
+                    for _, ch, msg, decoded in reader.iter_decoded_messages(log_time_order=True)]
+
+    fixture = ROOT / "crates/groundwork-io/tests/fixtures/kitti_pointcloud2.mcap"
+    out = tmp_path / "out.mcap"
+    run(cli, "segment", "--out", str(out), str(fixture))
+    before, after = messages(fixture), messages(out)
+    # Every other topic passed through as it was (same bytes, same times).
+    chatter = lambda ms: [(t, d) for topic, t, d, _ in ms if topic == "/chatter"]  # noqa: E731
+    assert chatter(after) == chatter(before) and len(chatter(before)) == 3
+    clouds = lambda ms: [c for topic, _, _, c in ms if topic == "/points"]  # noqa: E731
+    assert len(clouds(after)) == 3
+    for src, dst in zip(clouds(before), clouds(after)):
+        names = [f.name for f in src.fields]
+        assert [f.name for f in dst.fields] == names + ["ground_probability"]
+        assert (dst.height, dst.width, dst.is_bigendian) == (src.height, src.width, src.is_bigendian)
+        n = src.height * src.width
+        for r in range(n):
+            row, col = divmod(r, src.width)
+            a = src.data[row * src.row_step + col * src.point_step:][: src.point_step]
+            b = dst.data[r * dst.point_step:][: dst.point_step]
+            assert bytes(b[: src.point_step]) == bytes(a), f"record {r}: every input byte kept"
+        order = ">" if src.is_bigendian else "<"
+        offset = dst.fields[-1].offset
+        probs = [np.frombuffer(bytes(dst.data[r * dst.point_step + offset:][:4]), dtype=order + "f4")[0]
+                 for r in range(n)]
+        assert all(0.0 <= p <= 1.0 for p in probs)
+        assert sum(p >= 0.5 for p in probs) > n // 4
+
+
 def test_recordings_place_the_scan_frame_by_the_mount(cli: Path, tmp_path: Path) -> None:
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
