@@ -23,7 +23,8 @@ const CHECKOUT_DATA: &str = "tests/data/semantickitti-00";
 /// else the samples installed beside the binary (`<prefix>/share/groundwork/`, as the
 /// release tarball lays them out), else the checkout whose `target/` holds the binary (found
 /// from where the binary is at run time, never from a path fixed at build time, so an
-/// installed or copied binary does not depend on the build machine's files).
+/// installed or copied binary does not depend on the build machine's files), else the
+/// groundwork checkout the working directory is in.
 pub fn sample_data() -> Result<PathBuf> {
     if let Some(d) = std::env::var_os("GROUNDWORK_DATA") {
         let d = PathBuf::from(d);
@@ -37,14 +38,27 @@ pub fn sample_data() -> Result<PathBuf> {
     }
     let exe = std::env::current_exe().context("cannot find this executable")?;
     let exe = exe.canonicalize().unwrap_or(exe);
-    sample_data_near(&exe).ok_or_else(|| {
-        anyhow::anyhow!(
-            "no sample scans found: pass --data <folder of scans or .mcap>, or set \
-             GROUNDWORK_DATA, or unpack the release tarball's share/ beside bin/ (looked for \
-             {SHARED_DATA} and {CHECKOUT_DATA} around {})",
-            exe.display()
-        )
-    })
+    let cwd = std::env::current_dir().ok();
+    sample_data_near(&exe)
+        .or_else(|| cwd.as_deref().and_then(checkout_around))
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "no sample scans found: pass --data <folder of scans or .mcap>, or set \
+                 GROUNDWORK_DATA, or unpack the release tarball's share/ beside bin/, or run \
+                 from inside a groundwork checkout (looked for {SHARED_DATA} and \
+                 {CHECKOUT_DATA} around {} and above the working directory)",
+                exe.display()
+            )
+        })
+}
+
+/// The samples of the groundwork checkout `dir` is in (a binary installed by `cargo
+/// install` and run from inside the clone it was built from).
+fn checkout_around(dir: &Path) -> Option<PathBuf> {
+    dir.ancestors()
+        .find(|a| a.join("crates/groundwork-cli/Cargo.toml").is_file())
+        .map(|root| root.join(CHECKOUT_DATA))
+        .filter(|d| d.is_dir())
 }
 
 /// The samples beside an executable: `<prefix>/share/...` for `<prefix>/bin/<exe>`, or a

@@ -39,17 +39,14 @@ pub struct RenderJob<'a> {
     pub out: &'a Path,
 }
 
-/// Where a scan's label file may be: SemanticKITTI's `<seq>/velodyne/x.bin` →
-/// `<seq>/labels/x.label`, or a `labels/` folder beside the scan (a plain folder of scans).
+/// Where a scan's label file may be: its name in each of the folders every command looks
+/// in ([`groundwork_io::label_folders`]).
 fn label_candidates(scan: &Path) -> Vec<PathBuf> {
     let name = format!("{}.label", scan_stem(scan));
-    let dir = scan.parent().unwrap_or(Path::new("."));
-    let mut c = Vec::new();
-    if let Some(seq) = dir.parent() {
-        c.push(seq.join("labels").join(&name));
-    }
-    c.push(dir.join("labels").join(&name));
-    c
+    groundwork_io::label_folders(scan)
+        .into_iter()
+        .map(|d| d.join(&name))
+        .collect()
 }
 
 pub fn run(job: &RenderJob<'_>) -> Result<()> {

@@ -127,6 +127,26 @@ fn eval_json_reports_per_scan_and_pooled_metrics() {
     );
 }
 
+/// One label lookup for every command: a scan file given alone finds
+/// `<seq>/labels/<stem>.label` beside its `velodyne/` (as `render --compare` does), and so
+/// does the `velodyne/` folder given itself.
+#[test]
+fn eval_finds_the_labels_of_a_scan_file_and_of_a_velodyne_folder() {
+    for (input, labeled) in [
+        (data().join("velodyne/000001.bin"), 1),
+        (data().join("velodyne"), 3),
+    ] {
+        let o = bin().args(["eval", "--json"]).arg(&input).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{err}");
+        assert!(!err.contains("only timing"), "{err}");
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(v["labeled_scans"], labeled, "{}", input.display());
+        let iou = v["pooled_metrics"]["iou_ground"].as_f64().unwrap();
+        assert!(iou > 97.0, "{iou}");
+    }
+}
+
 /// The binary on a CPU without AVX2 (emulated: qemu-user's Nehalem) refuses with a message
 /// and exit code 3 instead of dying of SIGILL. `.ci/run` installs qemu-user and sets
 /// GROUNDWORK_REQUIRE_QEMU=1; elsewhere the test says it was skipped.
@@ -971,6 +991,20 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
         "{}",
         text(&bad_env)
     );
+
+    // From inside a checkout (its root, or a folder below), the checkout's samples.
+    let checkout = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    for dir in [checkout.clone(), checkout.join("docs")] {
+        let o = Command::new(&exe)
+            .current_dir(&dir)
+            .args(["pipeline", "--count", "2", "--no-detector", "--prefix"])
+            .arg(format!("gw-cli-in-checkout-{}", std::process::id()))
+            .env_remove("GROUNDWORK_DATA")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}: {}", dir.display(), text(&o));
+        assert!(text(&o).contains("2 masks"), "{}", text(&o));
+    }
 
     // An empty folder: refused by name before any stage starts.
     let empty = tmp.path().join("empty");

@@ -77,7 +77,14 @@ impl Sequence {
     ) -> Result<Self, SequenceError> {
         let source = ScanSource::open(dir, None)?;
         let folder = dir.is_dir();
-        let label_dir = Some(dir.join("labels")).filter(|l| folder && l.is_dir());
+        // Labels where every command looks for them; a recording's only beside it in its
+        // folder's `labels/` (named by message index).
+        let label_dir = match &source {
+            ScanSource::Files(_) => groundwork_io::label_folder(dir),
+            ScanSource::Recording { .. } => {
+                Some(dir.join("labels")).filter(|l| folder && l.is_dir())
+            }
+        };
         let default = |name: &str| folder.then(|| dir.join(name));
         let poses_path = poses
             .map(Path::to_path_buf)

@@ -62,12 +62,35 @@ pub fn sensor_preset_text(name: &str) -> Result<&'static str, FormatError> {
     builtin(SENSOR_PRESETS, name)
         .map(|(_, t)| t)
         .ok_or_else(|| FormatError::Config {
-            path: format!("--sensor {name}").into(),
+            path: format!("sensor {name:?}").into(),
             message: format!(
-                "no such sensor preset (presets: {})",
+                "no such sensor preset ({}presets: {})",
+                did_you_mean(name, SENSOR_PRESETS.iter().map(|(n, _)| *n))
+                    .map(|m| format!("did you mean {m:?}? "))
+                    .unwrap_or_default(),
                 builtin_names(SENSOR_PRESETS)
             ),
         })
+}
+
+/// The candidate closest to a mistyped name, if one is close (case and `-`/`_` aside).
+pub fn did_you_mean<'a>(given: &str, candidates: impl Iterator<Item = &'a str>) -> Option<&'a str> {
+    let norm = |s: &str| s.to_ascii_lowercase().replace(['-', '_'], "");
+    let g = norm(given);
+    candidates
+        .map(|c| (strsim::jaro_winkler(&g, &norm(c)), c))
+        .filter(|(score, _)| *score >= 0.8)
+        .max_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, c)| c)
+}
+
+/// An unknown-key error from serde (``unknown field `pich_deg`, expected one of `height`,
+/// …``) with the closest expected key suggested.
+fn suggest_key(message: &str) -> Option<String> {
+    let rest = message.split("unknown field `").nth(1)?;
+    let (given, expected) = rest.split_once('`')?;
+    let candidates = expected.split('`').skip(1).step_by(2);
+    did_you_mean(given, candidates).map(|c| format!("did you mean `{c}`?"))
 }
 
 /// A sensor preset's configuration.
@@ -144,9 +167,13 @@ pub fn parse_table(path: &Path, text: &str) -> Result<toml::Table, FormatError> 
 
 /// A configuration error naming the file (or layer) it is about.
 pub fn config_error(path: &Path, e: &dyn std::fmt::Display) -> FormatError {
+    let mut message = e.to_string().trim_end().to_string();
+    if let Some(hint) = suggest_key(&message) {
+        message = format!("{message}\n{hint}");
+    }
     FormatError::Config {
         path: path.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
+        message,
     }
 }
 
@@ -243,6 +270,31 @@ mod tests {
             c.sensor.mount.height,
             sensor_preset("livox").unwrap().sensor.mount.height
         );
+    }
+
+    #[test]
+    fn a_mistyped_key_or_preset_gets_the_closest_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("typo.toml");
+        fs::write(&p, "[sensor.mount]\npich_deg = -2\n").unwrap();
+        let e = load_config_over(Some("vlp16"), Some(&p))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("pich_deg") && e.contains("did you mean `pitch_deg`?"),
+            "{e}"
+        );
+        let e = sensor_preset("vlp-16").unwrap_err().to_string();
+        assert!(
+            e.contains("did you mean \"vlp16\"") && !e.contains("--sensor"),
+            "{e}"
+        );
+        // Nothing close: no guess.
+        fs::write(&p, "[sensor.mount]\nzzzzzz = 1\n").unwrap();
+        let e = load_config_over(Some("vlp16"), Some(&p))
+            .unwrap_err()
+            .to_string();
+        assert!(!e.contains("did you mean"), "{e}");
     }
 
     #[test]

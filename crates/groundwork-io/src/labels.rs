@@ -189,6 +189,35 @@ impl LabelMap {
     }
 }
 
+/// Where the labels of an input are looked for, in order (the first that is a folder wins):
+/// a folder's `labels/` (and, for a `velodyne/` folder, its sequence's); for a scan file, SemanticKITTI's `<seq>/labels/` beside its
+/// `<seq>/velodyne/`, then a `labels/` folder beside the file. Every command that finds
+/// labels by itself (`eval`, `render --compare`, the consumer's live accuracy) looks here.
+pub fn label_folders(input: &Path) -> Vec<PathBuf> {
+    if input.is_dir() {
+        let mut c = vec![input.join("labels")];
+        // `<seq>/velodyne/` given itself: its sequence's labels.
+        if input.file_name().is_some_and(|n| n == "velodyne")
+            && let Some(seq) = input.parent()
+        {
+            c.push(seq.join("labels"));
+        }
+        return c;
+    }
+    let dir = input.parent().unwrap_or(Path::new("."));
+    let mut c = Vec::new();
+    if let Some(seq) = dir.parent() {
+        c.push(seq.join("labels"));
+    }
+    c.push(dir.join("labels"));
+    c
+}
+
+/// The first of [`label_folders`] that exists.
+pub fn label_folder(input: &Path) -> Option<PathBuf> {
+    label_folders(input).into_iter().find(|d| d.is_dir())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

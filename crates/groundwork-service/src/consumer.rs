@@ -169,10 +169,11 @@ pub struct ConsumerStage {
 }
 
 impl ConsumerStage {
-    /// A stage scoring against `labels` (a sequence folder) and writing to `out`.
+    /// A stage scoring against `labels` (a sequence folder: its labels are found where
+    /// every command finds them, [`groundwork_io::label_folder`]) and writing to `out`.
     pub fn new(labels: Option<PathBuf>, out: Option<OutputTarget>, warmup: u64) -> Self {
         Self {
-            labels_dir: labels,
+            labels_dir: labels.and_then(|d| groundwork_io::label_folder(&d)),
             out,
             warmup,
             listening_since: u64::MAX,
@@ -342,7 +343,7 @@ impl ConsumerStage {
             return;
         };
         if let std::collections::hash_map::Entry::Vacant(slot) = self.labels.entry(index) {
-            let p = dir.join(format!("labels/{index:06}.label"));
+            let p = dir.join(format!("{index:06}.label"));
             let l = p
                 .is_file()
                 .then(|| self.label_map.read(&p, probs.len()))
