@@ -492,6 +492,16 @@ fn pipeline_runs_end_to_end_and_leaves_no_shared_memory() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(stdout.contains("12 masks (12 segmented"), "{stdout}");
+    // What ran and whether it was healthy, first, in words.
+    assert!(
+        stdout.starts_with("pipeline: 6 scans of")
+            && stdout.contains("replayed 2 time(s) (12 scans), through 4 processes"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("verdict: healthy: every scan masked (12 of 12), nothing dropped"),
+        "{stdout}"
+    );
     // A clean start and stop logs no warning (iceoryx2's config is set in code).
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!stderr.contains(" WARN "), "{stderr}");

@@ -311,6 +311,7 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         groundwork_view::parse_addr(addr)?;
     }
     // The scans' source: files (a folder or a recording) or the ROS 2 bridge.
+    let mut what_ran = "clouds from ROS 2".to_string();
     let data = match (ros2, data) {
         (Some(_), _) => None,
         (None, Some(d)) => Some(d.clone()),
@@ -324,7 +325,16 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         );
         // Something to replay, checked before any stage starts (an empty folder would
         // otherwise be found by the producer after the others are up).
-        groundwork_io::ScanSource::open(data, None)?;
+        let source = groundwork_io::ScanSource::open(data, None)?;
+        what_ran = match (source.len_hint(), count) {
+            (Some(n), Some(c)) => format!(
+                "{n} scans of {} replayed {} time(s) ({c} scans)",
+                data.display(),
+                c.div_ceil(n as u64)
+            ),
+            (Some(n), None) => format!("{n} scans of {} replayed until stopped", data.display()),
+            (None, _) => format!("the recording {}", data.display()),
+        };
         if let Some(o) = &out {
             groundwork_io::check_not_an_input(o, std::slice::from_ref(data))?;
         }
@@ -427,6 +437,13 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         });
     }
     stages.push(source);
+    // What runs, in one line before the stages' own output (the consumer's verdict ends it).
+    let names: Vec<&str> = stages.iter().map(|s| s.name).collect();
+    println!(
+        "pipeline: {what_ran}, through {} processes ({}) over shared memory",
+        names.len(),
+        names.join(", ")
+    );
     let outcome = launcher::run(&cfg, stages, "consumer", restart)?;
     for s in &outcome.stages {
         match &s.failure {

@@ -426,7 +426,60 @@ impl ConsumerStage {
     }
 }
 
-/// The report as a person reads it.
+/// One line a newcomer can read: healthy or not, and why; the headline latencies in ms.
+pub fn verdict(r: &ConsumerReport) -> String {
+    let f = r.scan_fate;
+    let mut problems = Vec::new();
+    for (n, what) in [
+        (f.rejected, "rejected"),
+        (f.unanswered, "unanswered"),
+        (f.dropped, "dropped on the way"),
+        (r.dropped_masks, "masks lost"),
+        (r.write_failures, "writes failed"),
+    ] {
+        if n > 0 {
+            problems.push(format!("{n} {what}"));
+        }
+    }
+    let ms = |stage: &str| {
+        r.latency_us
+            .iter()
+            .find(|p| p.stage == stage && p.count > 0)
+            .map(|p| (p.p50 / 1e3, p.p99 / 1e3))
+    };
+    let mut s = if f.total() == 0 {
+        "verdict: NOT healthy: no scan arrived".to_string()
+    } else if problems.is_empty() {
+        format!(
+            "verdict: healthy: every scan masked ({} of {}), nothing dropped",
+            f.masked,
+            f.total()
+        )
+    } else {
+        format!(
+            "verdict: NOT healthy: {} of {} scans masked; {}",
+            f.masked,
+            f.total(),
+            problems.join(", ")
+        )
+    };
+    if let Some((p50, p99)) = ms("end to end") {
+        s.push_str(&format!("; end to end {p50:.1} ms median, {p99:.1} ms p99"));
+    }
+    if let Some((p50, _)) = ms("segment") {
+        s.push_str(&format!(", segmenting {p50:.1} ms median"));
+    }
+    if let Some(m) = r.accuracy {
+        s.push_str(&format!(
+            "; ground IoU {:.2} on the labeled scans",
+            m.iou_ground
+        ));
+    }
+    s.push('\n');
+    s
+}
+
+/// The report as a person reads it: the verdict, then the details.
 pub fn summary(r: &ConsumerReport, stats: &str) -> String {
     let f = r.scan_fate;
     let reasons: Vec<String> = r.rejected.iter().map(|(k, n)| format!("{k} {n}")).collect();
@@ -435,7 +488,8 @@ pub fn summary(r: &ConsumerReport, stats: &str) -> String {
     } else {
         format!(": {}", reasons.join(", "))
     };
-    let mut s = format!(
+    let mut s = verdict(r);
+    s += &format!(
         "consumer: {} masks ({} segmented, {} rejected{}), {} scans; scan fate: {} masked + {} rejected + {} unanswered + {} dropped = {}; dropped masks {}, unmatched masks {}; {} segmenter run(s)\n",
         r.masks,
         r.segmented,
@@ -854,6 +908,35 @@ mod tests {
         let probs =
             groundwork_io::pointcloud2::decode_probabilities(&path, &msg.data, 100).unwrap();
         assert_eq!(probs, [0.875, 0.5, 1.0]);
+    }
+
+    #[test]
+    fn the_verdict_says_healthy_only_when_every_scan_was_masked() {
+        let mut r = ConsumerReport::default();
+        assert!(verdict(&r).contains("NOT healthy: no scan arrived"));
+        r.scan_fate.masked = 60;
+        r.latency_us = vec![crate::stats::Percentiles {
+            stage: "end to end".into(),
+            count: 60,
+            p50: 12_340.0,
+            p90: 0.0,
+            p99: 15_900.0,
+            p999: 0.0,
+            max: 0.0,
+        }];
+        let v = verdict(&r);
+        assert!(
+            v.starts_with("verdict: healthy: every scan masked (60 of 60)"),
+            "{v}"
+        );
+        assert!(v.contains("end to end 12.3 ms median, 15.9 ms p99"), "{v}");
+        r.scan_fate.dropped = 2;
+        r.write_failures = 1;
+        let v = verdict(&r);
+        assert!(
+            v.contains("NOT healthy: 60 of 62 scans masked; 2 dropped on the way, 1 writes failed"),
+            "{v}"
+        );
     }
 
     #[test]
