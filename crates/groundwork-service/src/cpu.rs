@@ -27,12 +27,18 @@ pub fn process_cpu(pid: i32) -> Option<Duration> {
 pub struct CpuSnapshot(BTreeMap<String, (i32, Duration)>);
 
 impl CpuSnapshot {
-    /// Reads the live processes of `cfg`'s pipeline (named `<prefix>/<stage>`).
+    /// Reads the live processes of `cfg`'s pipeline (named `<prefix>/<stage>`). Stages
+    /// that share a process (the ROS 2 bridge's three) are one entry: a process's CPU is
+    /// counted once.
     pub fn take(cfg: &ServiceConfig) -> Self {
+        let live = transport::pipeline_nodes(cfg)
+            .into_iter()
+            .filter(|n| n.1)
+            .map(|(stage, _, pid)| (stage, pid));
         let mut s = BTreeMap::new();
-        for (stage, alive, pid) in transport::pipeline_nodes(cfg) {
-            if let (true, Some(t)) = (alive, process_cpu(pid)) {
-                s.insert(stage, (pid, t));
+        for (name, pid) in by_process(live) {
+            if let Some(t) = process_cpu(pid) {
+                s.insert(name, (pid, t));
             }
         }
         Self(s)
@@ -57,9 +63,51 @@ impl CpuSnapshot {
     }
 }
 
+/// Stages grouped by their process: one name per pid, the first stage's (in name order),
+/// with the others it runs beside in parentheses (`ros2 (ros2-answers, ros2-detections)`).
+fn by_process(stages: impl Iterator<Item = (String, i32)>) -> BTreeMap<String, i32> {
+    let mut per_pid: BTreeMap<i32, Vec<String>> = BTreeMap::new();
+    for (stage, pid) in stages {
+        per_pid.entry(pid).or_default().push(stage);
+    }
+    per_pid
+        .into_iter()
+        .map(|(pid, mut names)| {
+            names.sort();
+            let name = match names.split_first() {
+                Some((first, [])) => first.clone(),
+                Some((first, rest)) => format!("{first} ({})", rest.join(", ")),
+                None => String::new(),
+            };
+            (name, pid)
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn stages_of_one_process_are_counted_once() {
+        let nodes = [
+            ("ros2-detections", 7),
+            ("segmenter", 9),
+            ("ros2", 7),
+            ("ros2-answers", 7),
+            ("consumer", 11),
+        ]
+        .map(|(s, p)| (s.to_string(), p));
+        let got = by_process(nodes.into_iter());
+        let want: BTreeMap<String, i32> = [
+            ("consumer".to_string(), 11),
+            ("ros2 (ros2-answers, ros2-detections)".to_string(), 7),
+            ("segmenter".to_string(), 9),
+        ]
+        .into_iter()
+        .collect();
+        assert_eq!(got, want);
+    }
 
     #[test]
     fn this_process_cpu_time_grows_with_work() {
