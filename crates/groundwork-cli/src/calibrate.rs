@@ -149,8 +149,18 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
         );
     }
     outputs.warn_replaced();
-    // Spread the scans looked at over the whole inputs where their length is known.
-    let total: Option<usize> = sequences.iter().map(|s| s.len_hint()).sum();
+    // Spread the scans looked at over the whole inputs, a recording's as a folder's: its
+    // scans are counted first (a pass without decoding them).
+    let total: Option<usize> = sequences
+        .iter()
+        .map(|s| match &s.source {
+            groundwork_io::ScanSource::Recording { path, topic } => {
+                groundwork_io::RecordingReader::count(path, topic.as_deref(), cfg.sensor.max_points)
+                    .ok()
+            }
+            groundwork_io::ScanSource::Files(_) => s.len_hint(),
+        })
+        .sum();
     let stride = total.map_or(1, |n| n.div_ceil(a.max_scans).max(1));
     let pb = progress(
         total.map_or(a.max_scans, |n| n.div_ceil(stride).min(a.max_scans)),
@@ -559,6 +569,10 @@ fn labels_hold_no_ground(fit: &ParamFit) -> bool {
         .all(|a| a.both + a.reference_only == 0)
 }
 
+/// Below this agreement (ground IoU with the PseudoLabeler, %) the figure is flagged as
+/// saying little: on real scans where both are right it is above 90.
+const WEAK_AGREEMENT: f64 = 80.0;
+
 /// The parameter fit, for the terminal.
 fn params_summary(fit: &ParamFit) -> String {
     let mut s = format!(
@@ -566,6 +580,24 @@ fn params_summary(fit: &ParamFit) -> String {
         fit_figures(fit),
         fit.evaluations
     );
+    // What the agreement is, and when it says little: it is not the accuracy.
+    let _ = writeln!(
+        s,
+        "  (agreement: ground IoU between the segmenter's ground and the PseudoLabeler's within \
+         {} m, a check that a change carries over to unseen scans; not accuracy against the \
+         truth, which needs labels: groundwork eval)",
+        fit.trusted_range
+    );
+    let agreement = fit.held_out_before.iou().min(fit.fitted_before.iou());
+    if agreement < WEAK_AGREEMENT && !labels_hold_no_ground(fit) {
+        let _ = writeln!(
+            s,
+            "  caution: agreement below {WEAK_AGREEMENT:.0}: the PseudoLabeler's labels differ \
+             from the segmenter's ground here for reasons of their own (its elevation map, the \
+             scene), so this figure says little about either; check the result with labelled \
+             scans or `groundwork render --compare`"
+        );
+    }
     if fit.kept_preset {
         s += &if fit.too_few_trusted_points {
             format!("  kept the preset's: {}\n", too_few_words(fit))

@@ -1375,6 +1375,45 @@ fn calibrate_fits_the_parameters_to_pseudo_labels() {
     let again = fs::read_to_string(tmp.path().join("b.toml")).unwrap();
     // The name is the file's stem; everything else is the same.
     assert_eq!(written, again.replace("name = \"b\"", "name = \"a\""));
+    // The same scans in a recording are sampled as the folder is (counted first): the
+    // same parameters, and the agreement explained.
+    let rec = tmp.path().join("in.mcap");
+    let o = bin()
+        .args(["segment", "--frames", "1", "--out"])
+        .arg(&rec)
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let o = bin()
+        .args([
+            "calibrate",
+            "--sensor",
+            "hdl64e",
+            "--param-trust",
+            "0",
+            "--param-min-gain",
+            "0.25",
+            "--fit-zones",
+            "--out",
+        ])
+        .arg(tmp.path().join("r.toml"))
+        .arg(&rec)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        stdout.contains("parameters from 6 scans (1 held out)"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("not accuracy against the truth"),
+        "{stdout}"
+    );
+    let fitted = |t: &str| t.split("# Parameters fitted").nth(1).map(str::to_owned);
+    let from_rec = fs::read_to_string(tmp.path().join("r.toml")).unwrap();
+    assert_eq!(fitted(&from_rec), fitted(&written), "{from_rec}");
 
     // Three scans cannot hold one in four out: the fit is refused with the reason, the
     // mount is written and the preset's parameters kept, as with --keep-params.

@@ -97,6 +97,8 @@ pub struct RecordingReader {
     topic: Option<String>,
     /// Reading the messages of every other topic instead of the scans of this one.
     others_of: Option<String>,
+    /// Counting the scans' messages instead of decoding them.
+    counting: bool,
     max_points: usize,
     next_index: usize,
     other_clouds: BTreeSet<String>,
@@ -164,6 +166,7 @@ impl RecordingReader {
             topic: topic.map(str::to_string),
             max_points,
             others_of: None,
+            counting: false,
             next_index: 0,
             other_clouds: BTreeSet::new(),
             done: false,
@@ -402,7 +405,7 @@ impl RecordingReader {
                     None => is_cloud,
                 };
                 if !chosen {
-                    if is_cloud && self.other_clouds.insert(ch.topic.clone()) {
+                    if is_cloud && !self.counting && self.other_clouds.insert(ch.topic.clone()) {
                         warn!(
                             "{}: also holds PointCloud2 topic {} (not read; choose with --topic)",
                             self.path.display(),
@@ -415,6 +418,9 @@ impl RecordingReader {
                 self.topic.get_or_insert_with(|| ch.topic.clone());
                 let index = self.next_index;
                 self.next_index += 1;
+                if self.counting {
+                    return Step::Continue;
+                }
                 let label = PathBuf::from(format!(
                     "{} (message {index} on {})",
                     self.path.display(),
@@ -479,6 +485,26 @@ impl RecordingReader {
                 return Ok(step);
             }
         }
+    }
+
+    /// How many messages the scans' reader would give (the topic's, or the first
+    /// PointCloud2 topic's), counted without decoding them: one pass over the file, so
+    /// that a recording can be sampled over its whole length as a folder is.
+    pub fn count(
+        path: &Path,
+        topic: Option<&str>,
+        max_points: usize,
+    ) -> Result<usize, FormatError> {
+        let mut reader = Self::open(path, topic, max_points)?;
+        reader.counting = true;
+        while !reader.done {
+            match reader.step()? {
+                Step::EndOfData => reader.done = true,
+                Step::Broken(what) => return Err(reader.broken(what)),
+                Step::Continue | Step::Scan(_) | Step::Other(_) => {}
+            }
+        }
+        Ok(reader.next_index)
     }
 
     /// The messages of `path` on every topic but `topic`, in the order recorded (with the
@@ -862,6 +888,8 @@ mod tests {
         assert_eq!(scans[2].log_time_ns, 1_002);
         assert_eq!(scans[1].topic, "/points/ground");
 
+        assert_eq!(RecordingReader::count(&p, None, 100).unwrap(), 3);
+        assert_eq!(RecordingReader::count(&p, Some("/nope"), 100).unwrap(), 0);
         let e = RecordingReader::open(&p, Some("/nope"), 100)
             .unwrap()
             .find_map(Result::err)
