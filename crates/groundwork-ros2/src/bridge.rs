@@ -124,6 +124,11 @@ pub struct BridgeReport {
     pub dropped: u64,
     /// DDS reads or writes that failed.
     pub dds_errors: u64,
+    /// Clouds a publisher sent that the bridge never received: lost on the way, or
+    /// overwritten in the subscription's history (the last 5) before they were taken.
+    /// Counted from the gaps in each publisher's sequence numbers (a sample lost after a
+    /// publisher's last received one cannot be seen).
+    pub lost_before_received: u64,
     /// Odometry samples taken (with an odometry topic).
     pub odometry: u64,
     /// Odometry samples refused (no time, no pose) or unreadable.
@@ -207,6 +212,37 @@ struct CloudsIn {
     poses: Option<PoseSource>,
     /// Remember each scan's frame (for boxes given in the clouds' frames).
     keep_frames: bool,
+    /// Each publisher's last sequence number: the clouds lost before the bridge.
+    gaps: SequenceGaps<ros2_client::Gid>,
+}
+
+/// The samples each publisher sent and a subscriber never took, from the gaps in their
+/// sequence numbers (DDS numbers a writer's samples 1, 2, 3, …).
+#[derive(Debug)]
+struct SequenceGaps<K>(std::collections::HashMap<K, i64>);
+
+impl<K: std::hash::Hash + Eq> SequenceGaps<K> {
+    fn new() -> Self {
+        Self(std::collections::HashMap::new())
+    }
+
+    /// Samples missed between the publisher's last one seen and this one (0 for its
+    /// first, and for one that comes late or twice).
+    fn see(&mut self, publisher: K, sequence: i64) -> u64 {
+        match self.0.get_mut(&publisher) {
+            None => {
+                self.0.insert(publisher, sequence);
+                0
+            }
+            Some(last) if sequence > *last => {
+                let missed = (sequence - *last - 1).unsigned_abs();
+                *last = sequence;
+                missed
+            }
+            // Late or repeated: the newest is kept.
+            Some(_) => 0,
+        }
+    }
 }
 
 /// Where scans' poses come from.
@@ -435,6 +471,10 @@ impl Stage for CloudsIn {
             }
             match self.subscription.take() {
                 Ok(Some((cloud, info))) => {
+                    let missed = self.gaps.see(info.publisher_gid(), info.sequence_number());
+                    if missed > 0 {
+                        lock(&self.shared).report.lost_before_received += missed;
+                    }
                     let received = info
                         .received_timestamp()
                         .and_then(|t| u64::try_from(t.to_nanos()).ok());
@@ -467,6 +507,7 @@ impl Stage for CloudsIn {
             received = s.report.received,
             published = s.report.published,
             rejected = s.report.rejected,
+            lost_before_received = s.report.lost_before_received,
             "ros2 input state"
         );
     }
@@ -1021,6 +1062,7 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         wait: Duration::from_millis(50),
         poses,
         keep_frames: reads_tf,
+        gaps: SequenceGaps::new(),
     };
     let input_result = stage::run(cfg, || Ok(clouds));
     let output_result = answering
@@ -1043,6 +1085,7 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         unmatched = report.unmatched_masks,
         dropped = report.dropped,
         dds_errors = report.dds_errors,
+        lost_before_received = report.lost_before_received,
         odometry = report.odometry,
         odometry_rejected = report.odometry_rejected,
         transforms = report.transforms,
@@ -1051,4 +1094,22 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         "ROS 2 bridge stopped"
     );
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gaps_in_each_publishers_sequence_are_the_samples_missed() {
+        let mut g = SequenceGaps::new();
+        assert_eq!(g.see('a', 1), 0, "a publisher's first sample");
+        assert_eq!(g.see('a', 2), 0);
+        assert_eq!(g.see('a', 6), 3, "3, 4 and 5 never came");
+        assert_eq!(g.see('b', 40), 0, "another publisher, its own numbers");
+        assert_eq!(g.see('a', 5), 0, "late: counted as missed already");
+        assert_eq!(g.see('a', 6), 0, "repeated");
+        assert_eq!(g.see('a', 7), 0);
+        assert_eq!(g.see('b', 42), 1);
+    }
 }
