@@ -33,7 +33,6 @@ pub fn sample_data() -> Result<PathBuf> {
             "GROUNDWORK_DATA={}: no such folder or recording",
             d.display()
         );
-        groundwork_io::ScanSource::open(&d, None).context("GROUNDWORK_DATA")?;
         return Ok(d);
     }
     let exe = std::env::current_exe().context("cannot find this executable")?;

@@ -91,14 +91,15 @@ pub fn collect_scans(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
         if input.is_dir() {
             let velodyne = input.join("velodyne");
             let dir = if velodyne.is_dir() { &velodyne } else { input };
-            if let Some(rec) = groundwork_io::list_recordings(dir)?.first() {
+            let found = groundwork_io::list_folder(dir)?;
+            if let Some(rec) = found.recordings.first() {
                 bail!(
                     "{}: label takes scan files; a recording is labelled by \
                      `groundwork segment --method pseudolabeler --out X.mcap`",
                     rec.display()
                 );
             }
-            files.extend(groundwork_io::list_scans(dir)?);
+            files.extend(found.scans);
         } else {
             if matches!(InputKind::detect(input)?, InputKind::Recording) {
                 bail!(

@@ -133,50 +133,45 @@ pub fn read_scan(path: &Path, max_points: usize) -> Result<Scan, FormatError> {
 /// scan that could not be read, never skipped in silence; names that are not UTF-8 are
 /// read too (outputs take their lossy name).
 pub fn list_scans(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
-    let mut files = Vec::new();
-    for entry in fs::read_dir(dir).map_err(|e| FormatError::io(dir, e))? {
-        let path = entry.map_err(|e| FormatError::io(dir, e))?.path();
-        if is_scan_file(&path) {
-            files.push(path);
-        }
-    }
-    files.sort();
-    Ok(files)
+    list_folder(dir).map(|c| c.scans)
 }
 
-/// The MCAP recordings of a folder (by extension, or by magic bytes for a regular file
-/// without one), sorted by name.
-pub fn list_recordings(dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
-    let mut found = Vec::new();
+/// What a folder holds, from one listing of it: its single-scan files (as
+/// [`list_scans`] gives them) and its MCAP recordings, each sorted by name.
+#[derive(Debug, Default)]
+pub struct FolderContents {
+    /// The single-scan files.
+    pub scans: Vec<PathBuf>,
+    /// The recordings.
+    pub recordings: Vec<PathBuf>,
+}
+
+/// Lists a folder's scans and recordings (see [`FolderContents`]).
+pub fn list_folder(dir: &Path) -> Result<FolderContents, FormatError> {
+    let mut found = FolderContents::default();
     for entry in fs::read_dir(dir).map_err(|e| FormatError::io(dir, e))? {
         let path = entry.map_err(|e| FormatError::io(dir, e))?.path();
-        let recording = match InputKind::from_name(&path) {
-            Some(kind) => kind == InputKind::Recording,
-            None => {
-                path.extension().is_none()
-                    && path.is_file()
-                    && matches!(InputKind::detect(&path), Ok(InputKind::Recording))
-            }
-        };
-        if recording {
-            found.push(path);
+        match kind_in_folder(&path) {
+            Some(InputKind::Scan(_)) => found.scans.push(path),
+            Some(InputKind::Recording) => found.recordings.push(path),
+            None => {}
         }
     }
-    found.sort();
+    found.scans.sort();
+    found.recordings.sort();
     Ok(found)
 }
 
-fn is_scan_file(path: &Path) -> bool {
-    match InputKind::from_name(path) {
-        Some(kind) => matches!(kind, InputKind::Scan(_)),
+/// What a folder's entry is, by its name, else (for a regular file without an extension)
+/// by its magic bytes.
+fn kind_in_folder(path: &Path) -> Option<InputKind> {
+    InputKind::from_name(path).or_else(|| {
         // Only unnamed regular files are sniffed: a `.label`, `.txt` or `.prob` is never
         // a scan, and sniffing a FIFO would block.
-        None => {
-            path.extension().is_none()
-                && path.is_file()
-                && matches!(InputKind::detect(path), Ok(InputKind::Scan(_)))
-        }
-    }
+        (path.extension().is_none() && path.is_file())
+            .then(|| InputKind::detect(path).ok())
+            .flatten()
+    })
 }
 
 /// A scan file's stem without its format suffix (`000042.bin` → `000042`,
@@ -240,8 +235,10 @@ impl ScanSource {
             } else {
                 path.to_path_buf()
             };
-            let files = list_scans(&dir)?;
-            let recordings = list_recordings(&dir)?;
+            let FolderContents {
+                scans: files,
+                recordings,
+            } = list_folder(&dir)?;
             let names = || {
                 let n: Vec<String> = recordings
                     .iter()

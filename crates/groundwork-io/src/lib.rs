@@ -62,8 +62,8 @@ pub use config::{
 };
 pub use error::FormatError;
 pub use input::{
-    InputKind, ScanFormat, ScanItem, ScanIter, ScanSource, list_recordings, list_scans, read_scan,
-    scan_stem,
+    FolderContents, InputKind, ScanFormat, ScanItem, ScanIter, ScanSource, list_folder, list_scans,
+    read_scan, scan_stem,
 };
 pub use kitti::{
     calib_tr_text, labels_bytes, lidar_poses, poses_text, read_calib_tr, read_labels, read_poses,

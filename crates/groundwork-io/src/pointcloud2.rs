@@ -475,30 +475,15 @@ impl<'a> CloudPoints<'a> {
     ) -> Result<Self, FormatError> {
         let bad = |m: String| FormatError::malformed(label, m);
         let layout = Layout::of(label, cloud, max_points)?;
-        let point_step = layout.point_step;
-        let field = |name: &str| -> Result<Option<(usize, u8)>, FormatError> {
-            let Some(f) = cloud.fields.iter().find(|f| f.name == name) else {
-                return Ok(None);
-            };
-            let size = datatype_size(f.datatype).ok_or_else(|| {
-                bad(format!(
-                    "field {name:?} has unknown datatype {}",
-                    f.datatype
-                ))
-            })?;
-            if f.offset as usize + size > point_step {
-                return Err(bad(format!(
-                    "field {name:?} at offset {} does not fit in point_step {point_step}",
-                    f.offset
-                )));
-            }
-            Ok(Some((f.offset as usize, f.datatype)))
+        // `Layout::of` checked every field: a known datatype, inside the record, named once.
+        let field = |name: &str| {
+            let f = cloud.fields.iter().find(|f| f.name == name)?;
+            Some((f.offset as usize, f.datatype))
         };
-        let [x, y, z] = ["x", "y", "z"].map(field);
-        let (Some(x), Some(y), Some(z)) = (x?, y?, z?) else {
+        let (Some(x), Some(y), Some(z)) = (field("x"), field("y"), field("z")) else {
             return Err(bad("PointCloud2 has no x, y and z fields".into()));
         };
-        let value = field(value_field)?;
+        let value = field(value_field);
         let big_endian = cloud.is_bigendian;
         let f32_le = |f: (usize, u8)| f.1 == FLOAT32 && !big_endian;
         let plain = [x, y, z].into_iter().all(f32_le) && value.is_none_or(f32_le);
@@ -815,6 +800,14 @@ pub fn with_probability(
     })
 }
 
+/// One `sensor_msgs/PointField` in CDR.
+fn put_field(out: &mut Vec<u8>, name: &str, offset: u32, datatype: u8, count: u32) {
+    put_string(out, name);
+    put_u32(out, offset);
+    out.push(datatype);
+    put_u32(out, count);
+}
+
 /// A cloud of the input's header (its stamp and frame as they were) as a little-endian CDR
 /// PointCloud2: what [`with_probability`] or [`select_records`] made of an input cloud,
 /// written to a recording.
@@ -827,10 +820,7 @@ pub fn encode_data(input: &CloudRef<'_>, cloud: &CloudData) -> Vec<u8> {
     put_u32(&mut out, cloud.width);
     put_u32(&mut out, cloud.fields.len() as u32);
     for f in &cloud.fields {
-        put_string(&mut out, &f.name);
-        put_u32(&mut out, f.offset);
-        out.push(f.datatype);
-        put_u32(&mut out, f.count);
+        put_field(&mut out, &f.name, f.offset, f.datatype, f.count);
     }
     out.push(u8::from(input.is_bigendian));
     put_u32(&mut out, cloud.point_step);
@@ -883,10 +873,7 @@ pub fn encode(scan: &Scan, probabilities: &[f32], stamp_ns: u64, frame_id: &str)
     let names = ["x", "y", "z", "intensity", PROBABILITY_FIELD];
     put_u32(&mut out, names.len() as u32);
     for (i, name) in names.iter().enumerate() {
-        put_string(&mut out, name);
-        put_u32(&mut out, 4 * i as u32);
-        out.push(FLOAT32);
-        put_u32(&mut out, 1);
+        put_field(&mut out, name, 4 * i as u32, FLOAT32, 1);
     }
     out.push(0); // is_bigendian
     let point_step = 20u32;

@@ -679,10 +679,21 @@ impl RecordingWriter {
         self.write_message(channel, log_time_ns, &data)
     }
 
+    /// A message of ours: published when logged.
     fn write_message(
         &mut self,
         channel: u16,
         log_time_ns: u64,
+        data: &[u8],
+    ) -> Result<(), FormatError> {
+        self.write_record(channel, log_time_ns, log_time_ns, data)
+    }
+
+    fn write_record(
+        &mut self,
+        channel: u16,
+        log_time_ns: u64,
+        publish_time_ns: u64,
         data: &[u8],
     ) -> Result<(), FormatError> {
         let Some(writer) = self.writer.as_mut() else {
@@ -692,7 +703,7 @@ impl RecordingWriter {
             channel_id: channel,
             sequence: self.sequence,
             log_time: log_time_ns,
-            publish_time: log_time_ns,
+            publish_time: publish_time_ns,
         };
         self.sequence = self.sequence.wrapping_add(1);
         writer
@@ -780,19 +791,7 @@ impl RecordingWriter {
                 c
             }
         };
-        let Some(writer) = self.writer.as_mut() else {
-            return Err(FormatError::malformed(&self.path, "MCAP: already finished"));
-        };
-        let header = mcap::records::MessageHeader {
-            channel_id: channel,
-            sequence: self.sequence,
-            log_time: m.log_time_ns,
-            publish_time: m.publish_time_ns,
-        };
-        self.sequence = self.sequence.wrapping_add(1);
-        writer
-            .write_to_known_channel(&header, &m.data)
-            .map_err(|e| mcap_error(&self.path, &e))
+        self.write_record(channel, m.log_time_ns, m.publish_time_ns, &m.data)
     }
 
     /// Writes the mount's transform for `frame` before its first scan.
@@ -817,11 +816,6 @@ impl RecordingWriter {
         writer
             .add_schema(TF_SCHEMA_NAME, "ros2msg", TF_SCHEMA_TEXT.as_bytes())
             .map_err(|e| mcap_error(&self.path, &e))
-    }
-
-    /// Scans written so far.
-    pub fn scans_written(&self) -> u64 {
-        self.scans
     }
 
     /// [`Self::finish`] when at least one scan was written; otherwise the partial file is
