@@ -6,13 +6,17 @@
 
 use std::collections::VecDeque;
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use anyhow::Context as _;
 use ros2_client::dds::rustdds::mio1::{Events, Interest, Poll, Token};
+use ros2_client::dds::rustdds::{
+    self, DomainParticipant, QosPolicies, QosPolicyBuilder, TopicKind, no_key, policy,
+};
 use ros2_client::{
-    Context, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher, QosProfile,
+    Context, MessageInfo, MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile,
     Subscription, qos,
 };
 use serde::Serialize;
@@ -154,6 +158,8 @@ struct InFlight {
     report: BridgeReport,
     /// The answering stage has stopped (done, signalled or failed): so does the input.
     answers_stopped: bool,
+    /// The input stage has stopped (done, signalled or failed): so do the answers.
+    input_stopped: bool,
 }
 
 #[derive(Debug)]
@@ -196,7 +202,7 @@ pub fn cloud_type() -> MessageTypeName {
 
 /// The source stage: DDS clouds into scans.
 struct CloudsIn {
-    subscription: Subscription<PointCloud2>,
+    subscription: no_key::SimpleDataReaderCdr<PointCloud2>,
     /// The input topic's name, for messages.
     topic: String,
     poll: Poll,
@@ -214,6 +220,8 @@ struct CloudsIn {
     keep_frames: bool,
     /// Each publisher's last sequence number: the clouds lost before the bridge.
     gaps: SequenceGaps<ros2_client::Gid>,
+    /// Set by SIGCONT: the process was stopped and resumed.
+    resumed: Arc<AtomicBool>,
 }
 
 /// The samples each publisher sent and a subscriber never took, from the gaps in their
@@ -456,7 +464,23 @@ impl Stage for CloudsIn {
     };
     type Report = ();
 
+    fn start(&mut self) -> anyhow::Result<()> {
+        // Here, after the stage's shared-memory node installed its signal handlers.
+        signal_hook::flag::register(signal_hook::consts::SIGCONT, Arc::clone(&self.resumed))
+            .context("watch for SIGCONT")?;
+        Ok(())
+    }
+
     fn process(&mut self, _: Input<'_>, _: u64, out: &mut Outbox) -> anyhow::Result<()> {
+        if self.resumed.load(Ordering::Relaxed) {
+            // Linux ends a blocking epoll_wait with EINTR after a stop and continue, and
+            // RustDDS's event loops end on any poll error: the bridge would stay up and
+            // receive nothing. Failing lets `pipeline --restart` start a new one.
+            anyhow::bail!(
+                "the bridge was stopped and resumed (SIGSTOP/SIGTSTP, then SIGCONT): its DDS \
+                 event loop does not survive that, so it exits to be restarted"
+            );
+        }
         // Edge-triggered: after a wake-up, take everything that has arrived. A signal that
         // interrupts the wait (SIGCONT, SIGCHLD) only ends it early; a stop request is
         // seen by the runner when this returns.
@@ -469,8 +493,11 @@ impl Stage for CloudsIn {
             if let Some(o) = &mut self.poses {
                 o.take(&self.shared);
             }
-            match self.subscription.take() {
-                Ok(Some((cloud, info))) => {
+            self.subscription.drain_read_notifications();
+            match self.subscription.try_take_one() {
+                Ok(Some(sample)) => {
+                    let info = MessageInfo::from(&sample);
+                    let cloud = sample.into_value();
                     let missed = self.gaps.see(info.publisher_gid(), info.sequence_number());
                     if missed > 0 {
                         lock(&self.shared).report.lost_before_received += missed;
@@ -520,10 +547,10 @@ impl Stage for CloudsIn {
 /// The answering stage: masks into ROS 2 clouds.
 struct AnswersOut {
     /// `/tf_static`, and the frames published on it so far.
-    tf: Option<(Publisher<TFMessage>, StaticTransform, Vec<String>)>,
-    points: Publisher<PointCloud2>,
-    nonground: Publisher<PointCloud2>,
-    ground: Option<Publisher<PointCloud2>>,
+    tf: Option<(Writer<TFMessage>, StaticTransform, Vec<String>)>,
+    points: Writer<PointCloud2>,
+    nonground: Writer<PointCloud2>,
+    ground: Option<Writer<PointCloud2>>,
     shared: Shared,
     threshold: f32,
     max_points: usize,
@@ -587,7 +614,7 @@ impl AnswersOut {
         Ok(())
     }
 
-    fn send<M: Serialize>(&self, p: &Publisher<M>, m: M) {
+    fn send<M: Serialize>(&self, p: &Writer<M>, m: M) {
         send(&self.shared, p, m);
     }
 
@@ -632,8 +659,8 @@ fn linger() {
     std::thread::sleep(Duration::from_millis(500));
 }
 
-fn send<M: Serialize>(shared: &Shared, p: &Publisher<M>, m: M) {
-    if let Err(e) = p.publish(m) {
+fn send<M: Serialize>(shared: &Shared, p: &Writer<M>, m: M) {
+    if let Err(e) = p.write(m, Some(rustdds::Timestamp::now())) {
         warn!("DDS publish failed: {e}");
         lock(shared).report.dds_errors += 1;
     }
@@ -643,8 +670,8 @@ fn send<M: Serialize>(shared: &Shared, p: &Publisher<M>, m: M) {
 /// `visualization_msgs/MarkerArray` cubes, in the ground-aligned frame of the mount, or
 /// in each cloud's own frame.
 struct DetectionsOut {
-    detections: Publisher<Detection3DArray>,
-    markers: Publisher<MarkerArray>,
+    detections: Writer<Detection3DArray>,
+    markers: Writer<MarkerArray>,
     shared: Shared,
     /// Boxes in the cloud's frame: the ground-aligned frame in the sensor's (the mount,
     /// inverted). `None`: boxes in [`GROUND_FRAME`], which the mount on `/tf_static` places.
@@ -791,7 +818,8 @@ impl Stage for DetectionsOut {
     }
 
     fn done(&self) -> bool {
-        lock(&self.shared).answers_stopped
+        let s = lock(&self.shared);
+        s.answers_stopped || s.input_stopped
     }
 
     fn log_state(&self) {}
@@ -827,8 +855,8 @@ impl Stage for AnswersOut {
     }
 
     fn done(&self) -> bool {
-        self.count
-            .is_some_and(|n| lock(&self.shared).report.answered >= n)
+        let s = lock(&self.shared);
+        s.input_stopped || self.count.is_some_and(|n| s.report.answered >= n)
     }
 
     fn log_state(&self) {
@@ -852,18 +880,79 @@ impl Stage for AnswersOut {
     }
 }
 
-/// A publisher of `M` on the ROS topic `name`.
-fn publisher<M: Serialize>(
-    node: &mut Node,
-    name: &str,
-    ty: MessageTypeName,
-    qos: &QosProfile,
-) -> anyhow::Result<Publisher<M>> {
-    let topic = node
-        .create_topic(&ros_name(name)?, ty, qos)
-        .with_context(|| format!("topic {name}"))?;
-    node.create_publisher(&topic, Some(qos.clone()))
-        .with_context(|| format!("publisher on {name}"))
+/// A writer of `M` on a ROS topic.
+type Writer<M> = no_key::DataWriterCdr<M>;
+
+/// The bridge's DDS readers and writers of clouds and answers, each holding at most its
+/// history depth of samples. They are made on the DDS participant rather than through
+/// ros2-client, whose QoS profile cannot carry the resource limit that bounds them:
+/// without one RustDDS keeps the last 64 samples of a topic it reads, and up to 8,192
+/// samples a reliable subscriber has not acknowledged, whatever the depth (measured: 2 MB
+/// clouds at 55 Hz held 185 MB in the reader; a subscriber that took nothing, 600 MB).
+struct Bounded<'a> {
+    participant: DomainParticipant,
+    node: &'a NodeName,
+}
+
+impl Bounded<'_> {
+    /// The topic `name` of type `ty`, and `qos` with its depth as the resource limit.
+    fn topic(
+        &self,
+        name: &str,
+        ty: &MessageTypeName,
+        qos: &QosProfile,
+    ) -> anyhow::Result<(rustdds::Topic, QosPolicies)> {
+        let depth = match qos.history {
+            qos::History::KeepLast { depth } => depth as i32,
+            qos::History::KeepAll => anyhow::bail!("{name}: keep-all has no bound"),
+        };
+        let limits = QosPolicyBuilder::new()
+            .resource_limits(policy::ResourceLimits {
+                max_samples: depth,
+                max_instances: 1,
+                max_samples_per_instance: depth,
+            })
+            .build();
+        let qos = QosPolicies::from(qos).modify_by(&limits);
+        let topic = self
+            .participant
+            .create_topic(
+                ros_name(name)?.to_dds_name("rt", self.node, ""),
+                ty.dds_msg_type(),
+                &qos,
+                TopicKind::NoKey,
+            )
+            .with_context(|| format!("topic {name}"))?;
+        Ok((topic, qos))
+    }
+
+    fn reader<M: 'static>(
+        &self,
+        name: &str,
+        ty: &MessageTypeName,
+        qos: &QosProfile,
+    ) -> anyhow::Result<no_key::SimpleDataReaderCdr<M>> {
+        let (topic, qos) = self.topic(name, ty, qos)?;
+        self.participant
+            .create_subscriber(&qos)
+            .with_context(|| format!("subscriber to {name}"))?
+            .create_simple_datareader_no_key(&topic, Some(qos))
+            .with_context(|| format!("subscription to {name}"))
+    }
+
+    fn writer<M: Serialize>(
+        &self,
+        name: &str,
+        ty: &MessageTypeName,
+        qos: &QosProfile,
+    ) -> anyhow::Result<Writer<M>> {
+        let (topic, qos) = self.topic(name, ty, qos)?;
+        self.participant
+            .create_publisher(&qos)
+            .with_context(|| format!("publisher on {name}"))?
+            .create_datawriter_no_key(&topic, Some(qos))
+            .with_context(|| format!("publisher on {name}"))
+    }
 }
 
 /// The QoS profile of a subscription or publication.
@@ -882,43 +971,33 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
             .with_context(|| format!("cannot join DDS domain {}", opts.domain_id))?,
     )
     .context("ROS 2 context")?;
+    let node_name = NodeName::new(&opts.namespace, &opts.node)
+        .map_err(|e| anyhow::anyhow!("node {:?}: {e:?}", opts.node))?;
     let mut node: Node = context
-        .new_node(
-            NodeName::new(&opts.namespace, &opts.node)
-                .map_err(|e| anyhow::anyhow!("node {:?}: {e:?}", opts.node))?,
-            NodeOptions::new().enable_rosout(false),
-        )
+        .new_node(node_name.clone(), NodeOptions::new().enable_rosout(false))
         .context("ROS 2 node")?;
-    let input = ros_name(&opts.input_topic)?;
     let in_qos = profile(opts.qos);
-    let topic = node
-        .create_topic(&input, cloud_type(), &in_qos)
-        .context("input topic")?;
-    let mut subscription = node
-        .create_subscription::<PointCloud2>(&topic, Some(in_qos.clone()))
-        .context("input subscription")?;
+    let dds = Bounded {
+        participant: context.domain_participant(),
+        node: &node_name,
+    };
+    let mut subscription = dds.reader::<PointCloud2>(&opts.input_topic, &cloud_type(), &in_qos)?;
     // Outputs are reliable (which best-effort subscribers match too), keep last 5.
     let out_qos = profile(Qos::Reliable);
     let base = format!("{}/{}", opts.namespace.trim_end_matches('/'), opts.node);
-    let cloud = |node: &mut Node, leaf: &str| {
-        publisher::<PointCloud2>(node, &format!("{base}/{leaf}"), cloud_type(), &out_qos)
-    };
-    let points = cloud(&mut node, "points")?;
-    let nonground = cloud(&mut node, "nonground")?;
-    let ground = opts
-        .publish_ground
-        .then(|| cloud(&mut node, "ground"))
-        .transpose()?;
-    let detections = publisher::<Detection3DArray>(
-        &mut node,
+    let cloud =
+        |leaf: &str| dds.writer::<PointCloud2>(&format!("{base}/{leaf}"), &cloud_type(), &out_qos);
+    let points = cloud("points")?;
+    let nonground = cloud("nonground")?;
+    let ground = opts.publish_ground.then(|| cloud("ground")).transpose()?;
+    let detections = dds.writer::<Detection3DArray>(
         &format!("{base}/detections"),
-        MessageTypeName::new("vision_msgs", "Detection3DArray"),
+        &MessageTypeName::new("vision_msgs", "Detection3DArray"),
         &out_qos,
     )?;
-    let markers = publisher::<MarkerArray>(
-        &mut node,
+    let markers = dds.writer::<MarkerArray>(
         &format!("{base}/markers"),
-        MessageTypeName::new("visualization_msgs", "MarkerArray"),
+        &MessageTypeName::new("visualization_msgs", "MarkerArray"),
         &out_qos,
     )?;
     // tf2's static broadcaster QoS: reliable, transient local, the last message.
@@ -930,10 +1009,9 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
     let reads_tf = opts.tf_fixed_frame.is_some();
     let tf = match &opts.mount {
         Some(m) if !reads_tf => Some((
-            publisher::<TFMessage>(
-                &mut node,
+            dds.writer::<TFMessage>(
                 "/tf_static",
-                MessageTypeName::new("tf2_msgs", "TFMessage"),
+                &MessageTypeName::new("tf2_msgs", "TFMessage"),
                 &tf_qos,
             )?,
             m.clone(),
@@ -1063,8 +1141,10 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
         poses,
         keep_frames: reads_tf,
         gaps: SequenceGaps::new(),
+        resumed: Arc::default(),
     };
     let input_result = stage::run(cfg, || Ok(clouds));
+    lock(&shared).input_stopped = true;
     let output_result = answering
         .join()
         .map_err(|_| anyhow::anyhow!("the answering thread panicked"))?;
