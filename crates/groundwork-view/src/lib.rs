@@ -558,4 +558,73 @@ mod tests {
         // Every field lies inside the stride.
         assert!(c.fields.iter().all(|f| (f.offset as usize) < POINT_STRIDE));
     }
+
+    /// docs/foxglove-layout.json, the layout users import: a 3D panel following the
+    /// ground frame that colours the view's cloud by a field it carries over the
+    /// probabilities' range, the boxes shown, and plots of fields the stats schema has.
+    #[test]
+    fn the_shipped_foxglove_layout_names_what_the_view_serves() {
+        let text = include_str!("../../../docs/foxglove-layout.json");
+        let layout: serde_json::Value = serde_json::from_str(text).expect("the layout is JSON");
+        let panels = layout["configById"].as_object().expect("configById");
+
+        // The layout tree places only panels that are configured, and each once.
+        fn leaves<'a>(node: &'a serde_json::Value, out: &mut Vec<&'a str>) {
+            match node {
+                serde_json::Value::String(id) => out.push(id),
+                _ => {
+                    leaves(&node["first"], out);
+                    leaves(&node["second"], out);
+                }
+            }
+        }
+        let mut placed = Vec::new();
+        leaves(&layout["layout"], &mut placed);
+        placed.sort_unstable();
+        let mut configured: Vec<&str> = panels.keys().map(String::as_str).collect();
+        configured.sort_unstable();
+        assert_eq!(placed, configured);
+
+        let scene = &panels["3D!groundwork"];
+        assert_eq!(scene["followTf"], groundwork_io::transform::GROUND_FRAME);
+        let cloud_settings = &scene["topics"][POINTS_TOPIC];
+        let points = [ScanPoint {
+            x: 1.0,
+            y: 0.0,
+            z: 0.0,
+            intensity: 0.0,
+        }];
+        let served = cloud(&points, &[1.0], 0.5, 0, "velodyne");
+        let field = cloud_settings["colorField"].as_str().expect("colorField");
+        assert!(served.fields.iter().any(|f| f.name == field), "{field}");
+        assert_eq!(field, "ground_probability");
+        assert_eq!(cloud_settings["colorMode"], "colormap");
+        assert_eq!(
+            (
+                cloud_settings["minValue"].as_f64(),
+                cloud_settings["maxValue"].as_f64()
+            ),
+            (Some(0.0), Some(1.0))
+        );
+        assert_eq!(scene["topics"][BOXES_TOPIC]["visible"], true);
+
+        let schema: serde_json::Value = serde_json::from_str(STATS_SCHEMA).expect("schema");
+        let mut plotted = 0;
+        for (id, panel) in panels.iter().filter(|(id, _)| id.starts_with("Plot!")) {
+            for path in panel["paths"].as_array().expect("paths") {
+                let value = path["value"].as_str().expect("path value");
+                let name = value
+                    .strip_prefix(STATS_TOPIC)
+                    .and_then(|rest| rest.strip_prefix('.'))
+                    .unwrap_or_else(|| panic!("{id}: {value} is not a stats field"));
+                assert!(
+                    schema["properties"][name]["type"] == "integer"
+                        || schema["properties"][name]["type"] == "number",
+                    "{id}: {name} is not a numeric stats field"
+                );
+                plotted += 1;
+            }
+        }
+        assert!(plotted >= 3);
+    }
 }
