@@ -45,6 +45,25 @@ pub fn read_text(path: &Path, limit: u64) -> Result<String, FormatError> {
 }
 
 /// `<path>.partial`: where an output is written before it is renamed to `path`.
+/// Reads the first `head.len()` bytes of `file` (fewer only if it is shorter): what its
+/// magic bytes say.
+pub(crate) fn read_head(
+    path: &Path,
+    file: &mut fs::File,
+    head: &mut [u8],
+) -> Result<usize, FormatError> {
+    let mut n = 0;
+    while n < head.len() {
+        match file.read(&mut head[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(FormatError::io(path, e)),
+        }
+    }
+    Ok(n)
+}
+
 pub(crate) fn partial_name(path: &Path) -> std::path::PathBuf {
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(".partial");

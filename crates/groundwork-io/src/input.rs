@@ -12,9 +12,9 @@
 //! | PCD ascii / binary / binary_compressed | `.pcd` | `# .PCD`, `VERSION`, `FIELDS` |
 //! | PLY ascii / binary | `.ply` | `ply` |
 //! | MCAP recording of PointCloud2 (many scans) | `.mcap` | `\x89MCAP` |
+//! | rosbag2 SQLite bag file of PointCloud2 (many scans) | `.db3` | `SQLite format 3` |
 
 use std::fs;
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::error::FormatError;
@@ -39,13 +39,13 @@ pub enum ScanFormat {
 pub enum InputKind {
     /// One scan in this format.
     Scan(ScanFormat),
-    /// An MCAP recording (ROS 2 `sensor_msgs/msg/PointCloud2` messages).
+    /// A recording of ROS 2 `sensor_msgs/msg/PointCloud2` messages: MCAP, or rosbag2's
+    /// SQLite storage.
     Recording,
 }
 
 /// The names a reader accepts, for error messages.
-pub const SUPPORTED: &str =
-    "KITTI .bin, nuScenes .pcd.bin, .pcd, .ply or an .mcap recording of PointCloud2";
+pub const SUPPORTED: &str = "KITTI .bin, nuScenes .pcd.bin, .pcd, .ply, or a recording of PointCloud2 (.mcap, or a rosbag2 .db3)";
 
 const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 
@@ -62,7 +62,7 @@ impl InputKind {
             Self::Scan(ScanFormat::Pcd)
         } else if name.ends_with(".ply") {
             Self::Scan(ScanFormat::Ply)
-        } else if name.ends_with(".mcap") {
+        } else if name.ends_with(".mcap") || name.ends_with(".db3") {
             Self::Recording
         } else {
             return None;
@@ -73,7 +73,7 @@ impl InputKind {
     /// The kind the first bytes of a file say, if they carry a known magic.
     pub fn from_magic(head: &[u8]) -> Option<Self> {
         let text = |prefix: &[u8]| head.starts_with(prefix);
-        if head.starts_with(MCAP_MAGIC) {
+        if head.starts_with(MCAP_MAGIC) || head.starts_with(crate::rosbag2::MAGIC) {
             Some(Self::Recording)
         } else if text(b"ply\n") || text(b"ply\r\n") {
             Some(Self::Scan(ScanFormat::Ply))
@@ -91,15 +91,7 @@ impl InputKind {
         }
         let mut head = [0u8; 16];
         let (mut file, _) = crate::file::open_regular(path)?;
-        let mut n = 0;
-        while n < head.len() {
-            match file.read(&mut head[n..]) {
-                Ok(0) => break,
-                Ok(k) => n += k,
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) => return Err(FormatError::io(path, e)),
-            }
-        }
+        let n = crate::file::read_head(path, &mut file, &mut head)?;
         Self::from_magic(&head[..n]).ok_or_else(|| FormatError::Unsupported {
             path: path.to_path_buf(),
             expected: SUPPORTED,
@@ -182,7 +174,7 @@ pub fn scan_stem(path: &Path) -> String {
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let lower = name.to_ascii_lowercase();
-    for suffix in [".pcd.bin", ".bin", ".pcd", ".ply", ".mcap"] {
+    for suffix in [".pcd.bin", ".bin", ".pcd", ".ply", ".mcap", ".db3"] {
         if lower.ends_with(suffix) {
             return name[..name.len() - suffix.len()].to_string();
         }

@@ -52,6 +52,7 @@ pub mod pcd;
 pub mod ply;
 pub mod pointcloud2;
 pub mod recording;
+mod rosbag2;
 pub mod scan;
 pub mod transform;
 

@@ -1,4 +1,4 @@
-//! MCAP recordings (ROS 2 bags in rosbag2's MCAP storage): PointCloud2 messages of one
+//! Recordings (ROS 2 bags in rosbag2's MCAP or SQLite storage): PointCloud2 messages of one
 //! topic read as a sequence of scans, streamed (a recording may be far larger than
 //! memory), and results written back as PointCloud2 with a `ground_probability` field,
 //! which Foxglove and rerun open as they are.
@@ -8,7 +8,7 @@ use std::fs;
 use std::io::{BufReader, BufWriter};
 use std::path::{Path, PathBuf};
 
-use std::io::Read;
+use std::io::{Read, Seek};
 
 use mcap::records::op;
 use mcap::sans_io::decompressor::{DecompressResult, Decompressor};
@@ -18,6 +18,7 @@ use zstd::zstd_safe::{DStream, InBuffer, OutBuffer, ResetDirective};
 
 use crate::error::FormatError;
 use crate::pointcloud2::{self, SCHEMA_NAME, SCHEMA_TEXT};
+use crate::rosbag2::Rosbag2Db;
 use crate::scan::Scan;
 use crate::transform::{
     StaticTransform, TF_SCHEMA_NAME, TF_SCHEMA_TEXT, TF_STATIC_TOPIC, encode_static_transform,
@@ -90,8 +91,7 @@ pub struct OtherMessage {
 /// one) and for a broken container (truncated file, bad record: the stream then ends).
 pub struct RecordingReader {
     path: PathBuf,
-    file: BufReader<fs::File>,
-    reader: LinearReader,
+    source: Source,
     schemas: BTreeMap<u16, SchemaRecord>,
     channels: BTreeMap<u16, ChannelInfo>,
     topic: Option<String>,
@@ -103,8 +103,19 @@ pub struct RecordingReader {
     next_index: usize,
     other_clouds: BTreeSet<String>,
     done: bool,
-    /// Bytes of the file handed to the reader so far: where an error was met.
-    offset: u64,
+}
+
+/// Where a recording's records come from.
+enum Source {
+    Mcap {
+        file: BufReader<fs::File>,
+        reader: LinearReader,
+        /// Bytes of the file handed to the reader so far: where an error was met.
+        offset: u64,
+    },
+    /// rosbag2's SQLite storage: its topics are the channels, each with its type as the
+    /// schema.
+    Rosbag2(Rosbag2Db),
 }
 
 impl std::fmt::Debug for RecordingReader {
@@ -150,19 +161,52 @@ impl RecordingReader {
     /// Opens a recording. With `topic` None, the first PointCloud2 topic met is read (and
     /// any other PointCloud2 topic named in a warning).
     pub fn open(path: &Path, topic: Option<&str>, max_points: usize) -> Result<Self, FormatError> {
-        let (file, _) = crate::file::open_regular(path)?;
-        let options =
-            LinearReaderOptions::default().with_record_length_limit(Self::record_limit(max_points));
-        let mut reader = LinearReader::new_with_options(options);
-        reader
-            .add_decompressor(BoundedZstd::new(Self::chunk_limit(max_points)))
-            .map_err(|e| FormatError::malformed(path, format!("MCAP: {e}")))?;
+        let (mut file, _) = crate::file::open_regular(path)?;
+        let mut head = [0u8; 16];
+        let n = crate::file::read_head(path, &mut file, &mut head)?;
+        let (mut schemas, mut channels) = (BTreeMap::new(), BTreeMap::new());
+        let source = if head[..n] == *crate::rosbag2::MAGIC {
+            let (db, topics) = Rosbag2Db::open(path)?;
+            for t in topics {
+                channels.insert(
+                    t.id,
+                    ChannelInfo {
+                        topic: t.name,
+                        encoding: t.serialization,
+                        schema: Some(t.type_name.clone()),
+                        schema_id: t.id,
+                    },
+                );
+                schemas.insert(
+                    t.id,
+                    SchemaRecord {
+                        name: t.type_name,
+                        encoding: "ros2msg".into(),
+                        data: t.definition,
+                    },
+                );
+            }
+            Source::Rosbag2(db)
+        } else {
+            file.seek(std::io::SeekFrom::Start(0))
+                .map_err(|e| FormatError::io(path, e))?;
+            let options = LinearReaderOptions::default()
+                .with_record_length_limit(Self::record_limit(max_points));
+            let mut reader = LinearReader::new_with_options(options);
+            reader
+                .add_decompressor(BoundedZstd::new(Self::chunk_limit(max_points)))
+                .map_err(|e| FormatError::malformed(path, format!("MCAP: {e}")))?;
+            Source::Mcap {
+                file: BufReader::new(file),
+                reader,
+                offset: 0,
+            }
+        };
         Ok(Self {
             path: path.to_path_buf(),
-            file: BufReader::new(file),
-            reader,
-            schemas: BTreeMap::new(),
-            channels: BTreeMap::new(),
+            source,
+            schemas,
+            channels,
             topic: topic.map(str::to_string),
             max_points,
             others_of: None,
@@ -170,7 +214,6 @@ impl RecordingReader {
             next_index: 0,
             other_clouds: BTreeSet::new(),
             done: false,
-            offset: 0,
         })
     }
 
@@ -200,13 +243,13 @@ impl RecordingReader {
 
     fn broken(&mut self, what: impl std::fmt::Display) -> FormatError {
         self.done = true;
-        FormatError::malformed(
-            &self.path,
-            format!(
-                "MCAP: {what} (in the record read up to byte {})",
-                self.offset
-            ),
-        )
+        let what = match &self.source {
+            Source::Mcap { offset, .. } => {
+                format!("MCAP: {what} (in the record read up to byte {offset})")
+            }
+            Source::Rosbag2(_) => format!("rosbag2 SQLite: {what}"),
+        };
+        FormatError::malformed(&self.path, what)
     }
 
     fn end_of_data(&mut self) -> Option<Result<RecordedScan, FormatError>> {
@@ -383,67 +426,7 @@ impl RecordingReader {
                 else {
                     return Step::Broken("malformed message record".into());
                 };
-                let Some(ch) = self.channels.get(&channel) else {
-                    return Step::Broken(format!("message on unknown channel {channel}"));
-                };
-                if let Some(skip) = &self.others_of {
-                    if ch.topic == *skip {
-                        return Step::Continue;
-                    }
-                    return Step::Other(OtherMessage {
-                        topic: ch.topic.clone(),
-                        schema: self.schemas.get(&ch.schema_id).cloned(),
-                        encoding: ch.encoding.clone(),
-                        log_time_ns: log_time,
-                        publish_time_ns: publish,
-                        data: f.0.to_vec(),
-                    });
-                }
-                let is_cloud = ch.schema.as_deref() == Some(SCHEMA_NAME);
-                let chosen = match &self.topic {
-                    Some(t) => *t == ch.topic,
-                    None => is_cloud,
-                };
-                if !chosen {
-                    if is_cloud && !self.counting && self.other_clouds.insert(ch.topic.clone()) {
-                        warn!(
-                            "{}: also holds PointCloud2 topic {} (not read; choose with --topic)",
-                            self.path.display(),
-                            ch.topic
-                        );
-                    }
-                    return Step::Continue;
-                }
-                let ch = ch.clone();
-                self.topic.get_or_insert_with(|| ch.topic.clone());
-                let index = self.next_index;
-                self.next_index += 1;
-                if self.counting {
-                    return Step::Continue;
-                }
-                let label = PathBuf::from(format!(
-                    "{} (message {index} on {})",
-                    self.path.display(),
-                    ch.topic
-                ));
-                if !is_cloud || ch.encoding != "cdr" {
-                    return Step::Scan(Err(FormatError::malformed(
-                        &label,
-                        format!(
-                            "not a CDR {SCHEMA_NAME} (schema {:?}, encoding {:?})",
-                            ch.schema, ch.encoding
-                        ),
-                    )));
-                }
-                return Step::Scan(
-                    pointcloud2::decode(&label, f.0, self.max_points).map(|scan| RecordedScan {
-                        index,
-                        log_time_ns: log_time,
-                        topic: ch.topic,
-                        scan,
-                        message: f.0.into(),
-                    }),
-                );
+                return self.message(channel, log_time, publish, f.0);
             }
             op::DATA_END => return Step::EndOfData,
             // Header, indexes, attachments, metadata, statistics: not needed.
@@ -454,32 +437,127 @@ impl RecordingReader {
 }
 
 impl RecordingReader {
+    /// A message on `channel`: a scan of the topic read, another topic's message when
+    /// those are wanted, or nothing.
+    fn message(&mut self, channel: u16, log_time: u64, publish: u64, data: &[u8]) -> Step {
+        let Some(ch) = self.channels.get(&channel) else {
+            return Step::Broken(format!("message on unknown channel {channel}"));
+        };
+        if let Some(skip) = &self.others_of {
+            if ch.topic == *skip {
+                return Step::Continue;
+            }
+            return Step::Other(OtherMessage {
+                topic: ch.topic.clone(),
+                schema: self.schemas.get(&ch.schema_id).cloned(),
+                encoding: ch.encoding.clone(),
+                log_time_ns: log_time,
+                publish_time_ns: publish,
+                data: data.to_vec(),
+            });
+        }
+        let is_cloud = ch.schema.as_deref() == Some(SCHEMA_NAME);
+        let chosen = match &self.topic {
+            Some(t) => *t == ch.topic,
+            None => is_cloud,
+        };
+        if !chosen {
+            if is_cloud && !self.counting && self.other_clouds.insert(ch.topic.clone()) {
+                warn!(
+                    "{}: also holds PointCloud2 topic {} (not read; choose with --topic)",
+                    self.path.display(),
+                    ch.topic
+                );
+            }
+            return Step::Continue;
+        }
+        let ch = ch.clone();
+        self.topic.get_or_insert_with(|| ch.topic.clone());
+        let index = self.next_index;
+        self.next_index += 1;
+        if self.counting {
+            return Step::Continue;
+        }
+        let label = PathBuf::from(format!(
+            "{} (message {index} on {})",
+            self.path.display(),
+            ch.topic
+        ));
+        if !is_cloud || ch.encoding != "cdr" {
+            return Step::Scan(Err(FormatError::malformed(
+                &label,
+                format!(
+                    "not a CDR {SCHEMA_NAME} (schema {:?}, encoding {:?})",
+                    ch.schema, ch.encoding
+                ),
+            )));
+        }
+        Step::Scan(
+            pointcloud2::decode(&label, data, self.max_points).map(|scan| RecordedScan {
+                index,
+                log_time_ns: log_time,
+                topic: ch.topic,
+                scan,
+                message: data.into(),
+            }),
+        )
+    }
+
     /// The next record that is not [`Step::Continue`]; an I/O error ends the stream.
     fn step(&mut self) -> Result<Step, FormatError> {
         loop {
-            let step = match self.reader.next_event() {
-                None => Step::EndOfData,
-                Some(Err(e)) => Step::Broken(e.to_string()),
-                Some(Ok(LinearReadEvent::ReadRequest(need))) => {
-                    let read = loop {
-                        match self.file.read(self.reader.insert(need)) {
-                            Ok(n) => break n,
-                            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                            Err(e) => {
-                                self.done = true;
-                                return Err(FormatError::io(&self.path, e));
-                            }
+            let step = match &mut self.source {
+                Source::Rosbag2(db) => {
+                    let limit = Self::record_limit(self.max_points);
+                    match db.next(&self.path, limit) {
+                        Err(e) => {
+                            self.done = true;
+                            return Err(e);
                         }
-                    };
-                    self.offset += read as u64;
-                    self.reader.notify_read(read);
-                    continue;
+                        Ok(None) => Step::EndOfData,
+                        Ok(Some(m)) => match m.data {
+                            Ok(data) => {
+                                self.message(m.topic_id, m.timestamp_ns, m.timestamp_ns, &data)
+                            }
+                            // Too large to fetch: a bad scan if it is one of the topic's.
+                            Err(e) => {
+                                match self.message(m.topic_id, m.timestamp_ns, m.timestamp_ns, &[])
+                                {
+                                    Step::Scan(_) => Step::Scan(Err(e)),
+                                    other => other,
+                                }
+                            }
+                        },
+                    }
                 }
-                Some(Ok(LinearReadEvent::Record { opcode, data })) => {
-                    // The record borrows the reader's buffer: copy out what outlives it.
-                    let data = data.to_vec();
-                    self.record(opcode, &data)
-                }
+                Source::Mcap {
+                    file,
+                    reader,
+                    offset,
+                } => match reader.next_event() {
+                    None => Step::EndOfData,
+                    Some(Err(e)) => Step::Broken(e.to_string()),
+                    Some(Ok(LinearReadEvent::ReadRequest(need))) => {
+                        let read = loop {
+                            match file.read(reader.insert(need)) {
+                                Ok(n) => break n,
+                                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                                Err(e) => {
+                                    self.done = true;
+                                    return Err(FormatError::io(&self.path, e));
+                                }
+                            }
+                        };
+                        *offset += read as u64;
+                        reader.notify_read(read);
+                        continue;
+                    }
+                    Some(Ok(LinearReadEvent::Record { opcode, data })) => {
+                        // The record borrows the reader's buffer: copy out what outlives it.
+                        let data = data.to_vec();
+                        self.record(opcode, &data)
+                    }
+                },
             };
             if !matches!(step, Step::Continue) {
                 return Ok(step);

@@ -155,3 +155,91 @@ fn a_topic_that_is_not_a_point_cloud_is_an_error_per_message() {
         errors[1]
     );
 }
+
+#[test]
+fn a_rosbag2_sqlite_bag_reads_like_a_recording() {
+    let want = source_points();
+    let half = want.len() / 2;
+    let db3 = fixture("kitti_rosbag2/kitti_rosbag2.db3");
+    assert_eq!(
+        InputKind::detect(&db3).ok(),
+        Some(InputKind::Recording),
+        "by name"
+    );
+    let scans: Vec<_> = RecordingReader::open(&db3, None, 200_000)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(scans.len(), 2, "the /chatter message is not a scan");
+    let t0 = 1_700_000_000_000_000_000u64;
+    for (k, s) in scans.iter().enumerate() {
+        assert_eq!((s.index, s.topic.as_str()), (k, "/points"));
+        assert_eq!(s.log_time_ns, t0 + k as u64 * 100_000_000);
+        assert_eq!(s.scan.stamp_ns, Some(s.log_time_ns));
+        assert_eq!(s.scan.frame_id.as_deref(), Some("velodyne"));
+    }
+    // Plain x, y, z, intensity, then the same with a ring field and padding.
+    assert_eq!(scans[0].scan.points, want[..half]);
+    assert_eq!(scans[1].scan.points, want[half..]);
+    assert_eq!(
+        RecordingReader::count(&db3, None, 200_000).unwrap(),
+        2,
+        "counted as read"
+    );
+    // The other topic passes through with its type and the bag's message definition.
+    let others: Vec<_> = RecordingReader::others(&db3, "/points", 200_000)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(others.len(), 1);
+    let schema = others[0].schema.as_ref().unwrap();
+    assert_eq!(
+        (others[0].topic.as_str(), schema.name.as_str()),
+        ("/chatter", "std_msgs/msg/String")
+    );
+    assert_eq!(others[0].encoding, "cdr");
+    // CDR of the string "hello": encapsulation, length 6, the bytes and the NUL.
+    assert_eq!(&others[0].data[4..8], &6u32.to_le_bytes());
+    assert_eq!(&others[0].data[8..13], b"hello");
+
+    // A message larger than max_points allows is a bad scan, named; the rest reads on.
+    let small: Vec<_> = RecordingReader::open(&db3, None, 10).unwrap().collect();
+    assert_eq!(small.len(), 2);
+    for r in &small {
+        let e = r.as_ref().unwrap_err().to_string();
+        assert!(e.contains("kitti_rosbag2.db3"), "{e}");
+    }
+    // The bag's folder (metadata.yaml beside the .db3) is read as that recording.
+    let folder = groundwork_io::ScanSource::open(&fixture("kitti_rosbag2"), None).unwrap();
+    let names: Vec<_> = folder
+        .scans(200_000)
+        .filter(|s| s.scan.is_ok())
+        .map(|s| s.name)
+        .collect();
+    assert_eq!(names, ["kitti_rosbag2_000000", "kitti_rosbag2_000001"]);
+}
+
+#[test]
+fn a_file_that_is_not_a_rosbag2_bag_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let fake = dir.path().join("broken.db3");
+    // SQLite's magic, then nothing a database needs.
+    let mut bytes = b"SQLite format 3\0".to_vec();
+    bytes.resize(4096, 0xAB);
+    std::fs::write(&fake, &bytes).unwrap();
+    let e = RecordingReader::open(&fake, None, 1000)
+        .map(|r| r.collect::<Vec<_>>())
+        .map_err(|e| e.to_string());
+    let text = match e {
+        Err(e) => e,
+        Ok(items) => items
+            .into_iter()
+            .find_map(Result::err)
+            .map(|e| e.to_string())
+            .unwrap_or_default(),
+    };
+    assert!(
+        text.contains("broken.db3") && text.contains("rosbag2 SQLite"),
+        "{text}"
+    );
+}
