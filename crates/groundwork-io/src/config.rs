@@ -36,6 +36,25 @@ pub const SENSOR_PRESETS: &[(&str, &str)] = &[
         include_str!("../../../config/sensors/pandar64.toml"),
     ),
     ("livox", include_str!("../../../config/sensors/livox.toml")),
+    (
+        "os0-64",
+        include_str!("../../../config/sensors/os0-64.toml"),
+    ),
+    (
+        "os2-64",
+        include_str!("../../../config/sensors/os2-64.toml"),
+    ),
+    ("xt32", include_str!("../../../config/sensors/xt32.toml")),
+    ("qt128", include_str!("../../../config/sensors/qt128.toml")),
+    (
+        "helios",
+        include_str!("../../../config/sensors/helios.toml"),
+    ),
+    (
+        "mid360",
+        include_str!("../../../config/sensors/mid360.toml"),
+    ),
+    ("m1", include_str!("../../../config/sensors/m1.toml")),
 ];
 
 /// The preset used when none is named.

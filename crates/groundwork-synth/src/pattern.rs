@@ -25,6 +25,8 @@ pub enum Scanning {
         horizontal_deg: f64,
         /// Full vertical field of view, degrees.
         vertical_deg: f64,
+        /// Elevation of the field's centre, degrees (0: centred on the horizon).
+        vertical_center_deg: f64,
         /// Returns per frame.
         points: u32,
     },
@@ -88,7 +90,8 @@ pub struct BeamPattern {
 
 /// Names of the sensors with a pattern (the presets of `config/sensors/`).
 pub const PATTERN_SENSORS: &[&str] = &[
-    "hdl64e", "hdl32e", "vlp16", "vlp32c", "os1-64", "os1-128", "pandar64", "livox",
+    "hdl64e", "hdl32e", "vlp16", "vlp32c", "os1-64", "os1-128", "pandar64", "livox", "os0-64",
+    "os2-64", "xt32", "qt128", "helios", "mid360", "m1",
 ];
 
 const CAR: EgoBody = EgoBody {
@@ -158,12 +161,14 @@ impl BeamPattern {
                     ..base(spinning(e, 1800), 200.0, 0.03)
                 }
             }
-            // Uniform over 45°; an organized image in which no-return pixels are (0, 0, 0).
-            "os1-64" | "os1-128" => {
-                let (beams, columns) = if name == "os1-64" {
-                    (64, 1024)
-                } else {
-                    (128, 2048)
+            // Uniform over 45° (OS1), 90° (OS0) or 22.5° (OS2); an organized image in which
+            // no-return pixels are (0, 0, 0).
+            "os1-64" | "os1-128" | "os0-64" | "os2-64" => {
+                let (half_fov, beams, columns, range) = match name.as_str() {
+                    "os1-64" => (22.5, 64, 1024, 120.0),
+                    "os1-128" => (22.5, 128, 2048, 120.0),
+                    "os0-64" => (45.0, 64, 1024, 50.0),
+                    _ => (11.25, 64, 1024, 240.0),
                 };
                 BeamPattern {
                     placeholders: true,
@@ -173,12 +178,67 @@ impl BeamPattern {
                         top_below_sensor: 0.6,
                     }),
                     ..base(
-                        spinning(linspace(22.5, -22.5, beams), columns),
-                        120.0,
+                        spinning(linspace(half_fov, -half_fov, beams), columns),
+                        range,
                         0.015,
                     )
                 }
             }
+            // Hesai XT32: 32 beams 1° apart, +15° to −16°, 0.18° azimuth steps.
+            "xt32" => BeamPattern {
+                ego: Some(CAR),
+                ..base(spinning(linspace(15.0, -16.0, 32), 2000), 120.0, 0.01)
+            },
+            // Hesai QT128: 128 beams over ±52.6°, 0.4° azimuth steps, short range.
+            "qt128" => BeamPattern {
+                ego: Some(EgoBody {
+                    length: 0.9,
+                    width: 0.6,
+                    top_below_sensor: 0.3,
+                }),
+                ..base(spinning(linspace(52.6, -52.6, 128), 900), 50.0, 0.02)
+            },
+            // RoboSense Helios-32 (5515): 70° with the beams packed around the horizon.
+            "helios" => {
+                let mut e = linspace(15.0, 2.0, 8);
+                e.extend(linspace(1.0, -8.0, 16));
+                e.extend(linspace(-10.0, -55.0, 8));
+                BeamPattern {
+                    ego: Some(CAR),
+                    ..base(spinning(e, 1800), 150.0, 0.02)
+                }
+            }
+            // Livox Mid-360: all around, −7° to +52°, non-repetitive, 20 000 per frame.
+            "mid360" => BeamPattern {
+                min_range: 0.1,
+                ego: Some(EgoBody {
+                    length: 0.7,
+                    width: 0.5,
+                    top_below_sensor: 0.15,
+                }),
+                ..base(
+                    Scanning::Rosette {
+                        horizontal_deg: 360.0,
+                        vertical_deg: 59.0,
+                        vertical_center_deg: 22.5,
+                        points: 20_000,
+                    },
+                    70.0,
+                    0.02,
+                )
+            },
+            // RoboSense M1: 120° × 25° forward, 75 000 per frame; its MEMS raster is
+            // approximated by the rosette's coverage of the same field.
+            "m1" => base(
+                Scanning::Rosette {
+                    horizontal_deg: 120.0,
+                    vertical_deg: 25.0,
+                    vertical_center_deg: 0.0,
+                    points: 75_000,
+                },
+                200.0,
+                0.02,
+            ),
             // Dense 1/6° beams around the horizon, 2°-ish steps above and below.
             "pandar64" => {
                 let mut e = vec![15.0, 11.0, 8.0, 5.0, 3.0, 2.0];
@@ -195,6 +255,7 @@ impl BeamPattern {
                     Scanning::Rosette {
                         horizontal_deg: 70.0,
                         vertical_deg: 30.0,
+                        vertical_center_deg: 0.0,
                         points: 24_000,
                     },
                     190.0,
@@ -252,6 +313,7 @@ impl BeamPattern {
             Scanning::Rosette {
                 horizontal_deg,
                 vertical_deg,
+                vertical_center_deg,
                 points,
             } => {
                 let (half_h, half_v) = (
@@ -270,7 +332,7 @@ impl BeamPattern {
                         let t = (start + i) as f64 * step;
                         let u = 0.5 * (t.cos() + (RATIO * t).cos());
                         let v = 0.5 * (t.sin() + (RATIO * t).sin());
-                        let (az, el) = (u * half_h, v * half_v);
+                        let (az, el) = (u * half_h, vertical_center_deg.to_radians() + v * half_v);
                         let (se, ce) = el.sin_cos();
                         let (sa, ca) = az.sin_cos();
                         DVec3::new(ce * ca, ce * sa, se)
@@ -317,6 +379,24 @@ mod tests {
             assert!(
                 elevations_deg.windows(2).all(|w| w[0] > w[1]),
                 "{name}: top to bottom"
+            );
+        }
+    }
+
+    #[test]
+    fn the_mid360_sees_all_around_from_below_the_horizon_to_52_degrees_up() {
+        let p = BeamPattern::for_sensor("mid360").unwrap();
+        let rays = p.rays(0);
+        let el: Vec<f64> = rays.iter().map(|r| r.z.asin().to_degrees()).collect();
+        assert!(el.iter().all(|e| (-7.0 - 1e-9..=52.0 + 1e-9).contains(e)));
+        assert!(el.iter().any(|e| *e < -5.0) && el.iter().any(|e| *e > 50.0));
+        // Every quarter of the circle is covered.
+        for q in 0..4 {
+            let lo = -180.0 + 90.0 * f64::from(q);
+            assert!(
+                rays.iter()
+                    .any(|r| (lo..lo + 90.0).contains(&r.y.atan2(r.x).to_degrees())),
+                "quarter {q}"
             );
         }
     }
