@@ -356,8 +356,8 @@ fn synthetic_street() -> (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>) {
 }
 
 /// The VLP-16 preset spoiled where a new sensor's guesses go wrong: objects up to 3 m
-/// tall pass the elevation test, and the decision threshold is high. (2 m, as this was
-/// until the preset's zones of 2026-12-03, costs only 1.6 points on the held-out scans.)
+/// tall pass the elevation test, and the decision threshold is high. (2 m would cost only
+/// 1.6 points on the held-out scans.)
 fn spoiled_vlp16() -> groundwork_core::SegmenterConfig {
     let mut cfg = sensor_preset("vlp16").unwrap();
     cfg.history.frames = 1;
@@ -431,8 +431,8 @@ fn labels_are_trusted_only_where_the_preset_agrees_with_them() {
 }
 
 /// Fitted to labels, a spoiled preset's parameters come back: the held-out scans' agreement
-/// rises by two points and more, to within 0.6 of the unspoiled preset's (measured
-/// 2026-12-03: 90.82 → 93.03 against 92.95), and the elevation offset (spoiled to 3 m)
+/// rises by two points and more, to within 0.6 of the unspoiled preset's (measured:
+/// 90.82 → 93.03 against 92.95), and the elevation offset (spoiled to 3 m)
 /// returns to within 0.4 m of the preset's 0.8 m. The same scans give the same fit on one
 /// thread as on the default pool.
 #[test]
@@ -487,9 +487,8 @@ fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() 
     // preset already agrees on more than 97.5 %, so the default bar for keeping a fit (a
     // held-out gain above 2.5 points) cannot be met and the preset stays. With no bar the
     // held-out part still decides: the search gains on the fitted scans' near rings, and a
-    // round is kept only if it also gains on the held-out scans' (measured 2026-12-03:
-    // fitted 93.58 → 98.18, held-out 98.89 → 98.58–98.66, so the preset stays; with the
-    // zones before, spoiled to 2 m: 97.97 → 97.99, kept).
+    // round is kept only if it also gains on the held-out scans' (measured:
+    // fitted 93.58 → 98.18, held-out 98.89 → 98.58–98.66, so the preset stays).
     let default = groundwork_calibrate::ParamSearchConfig::default();
     let kept = groundwork_calibrate::fit_parameters(&base, &sample, &default, |_, _| {}).unwrap();
     assert!(kept.held_out_before.iou() > 100.0 - default.min_held_out_gain);

@@ -183,11 +183,9 @@ fn recall(score: &ObjectScore) -> (usize, usize) {
 fn synthetic_objects_are_found_and_boxed() {
     let cases = [
         ("hdl64e", SceneKind::Urban, Ground::Segmenter, 0.95),
-        // 45/48 with the zones of 2026-12-01: one car 21–22 m away, at the boundary of two
-        // zones, split into two proposals in two frames, and one of 20 points 43 m away.
-        // 48/48 with the zones of 2026-11-30, 45/48 before them (two cars 20 m away split,
-        // one at 71 m with 26 points): the same few marginal objects come and go with the
-        // layout, while the layout of 2026-12-01 calls the ground better (docs/sensors.md).
+        // 45/48: one car 21–22 m away, at the boundary of two zones, split into two
+        // proposals in two frames, and one of 20 points 43 m away. Other zone layouts trade
+        // these few marginal objects for worse ground (docs/sensors.md).
         ("os1-64", SceneKind::Urban, Ground::Segmenter, 0.93),
         ("hdl64e", SceneKind::Urban, Ground::Labels, 0.95),
         ("os1-64", SceneKind::Urban, Ground::Labels, 0.95),

@@ -1050,8 +1050,8 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
 /// (`zones.scale_with_height`), it scales the first two inner boundaries by the height found
 /// over the preset's (about 0.44), for the Pandar64, whose scaling gains nothing with summary
 /// cells, it leaves them. The file loads over the preset, and the labels (used here only to
-/// score) say it segments better than the mount alone (`--keep-zones`): measured on 12 scans
-/// (2026-12-03), +1.53 for the HDL-32E and +0.83 for the Pandar64 (scaled too: −0.36).
+/// score) say it segments better than the mount alone (`--keep-zones`): measured on 12 scans,
+/// +1.53 for the HDL-32E and +0.83 for the Pandar64 (scaled too: −0.36).
 #[test]
 fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     let tmp = tempfile::tempdir().unwrap();
