@@ -2,6 +2,8 @@
 
 use std::path::PathBuf;
 
+pub mod presets;
+
 use groundwork_core::config::MountConfig;
 use groundwork_core::{GroundMethod, Segmenter, SegmenterConfig, pose_from_matrix};
 use groundwork_eval::{Confusion, Protocol};

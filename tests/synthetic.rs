@@ -9,10 +9,13 @@
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
 use groundwork_core::SegmenterConfig;
-use groundwork_core::config::{MountConfig, SensorConfig};
+use groundwork_core::config::MountConfig;
 use groundwork_core::{Point, Segmenter};
 use groundwork_io::{SENSOR_PRESETS, sensor_preset};
 use groundwork_synth::{Generator, SceneKind, SynthConfig};
+use groundwork_tests::presets::{
+    NUDGES, best_scene_preset, iou_on_mount, random_mount, zones_moved,
+};
 use groundwork_tests::{
     Poses, SyntheticRun, method_run, synthetic, synthetic_run, synthetic_seeded,
 };
@@ -479,187 +482,8 @@ const MEAN_OVER_SEEDS: &[(&str, SceneKind, f64)] = &[
     ("livox", Hill, 98.95),
 ];
 
-/// Every preset's parameters on every sensor's synthetic scans: the urban, off-road and
-/// car-park scenes, seeds 0–2, each on a mount drawn at random (height 0.5–2.5 m, roll ±5°,
-/// pitch ±10°) that every preset is told, with the scans' own sensor section (ego radius,
-/// most points). Prints the mean pooled IoU per scans × preset (docs/sensors.md). About
-/// 10 minutes: `cargo test -p groundwork-tests --test synthetic -- --ignored
-/// presets_across_sensors --nocapture`.
-#[test]
-#[ignore = "slow: every preset on every sensor's scans, for docs/sensors.md"]
-fn presets_across_sensors() {
-    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
-    let mut table = Vec::new();
-    for (si, &sensor) in names.iter().enumerate() {
-        let mut sums = vec![0.0; names.len()];
-        let mut runs = 0;
-        for scene in [Urban, Offroad, Parking] {
-            for seed in 0..3u64 {
-                let own = sensor_preset(sensor).unwrap().sensor;
-                let truth = random_mount(si, seed, own.mount.yaw);
-                let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
-                let mut line = format!("{sensor:9} {:8} seed {seed}:", scene.name());
-                for (sum, iou) in sums.iter_mut().zip(preset_ious(&g, &own, &truth)) {
-                    *sum += iou;
-                    line += &format!(" {iou:6.2}");
-                }
-                eprintln!("{line}");
-                runs += 1;
-            }
-        }
-        let means: Vec<f64> = sums.iter().map(|s| s / runs as f64).collect();
-        table.push((sensor, means));
-    }
-    eprintln!("scans \\ preset | {}", names.join(" | "));
-    for (sensor, means) in &table {
-        let best = means.iter().cloned().fold(f64::MIN, f64::max);
-        let cells: Vec<String> = means
-            .iter()
-            .map(|m| {
-                if *m == best {
-                    format!("**{m:.2}**")
-                } else {
-                    format!("{m:.2}")
-                }
-            })
-            .collect();
-        eprintln!("TABLE {sensor} | {}", cells.join(" | "));
-    }
-}
-
-/// The zones as `groundwork calibrate` moves them (`groundwork_calibrate::zones`), on the
-/// scans and mounts of [`presets_across_sensors`]: each sensor's preset told the true
-/// mount, the same with the near edge found in the four scans, then with the inner
-/// boundaries scaled by the true height over the preset's too, and the best of every preset
-/// told the true mount (docs/calibration.md), per run and per scene: the zones moved against
-/// the one preset with the best mean over the scene's three runs (`SCENE` lines). About 5
-/// minutes: `cargo test -p groundwork-tests --test synthetic -- --ignored near_edge
-/// --nocapture`.
-#[test]
-#[ignore = "slow: every preset on every sensor's scans, for docs/calibration.md"]
-fn near_edge_against_every_preset() {
-    use groundwork_calibrate::{NearEdgeConfig, zones_for_mount};
-    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
-    let near_cfg = NearEdgeConfig::default();
-    for (si, &sensor) in names.iter().enumerate() {
-        let own = sensor_preset(sensor).unwrap();
-        let (mut own_sum, mut near_sum, mut scaled_sum, mut best_sum) = (0.0, 0.0, 0.0, 0.0);
-        let (mut near_wins, mut scaled_wins) = (0, 0);
-        for scene in [Urban, Offroad, Parking] {
-            let (mut scene_presets, mut scene_scaled) = (vec![0.0; names.len()], 0.0);
-            for seed in 0..3u64 {
-                let truth = random_mount(si, seed, own.sensor.mount.yaw);
-                let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
-                let run = |cfg| iou_on_mount(&g, &own.sensor, &truth, cfg);
-                let presets = preset_ious(&g, &own.sensor, &truth);
-                for (sum, iou) in scene_presets.iter_mut().zip(&presets) {
-                    *sum += iou / 3.0;
-                }
-                let best = presets.iter().copied().fold(f64::MIN, f64::max);
-                let ego = own.sensor.ego_radius;
-                let ground = near_ground_on(&g, &truth, ego, &near_cfg);
-                let fit = |height| {
-                    zones_for_mount(&own.zones, ground.as_ref(), height, ego, &near_cfg).zones
-                };
-                let zones = fit(None);
-                let scaled = fit(Some((truth.height, &own.sensor.mount)));
-                let with = |z: &Option<groundwork_core::config::ZoneConfig>, plain: f64| match z {
-                    Some(z) => run(SegmenterConfig {
-                        zones: z.clone(),
-                        ..own.clone()
-                    }),
-                    None => plain,
-                };
-                let plain = run(own.clone());
-                let near = with(&zones, plain);
-                let both = with(&scaled, plain);
-                eprintln!(
-                    "{sensor:9} {:8} seed {seed} h {:.2} pitch {:5.1}°: preset {plain:6.2}, \
-                     near edge {near:6.2} (at {:?}), inner scaled {both:6.2}, best preset \
-                     {best:6.2}",
-                    scene.name(),
-                    truth.height,
-                    truth.pitch.to_degrees(),
-                    zones.map(|z| z.min_range)
-                );
-                own_sum += plain;
-                near_sum += near;
-                scaled_sum += both;
-                best_sum += best;
-                near_wins += usize::from(near >= best);
-                scaled_wins += usize::from(both >= best);
-                scene_scaled += both / 3.0;
-            }
-            // The one preset best over the scene's three runs (not the best per run).
-            let (best, best_mean) = best_scene_preset(&scene_presets);
-            eprintln!(
-                "SCENE {sensor} | {} | {:.2} | {scene_scaled:.2} | `{}` {best_mean:.2} | {:+.2}",
-                scene.name(),
-                scene_presets[si],
-                names[best],
-                scene_scaled - best_mean
-            );
-        }
-        eprintln!(
-            "NEAR {sensor} | {:.2} | {:.2} | {:.2} | {:.2} | {near_wins} of 9 | {scaled_wins} of 9",
-            own_sum / 9.0,
-            near_sum / 9.0,
-            scaled_sum / 9.0,
-            best_sum / 9.0
-        );
-    }
-}
-
-/// Layouts of the zone model (`zones.layouts`) on the scans and mounts of
-/// [`presets_across_sensors`]: each sensor's preset with its zones moved for the true mount
-/// as `groundwork calibrate` moves them, with 1, 2, 3 and 4 layouts, against the best of
-/// every preset told the true mount (docs/algorithm.md, "Layouts"). About 8 minutes:
-/// `cargo test --release -p groundwork-tests --test synthetic -- --ignored layouts
-/// --nocapture`.
-#[test]
-#[ignore = "slow: every preset on every sensor's scans, for docs/algorithm.md"]
-fn layouts_against_every_preset() {
-    use groundwork_calibrate::NearEdgeConfig;
-    let names: Vec<&str> = SENSOR_PRESETS.iter().map(|(n, _)| *n).collect();
-    let near_cfg = NearEdgeConfig::default();
-    let counts = [1u32, 2, 3, 4];
-    let (mut sums, mut wins, mut runs) = ([0.0; 4], [0usize; 4], 0);
-    for (si, &sensor) in names.iter().enumerate() {
-        let own = sensor_preset(sensor).unwrap();
-        for scene in [Urban, Offroad, Parking] {
-            for seed in 0..3u64 {
-                let truth = random_mount(si, seed, own.sensor.mount.yaw);
-                let g = synthetic_seeded(sensor, scene, 4, Some(truth.clone()), seed);
-                let best = best_preset_iou(&g, &own.sensor, &truth);
-                let ego = own.sensor.ego_radius;
-                let ground = near_ground_on(&g, &truth, ego, &near_cfg);
-                let moved = zones_moved(&own, ground.as_ref(), truth.height);
-                let mut line = format!("{sensor:9} {:8} seed {seed}:", scene.name());
-                for (j, &n) in counts.iter().enumerate() {
-                    let mut cfg = own.clone();
-                    cfg.zones = moved.clone();
-                    cfg.zones.layouts = n;
-                    let iou = iou_on_mount(&g, &own.sensor, &truth, cfg);
-                    sums[j] += iou;
-                    wins[j] += usize::from(iou >= best);
-                    line += &format!(" {n} layout(s) {iou:6.2}");
-                }
-                eprintln!("{line}, best preset {best:6.2}");
-                runs += 1;
-            }
-        }
-    }
-    for (j, n) in counts.iter().enumerate() {
-        eprintln!(
-            "LAYOUTS {n}: mean {:.2}, {} of {runs} runs at least the best preset",
-            sums[j] / f64::from(runs),
-            wins[j]
-        );
-    }
-}
-
 /// The whole of `groundwork calibrate` with its defaults on the scans and mounts of
-/// [`presets_across_sensors`], 24 consecutive scans each: the mount found from the scans
+/// the preset tables (`preset-tables`), 24 consecutive scans each: the mount found from the scans
 /// alone, the zones moved for it, the parameters fitted to the PseudoLabeler's labels of the
 /// scans, then single-frame pooled IoU on the same scans against every preset told the true
 /// mount, per run and per scene (the one preset best over the scene's three runs), beside
@@ -671,9 +495,9 @@ fn layouts_against_every_preset() {
 /// Each fit's held-out agreement and the mount alone's IoU are printed. About 14 minutes
 /// (half that with `FIT=mount`):
 /// `cargo test -p groundwork-tests --test synthetic -- --ignored whole_calibration
-/// --nocapture` (docs/calibration.md, "The whole command per scene").
+/// --nocapture` (docs/dev/calibration-notes.md, "The whole command per scene").
 #[test]
-#[ignore = "slow: calibrate and every preset on 24 scans of every scene, for docs/calibration.md"]
+#[ignore = "slow: calibrate and every preset on 24 scans of every scene, for docs/dev/calibration-notes.md"]
 fn whole_calibration_per_scene_against_every_preset() {
     use groundwork_calibrate::{
         MountSearchConfig, NearEdgeConfig, combine_near_ground, estimate_mount, view_near_ground,
@@ -804,7 +628,7 @@ fn whole_calibration_per_scene_against_every_preset() {
          {runs} runs at least the best preset"
     );
     // Measured with summary cells and the `os1-64` sectors re-tuned for them
-    // (docs/calibration.md, "The whole command per scene"): 4 of 9 scenes at least the best
+    // (docs/dev/calibration-notes.md, "The whole command per scene"): 4 of 9 scenes at least the best
     // preset, 5 within the resolution; this guard fails on the VLP-16 car park (−0.69) and
     // the Livox street (−0.30), where another sensor's preset beats the sensor's own (the
     // calibrated figures are within 0.02 of the own preset's or above). With the `vlp16`
@@ -853,89 +677,4 @@ fn fitted_to_pseudolabels(
         }
     );
     fit.config
-}
-
-/// Turns of the true mount (roll, pitch; degrees) that give the resolution of a comparison
-/// with it: a preset's IoU on the same scans moves by that much with angles far finer than
-/// any mount is known to.
-const NUDGES: [(f64, f64); 4] = [(0.02, 0.0), (-0.02, 0.0), (0.0, 0.02), (0.0, -0.02)];
-
-/// Pooled IoU of `cfg` over `g`'s frames (true poses) with the scans' own sensor section
-/// `sensor` on the mount `truth` they were taken from.
-fn iou_on_mount(
-    g: &Generator,
-    sensor: &SensorConfig,
-    truth: &MountConfig,
-    cfg: SegmenterConfig,
-) -> f64 {
-    let sensor = SensorConfig {
-        mount: truth.clone(),
-        ..sensor.clone()
-    };
-    synthetic_run(g, SegmenterConfig { sensor, ..cfg }, Poses::True).iou()
-}
-
-/// [`iou_on_mount`] of every preset, in the order of `SENSOR_PRESETS`.
-fn preset_ious(g: &Generator, sensor: &SensorConfig, truth: &MountConfig) -> Vec<f64> {
-    SENSOR_PRESETS
-        .iter()
-        .map(|(p, _)| iou_on_mount(g, sensor, truth, sensor_preset(p).unwrap()))
-        .collect()
-}
-
-/// The index and mean of the one preset best over a scene's runs, from each preset's mean
-/// (the first of equals).
-fn best_scene_preset(means: &[f64]) -> (usize, f64) {
-    means
-        .iter()
-        .enumerate()
-        .fold((0, f64::MIN), |b, (i, &m)| if m > b.1 { (i, m) } else { b })
-}
-
-/// The best [`iou_on_mount`] of every preset.
-fn best_preset_iou(g: &Generator, sensor: &SensorConfig, truth: &MountConfig) -> f64 {
-    preset_ious(g, sensor, truth)
-        .into_iter()
-        .fold(f64::MIN, f64::max)
-}
-
-/// `own`'s zones as `calibrate` moves them for a sensor `height` above the ground that first
-/// sees ground where `near` says (the preset's zones where nothing moves).
-fn zones_moved(
-    own: &SegmenterConfig,
-    near: Option<&groundwork_calibrate::NearGround>,
-    height: f64,
-) -> groundwork_core::config::ZoneConfig {
-    let cfg = groundwork_calibrate::NearEdgeConfig::default();
-    let mount = Some((height, &own.sensor.mount));
-    groundwork_calibrate::zones_for_mount(&own.zones, near, mount, own.sensor.ego_radius, &cfg)
-        .zones
-        .unwrap_or_else(|| own.zones.clone())
-}
-
-/// Where `g`'s scans first see ground on the mount `truth`, as `calibrate` finds it.
-fn near_ground_on(
-    g: &Generator,
-    truth: &MountConfig,
-    ego_radius: f64,
-    cfg: &groundwork_calibrate::NearEdgeConfig,
-) -> Option<groundwork_calibrate::NearGround> {
-    let scans: Vec<Vec<[f32; 3]>> = (0..g.frames())
-        .map(|i| g.scan(i).points.iter().map(|p| [p.x, p.y, p.z]).collect())
-        .collect();
-    let pose = groundwork_core::mount_transform(truth).unwrap();
-    groundwork_calibrate::near_ground(&scans, &pose, ego_radius, cfg)
-}
-
-/// The random mount of [`presets_across_sensors`] for sensor `si`'s scans, seed `seed`.
-fn random_mount(si: usize, seed: u64, yaw: f64) -> MountConfig {
-    use rand::{Rng, SeedableRng};
-    let mut rng = rand::rngs::StdRng::seed_from_u64(1000 * si as u64 + seed);
-    MountConfig {
-        height: rng.random_range(0.5..2.5),
-        roll: rng.random_range(-5f64..5.0).to_radians(),
-        pitch: rng.random_range(-10f64..10.0).to_radians(),
-        yaw,
-        matrix: None,
-    }
 }

@@ -10,16 +10,24 @@
 //!   mount found, and its inner boundaries scaled with the height found where the layout
 //!   follows the beams (`zones.scale_with_height`).
 //!
-//! Pure algorithm: the caller reads the scans (the `groundwork calibrate` command).
+//! - [`calibrate`]: all of it in order, as `groundwork calibrate` and Python's
+//!   `groundwork.calibrate` run it; [`Calibration::to_toml`] is the file it writes.
+//!
+//! Pure algorithm: the caller reads the scans and writes the file.
 
 #![warn(missing_docs)]
 
+pub mod calibration;
 pub mod mount;
 pub mod params;
 pub mod plane;
 pub mod pseudo;
+mod text;
 pub mod zones;
 
+pub use calibration::{
+    CalibrateOptions, CalibrateProgress, Calibration, NearEdge, ScanInput, ScanReport, calibrate,
+};
 pub use mount::{
     MountEstimate, MountSearchConfig, OneSidedGround, combine, estimate_mount, frame_mount,
 };
@@ -36,7 +44,7 @@ pub use zones::{
 };
 
 /// Why a calibration could not be done.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, thiserror::Error)]
 pub enum CalibrateError {
     /// A setting is out of its range.
     #[error("calibration setting {0}")]

@@ -163,7 +163,7 @@ pub const HEIGHT_SCALE_DEAD_BAND: f64 = 0.05;
 /// out the beams are nearly level, and their ranges follow the pitch more than the height.
 /// Why only where a preset says so: a layout searched on scans from random mounts (the
 /// `vlp16`, `os1-64` and `livox` presets) is already the best for every height, and
-/// scaling it loses; on `vlp32c` and `os1-128` it gains under 0.1 (docs/calibration.md,
+/// scaling it loses; on `vlp32c` and `os1-128` it gains under 0.1 (docs/dev/calibration-notes.md,
 /// "Which layouts follow the height").
 pub fn zones_scaled_to_height(
     zones: &ZoneConfig,

@@ -458,6 +458,18 @@ def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, 
     by_kwargs = groundwork.Segmenter(frames=1, mount=rounded)
     by_file = groundwork.Segmenter(frames=1, config=out)
     assert np.array_equal(by_kwargs.segment(scans[0]), by_file.segment(scans[0]))
+    # Python writes the CLI's file: the same library call and writer, only the first line
+    # (where the scans came from) differs.
+    mine = tmp_path / "py" / "mine.toml"
+    mine.parent.mkdir()
+    groundwork.calibrate(scans, sensor="hdl64e", out=mine)
+    ours, theirs = mine.read_text().splitlines(), text.splitlines()
+    assert ours[1:] == theirs[1:] and len(ours) > 10, (ours, theirs)
+    assert "scans given from Python" in ours[0] and str(SEQ) in theirs[0]
+    with pytest.raises(ValueError, match="exists; pass overwrite=True"):
+        groundwork.calibrate(scans, sensor="hdl64e", out=mine)
+    groundwork.calibrate(scans, sensor="hdl64e", out=mine, overwrite=True)
+    assert "summary" in report and "mount from 6 of 6 scans" in report["summary"]
     # Degrees and radians: the same mount, and not both at once.
     deg = groundwork.Segmenter(frames=1, mount={"height": 1.8, "pitch_deg": 2.0})
     rad = groundwork.Segmenter(frames=1, mount={"height": 1.8, "pitch": np.radians(2.0)})

@@ -22,7 +22,11 @@ impl Tmpfs {
                 !rustix::process::geteuid().is_root(),
                 "root could not mount a tmpfs"
             );
-            eprintln!("not root: the full-disk test needs a tmpfs mount, skipped");
+            assert!(
+                std::env::var_os("GROUNDWORK_REQUIRE_ROOT").is_none(),
+                "GROUNDWORK_REQUIRE_ROOT is set: the full-disk test needs root (a tmpfs mount)"
+            );
+            eprintln!("skipped: not root, and the full-disk test needs a tmpfs mount");
             return None;
         }
         Some(Self(dir.to_path_buf()))

@@ -197,6 +197,8 @@ def calibrate(
     param_trust: float = 90.0,
     param_min_gain: float = 2.5,
     fit_zones: bool = False,
+    out: _Path | None = None,
+    overwrite: bool = False,
     **overrides: Any,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The sensor's mount from raw scans, no labels (`groundwork calibrate`): the
@@ -219,5 +221,7 @@ def calibrate(
     a scan ground there: no search, the preset kept); or report["parameters_refused"], the
     reason. fit_zones (not with
     keep_params): the inner zones' layout fitted with the parameters, {"zones": {"min_range",
-    "boundaries", "rings", "sectors"}} where it changed (`--fit-zones`). Raises ValueError,
-    with the reason, when the scans cannot determine the mount."""
+    "boundaries", "rings", "sectors"}} where it changed (`--fit-zones`). report["summary"]
+    is what the CLI prints. out: also write the configuration file `groundwork calibrate
+    --out` writes (an existing file only with overwrite). Raises ValueError, with the
+    reason, when the scans cannot determine the mount."""
