@@ -19,6 +19,8 @@
 //! component; past frames add to them without rescaling, and a log-sum-exp merge takes over
 //! only where a component would exceed the reference by 2^86 (e^60).
 
+pub mod equation;
+
 use std::cell::RefCell;
 
 use nalgebra::{Isometry3, Matrix3, Point3};
@@ -213,15 +215,12 @@ pub(crate) struct AnchoredFrame<'a> {
     pub transform: &'a Isometry3<f64>,
 }
 
-/// Ground probabilities of a vector of points from their final sums: per lane the product
-/// of the three responsibility-weighted likelihoods, in [0, 1]; 0 where nothing answered.
-/// Written out in vectors: the AVX-512 build of the query left the lane-by-lane form scalar
-/// (a division per point, 15 % of its time with two frames on an Intel Xeon), where the
-/// portable build vectorised it. It is the scalar `if sum > 0 { (flat/sum · orient/sum ·
-/// elev/sum).clamp(0, 1) } else { 0 }` bit for bit, on every CPU: the same correctly rounded
-/// division and products in the same order, and the clamp as `clamp` defines it (compares
-/// and selects, so a NaN passes as it does there; `fast_max` would turn it into 0 on x86
-/// and keep it on NEON).
+/// Ground probabilities of a vector of points from their final sums: lane by lane
+/// [`equation::ground_probability`], bit for bit on every CPU (tested). Written out in
+/// vectors: the AVX-512 build of the query left the lane-by-lane form scalar (a division per
+/// point, 15 % of its time with two frames on an Intel Xeon). The clamp is `clamp`'s
+/// compares and selects, so a NaN passes as it does there (`fast_max` would turn it into 0
+/// on x86 and keep it on NEON).
 #[inline(always)]
 fn probabilities(s: &LaneSums) -> Vf {
     let inv = Vf::ONE / s.sum;
@@ -803,16 +802,6 @@ mod tests {
         assert_eq!(most_recent_first([1, 2, 3], 9), [9, 1, 2]);
     }
 
-    /// The scalar form [`probabilities`] stands for, a lane at a time.
-    fn probability(sum: f32, flat: f32, orient: f32, elev: f32) -> f32 {
-        if sum > 0.0 {
-            let inv = 1.0 / sum;
-            ((flat * inv) * (orient * inv) * (elev * inv)).clamp(0.0, 1.0)
-        } else {
-            0.0
-        }
-    }
-
     /// [`probabilities`] as the AVX-512 query compiles it.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq")]
@@ -861,7 +850,12 @@ mod tests {
             let expected: Vec<u32> = (0..LANES)
                 .map(|i| {
                     let at = |v: Vf| v.to_array()[i];
-                    probability(at(sums.sum), at(sums.flat), at(sums.orient), at(sums.elev))
+                    equation::ground_probability(
+                        at(sums.sum),
+                        at(sums.flat),
+                        at(sums.orient),
+                        at(sums.elev),
+                    )
                         .to_bits()
                 })
                 .collect();
@@ -914,26 +908,16 @@ mod tests {
         pts
     }
 
-    /// One term of the normalisation: a component's log-density (nats) at a point given in
-    /// the component's own frame, and its three likelihoods.
-    fn term(g: &GroundComponent, q: &Point3<f64>) -> (f64, f64, f64, f64) {
+    /// A component's term of the equation at a point given in the component's own frame.
+    fn term(g: &GroundComponent, q: &Point3<f64>) -> equation::ComponentTerm {
         let e = &g.eval;
         let (dx, dy, dz) = (q.x - e.mean[0], q.y - e.mean[1], q.z - e.mean[2]);
-        let l = e.log_coef - 0.5 * crate::gmm::quad_form(&e.precision, dx, dy, dz);
-        (l, g.flatness, g.orientation, g.elevation)
-    }
-
-    /// The product of the three responsibility-weighted likelihoods over `terms`.
-    fn normalised(terms: &[(f64, f64, f64, f64)]) -> f64 {
-        let Some(top) = terms.iter().map(|t| t.0).reduce(f64::max) else {
-            return 0.0;
-        };
-        let (mut s, mut f, mut o, mut e) = (0.0, 0.0, 0.0, 0.0);
-        for &(l, pf, po, pe) in terms {
-            let w = (l - top).exp();
-            (s, f, o, e) = (s + w, f + w * pf, o + w * po, e + w * pe);
+        equation::ComponentTerm {
+            log_density: e.log_coef - 0.5 * crate::gmm::quad_form(&e.precision, dx, dy, dz),
+            flatness: g.flatness,
+            orientation: g.orientation,
+            elevation: g.elevation,
         }
-        ((f / s) * (o / s) * (e / s)).clamp(0.0, 1.0)
     }
 
     /// The per-frame equation evaluated directly, in f64: every component of the segment
@@ -949,7 +933,7 @@ mod tests {
             };
             terms.extend(f.model.segment(seg).iter().map(|g| term(g, &q)));
         }
-        normalised(&terms)
+        equation::ground_probability_of(&terms)
     }
 
     /// Per query-scan segment, the (past frame, component) pairs whose footprint reaches
@@ -1020,7 +1004,7 @@ mod tests {
                 &(t * Point3::from(p)),
             ));
         }
-        normalised(&terms)
+        equation::ground_probability_of(&terms)
     }
 
     /// Frame 0 of [`scene`] fitted with a bad model (the road 0.3 m too high, so that past

@@ -301,6 +301,7 @@ impl Segmenter {
         self.check_and_bin(points, None, out)?;
         self.group(true);
         self.query_frames(model, None, out);
+        self.continue_ground(model, out);
         Ok(())
     }
 
@@ -318,12 +319,15 @@ impl Segmenter {
         self.check_and_bin(points, Some(pose), out)?;
         self.group(true);
         let pose = (self.pose_jump(pose).is_none()).then_some(pose);
-        Ok(self.query_frames(model, pose, out).0)
+        let (frames, _) = self.query_frames(model, pose, out);
+        self.continue_ground(model, out);
+        Ok(frames)
     }
 
     /// Query of the binned and grouped points against `model` and, given the scan's pose,
     /// every stored past frame; without a pose, against `model` alone. Returns the number of
-    /// models queried and the tally of what was written.
+    /// models queried and the tally of what was written. Continuity is the next step
+    /// ([`Segmenter::continue_ground`]).
     fn query_frames(
         &mut self,
         model: &FrameModel,
@@ -354,9 +358,15 @@ impl Segmenter {
             &mut self.query_scratch,
             out,
         );
+        (frames.len(), tally)
+    }
+
+    /// Ground continuity (after the query): points on ground that continues from confident
+    /// ground are raised to it. Returns how many crossed the ground threshold.
+    fn continue_ground(&mut self, model: &FrameModel, out: &mut [f32]) -> usize {
         let n = out.len();
         let g = &self.ground;
-        let lifted = raise_continuous_ground(
+        raise_continuous_ground(
             &self.cfg.continuity,
             self.cfg.zones.max_range,
             (&g.x[..n], &g.y[..n], &g.z[..n]),
@@ -368,12 +378,7 @@ impl Segmenter {
             out,
             self.cfg.ground.ground_threshold,
             &mut self.continuity,
-        );
-        let tally = OutputTally {
-            ground: tally.ground + lifted,
-            ..tally
-        };
-        (frames.len(), tally)
+        )
     }
 
     /// Groups the binned points for the fit and, with `query`, for the query too.
@@ -470,7 +475,8 @@ impl Segmenter {
         Ok(report)
     }
 
-    /// One layout of the zone model: the whole method on one scan.
+    /// One layout of the zone model: the method on one scan, a call per step
+    /// (docs/algorithm.md). Counters, timing and logs are filled by the helpers below it.
     fn segment_layout<P: PointXyz + Sync>(
         &mut self,
         points: &[P],
@@ -478,36 +484,109 @@ impl Segmenter {
         sensor_time_ns: Option<u64>,
         out: &mut [f32],
     ) -> Result<FrameReport, SegmentError> {
-        let t0 = Instant::now();
-        let out_of_bounds = match self.check_and_bin(points, pose, out) {
-            Ok(n) => n,
-            Err(e) => {
-                self.counters.rejected += 1;
-                return Err(e);
-            }
-        };
-        let mut report = FrameReport {
-            points: points.len(),
-            posed: pose.is_some(),
-            ..Default::default()
-        };
-        report.out_of_bounds_points = out_of_bounds;
+        let started = Instant::now();
+        // Bin: every point into its zone segment, in the ground-aligned frame. A scan
+        // refused here leaves every state untouched.
+        let out_of_bounds = self.bin(points, pose, out)?;
+        let mut report = self.start_report(points.len(), pose.is_some(), out_of_bounds);
+        if let Some(t) = sensor_time_ns {
+            report.history_cleared |= self.check_time_gap(t);
+        }
+        // Group the points of each segment together, for the fit and the query.
+        self.group(true);
+        // Fit: EM per segment, the components' likelihoods, the terrain reference.
+        let (model, stats) = self.fit_grouped();
+        // Height filter: the ground's height per near segment, for the next scans' fits.
+        self.update_height_filter(&model);
+        // Mount watch: the mount the fitted ground shows, against the configured one.
+        let mount = self.watch_mount(&model);
+        report.fit_time = started.elapsed();
+        self.report_fit(&mut report, &model, &stats);
+
+        let queried = Instant::now();
+        if let Some(pose) = pose {
+            report.history_cleared |= self.check_pose_jump(pose);
+        }
+        // Query: each point's probability from this scan's model and the history's (the
+        // equation: `query::equation`).
+        let (frames, tally) = self.query_frames(&model, pose, out);
+        // Continuity: ground that continues from confident ground is raised to it.
+        let lifted = self.continue_ground(&model, out);
+        // History: this scan's model, kept for the next scans' queries.
+        match pose {
+            Some(pose) => self.remember(model, pose),
+            None => self.counters.without_pose += 1,
+        }
+        report.query_time = queried.elapsed();
+        report.frames_queried = frames;
+        self.finish_output(&mut report, tally, lifted, out);
+        // The corrected mount from the next scan on: this scan was binned, queried and
+        // stored in the history on the mount it was fitted with.
+        if let Some(m) = mount {
+            self.mount = m;
+        }
+        self.counters.scans += 1;
+        log_scan(&report);
+        Ok(report)
+    }
+
+    /// Checks and bins the scan ([`Segmenter::check_and_bin`]), counting a refusal.
+    /// Returns the points beyond the coordinate bound.
+    fn bin<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        pose: Option<&Pose>,
+        out: &mut [f32],
+    ) -> Result<usize, SegmentError> {
+        self.check_and_bin(points, pose, out).inspect_err(|_| {
+            self.counters.rejected += 1;
+        })
+    }
+
+    /// A scan's report as binning leaves it.
+    fn start_report(&mut self, points: usize, posed: bool, out_of_bounds: usize) -> FrameReport {
         self.counters.out_of_bounds_points += out_of_bounds as u64;
         if out_of_bounds > 0 {
             debug!(points = out_of_bounds, "points beyond the coordinate bound");
         }
-        if let Some(t) = sensor_time_ns {
-            report.history_cleared |= self.check_time_gap(t);
+        FrameReport {
+            points,
+            posed,
+            out_of_bounds_points: out_of_bounds,
+            ..Default::default()
         }
-        self.group(true);
-        let (model, stats) = self.fit_grouped();
-        self.update_height_filter(&model);
-        let threshold = f64::from(self.cfg.ground.ground_threshold);
+    }
+
+    /// The fit's figures in the report.
+    fn report_fit(
+        &self,
+        report: &mut FrameReport,
+        model: &FrameModel,
+        stats: &[crate::model::SegmentStats],
+    ) {
+        for st in stats {
+            report.em_iterations += u64::from(st.iterations);
+            report.outliers += u64::from(st.outliers);
+            report.height_filtered += u64::from(st.height_filtered);
+        }
+        report.fitted_segments = model.fitted_segments();
+        report.components = model.components().len();
+        // From the per-segment counts taken while binning: every bin not `NEAR` is in
+        // range or beyond it.
+        let (in_range, beyond) = self.counts.totals();
+        report.near_points = report.points - in_range - beyond - report.out_of_bounds_points;
+        report.beyond_points = beyond;
+    }
+
+    /// The mount watch on this scan's model: warns (once) where the fitted ground
+    /// disagrees with `sensor.mount`, and returns the corrected mount to use from the next
+    /// scan on (`mount_check.mode = "correct"`).
+    fn watch_mount(&mut self, model: &FrameModel) -> Option<Pose> {
         let verdict = self.mount_watch.observe(
-            &model,
+            model,
             &self.cfg.mount_check,
             (&self.configured_mount, &self.mount),
-            threshold,
+            f64::from(self.cfg.ground.ground_threshold),
         );
         if let Some(seen) = verdict.warn {
             // From the pose, not the config's angles: a mount given as a matrix has none.
@@ -526,75 +605,42 @@ impl Segmenter {
                  calibrate`"
             );
         }
-        report.fit_time = t0.elapsed();
+        verdict.apply
+    }
 
-        for st in &stats {
-            report.em_iterations += u64::from(st.iterations);
-            report.outliers += u64::from(st.outliers);
-            report.height_filtered += u64::from(st.height_filtered);
-        }
-        report.fitted_segments = model.fitted_segments();
-        report.components = model.components().len();
-        // From the per-segment counts taken while binning: every bin not `NEAR` is in
-        // range or beyond it.
-        let (in_range, beyond) = self.counts.totals();
-        report.near_points = points.len() - in_range - beyond - out_of_bounds;
-        report.beyond_points = beyond;
+    /// Keeps this scan's model in the history (the newest `history.frames − 1`).
+    fn remember(&mut self, model: FrameModel, pose: &Pose) {
+        let h = &self.cfg.history;
+        let keep = h.frames as usize - 1;
+        let share_anchors = h.query == PastQuery::Regridded;
+        self.history
+            .push(model, *pose, keep, share_anchors, &self.mount);
+    }
 
-        let t1 = Instant::now();
-        let tally;
-        match pose {
-            Some(pose) => {
-                report.history_cleared |= self.check_pose_jump(pose);
-                (report.frames_queried, tally) = self.query_frames(&model, Some(pose), out);
-                let h = &self.cfg.history;
-                let keep = h.frames as usize - 1;
-                let share_anchors = h.query == PastQuery::Regridded;
-                self.history
-                    .push(model, *pose, keep, share_anchors, &self.mount);
-            }
-            None => {
-                self.counters.without_pose += 1;
-                (report.frames_queried, tally) = self.query_frames(&model, None, out);
-            }
-        }
-        report.query_time = t1.elapsed();
-        let thr = self.cfg.ground.ground_threshold;
-        // No NaN ever leaves the segmenter: a non-finite value would be a defect (none is
-        // known), and it would poison every consumer's arithmetic. Written as 0, counted.
-        // The query counted them while writing; they are rewritten only if there is any.
+    /// The ground count, and no NaN ever leaving the segmenter: a non-finite value would be
+    /// a defect (none is known) that poisons every consumer's arithmetic. Written as 0 and
+    /// counted; the query counted them while writing, so they are rewritten only if any.
+    fn finish_output(
+        &mut self,
+        report: &mut FrameReport,
+        tally: OutputTally,
+        lifted: usize,
+        out: &mut [f32],
+    ) {
+        report.ground_points = tally.ground + lifted;
         let non_finite = tally.non_finite as u64;
-        report.ground_points = tally.ground;
         if non_finite > 0 {
             for p in out.iter_mut().filter(|p| !p.is_finite()) {
                 *p = 0.0;
             }
+            let thr = self.cfg.ground.ground_threshold;
             report.ground_points = out.iter().filter(|&&p| p >= thr).count();
-        }
-        if non_finite > 0 {
             self.counters.non_finite_outputs += non_finite;
             tracing::error!(
                 points = non_finite,
                 "non-finite ground probabilities written as 0 (a defect: please report)"
             );
         }
-        // The corrected mount from the next scan on: this scan was binned, queried and
-        // stored in the history on the mount it was fitted with.
-        if let Some(m) = verdict.apply {
-            self.mount = m;
-        }
-        self.counters.scans += 1;
-        debug!(
-            points = report.points,
-            ground = report.ground_points,
-            components = report.components,
-            em_iterations = report.em_iterations,
-            frames = report.frames_queried,
-            fit_us = report.fit_time.as_micros() as u64,
-            query_us = report.query_time.as_micros() as u64,
-            "segmented scan"
-        );
-        Ok(report)
     }
 
     fn check<P: PointXyz + Sync>(
@@ -810,4 +856,18 @@ impl Segmenter {
             "segmenter state"
         );
     }
+}
+
+/// One scan's figures at debug level.
+fn log_scan(report: &FrameReport) {
+    debug!(
+        points = report.points,
+        ground = report.ground_points,
+        components = report.components,
+        em_iterations = report.em_iterations,
+        frames = report.frames_queried,
+        fit_us = report.fit_time.as_micros() as u64,
+        query_us = report.query_time.as_micros() as u64,
+        "segmented scan"
+    );
 }
