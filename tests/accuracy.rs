@@ -3,7 +3,8 @@
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
 use groundwork_core::Segmenter;
-use groundwork_eval::{Protocol, Sequence, evaluate};
+use groundwork_eval::{Protocol, evaluate};
+use groundwork_io::Sequence;
 use groundwork_io::load_config;
 use groundwork_tests::{hdl64e_preset, kitti_sequence};
 

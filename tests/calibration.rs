@@ -618,7 +618,7 @@ fn the_held_out_part_keeps_the_preset_when_the_fit_does_not_carry_over() {
 /// pooled IoU ≥ 97.6 and precision ≥ 99.3 on frames 0–2, measured with the true labels.
 #[test]
 fn kitti_parameters_fitted_to_pseudo_labels_keep_the_accuracy() {
-    let methods = groundwork_eval::load_methods_config_over(Some("hdl64e"), None).unwrap();
+    let methods = groundwork_io::load_methods_config_over(Some("hdl64e"), None).unwrap();
     let mut base = methods.segmenter.clone();
     base.history.frames = 1;
     let hdl64e = sensor_preset("hdl64e").unwrap().sensor.mount;

@@ -6,9 +6,10 @@
 use glam::DVec3;
 use groundwork_core::{Segmenter, SegmenterConfig, pose_from_matrix};
 use groundwork_detect::{Detections, Detector, DetectorConfig};
-use groundwork_eval::load_methods_config_over;
-use groundwork_eval::{ObjectScore, Sequence, score_objects};
+use groundwork_eval::{ObjectScore, score_objects};
 use groundwork_io::LabelMap;
+use groundwork_io::Sequence;
+use groundwork_io::load_methods_config_over;
 use groundwork_synth::Shape;
 use groundwork_synth::classes::is_ground;
 use groundwork_tests::{SceneKind, kitti_sequence, synthetic};

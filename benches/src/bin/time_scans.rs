@@ -12,7 +12,8 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Parser;
 use groundwork_core::{Pose, Segmenter};
-use groundwork_eval::{Sequence, median};
+use groundwork_eval::median;
+use groundwork_io::Sequence;
 
 #[derive(Parser)]
 struct Args {

@@ -331,10 +331,11 @@ fn preset_text(
     let d = 180.0 / std::f64::consts::PI;
     let mut s = format!(
         "# Calibrated by `groundwork calibrate` from {} of {} scans of {}.\n\
-         # Use: groundwork segment --sensor {base} --config <this file> ...\n\
+         # Use: groundwork segment --config <this file> ... (it names its preset)\n\
          # It holds what differs from the {base} preset; each changed value's old one is in\n\
          # the comment after it, with the estimate's standard error and its spread over the\n\
          # scans.\n\n\
+         preset = {base:?}\n\n\
          [sensor]\n\
          name = {name:?}  # was {:?}\n\n\
          [sensor.mount]\n",

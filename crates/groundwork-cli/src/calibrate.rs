@@ -20,10 +20,16 @@ use crate::common::{open_inputs, progress};
 
 pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let t = Instant::now();
+    // The preset: --sensor, else the one a --config file names, else the default.
+    let named = match &a.sensor.config {
+        Some(path) => groundwork_io::config_preset(path)?,
+        None => None,
+    };
     let base = a
         .sensor
         .sensor
         .clone()
+        .or(named)
         .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_string());
     let methods = crate::common::load_methods(&a.sensor.into(), None)?;
     anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use groundwork_core::SegmenterConfig;
-use groundwork_eval::Sequence;
+use groundwork_io::Sequence;
 use groundwork_service::ServiceConfig;
 use indicatif::{ProgressBar, ProgressStyle};
 use tracing::{error, warn};
@@ -88,8 +88,9 @@ pub fn load_service(args: &ServiceArgs) -> Result<ServiceConfig> {
     Ok(cfg)
 }
 
-/// The segmenter configuration: the named preset (`--sensor`, else the service's, else
-/// hdl64e), the `--config` file over it, then `--frames`.
+/// The segmenter configuration: the named preset (`--sensor`, else the one the `--config`
+/// file names, else the service's, else hdl64e), the `--config` file over it, then
+/// `--frames`.
 pub fn load(common: &Common, service_sensor: Option<&str>) -> Result<SegmenterConfig> {
     Ok(load_methods(common, service_sensor)?.segmenter)
 }
@@ -98,9 +99,18 @@ pub fn load(common: &Common, service_sensor: Option<&str>) -> Result<SegmenterCo
 pub fn load_methods(
     common: &Common,
     service_sensor: Option<&str>,
-) -> Result<groundwork_eval::MethodsConfig> {
-    let sensor = common.sensor.as_deref().or(service_sensor);
-    let mut cfg = groundwork_eval::load_methods_config_over(sensor, common.config.as_deref())?;
+) -> Result<groundwork_io::MethodsConfig> {
+    // A file that names its preset is laid over it unless --sensor says otherwise (which it
+    // refuses, naming both): the service's sensor is the default only for other files.
+    let names_preset = match &common.config {
+        Some(path) => groundwork_io::config_preset(path)?.is_some(),
+        None => false,
+    };
+    let sensor = common
+        .sensor
+        .as_deref()
+        .or(service_sensor.filter(|_| !names_preset));
+    let mut cfg = groundwork_io::load_methods_config_over(sensor, common.config.as_deref())?;
     if let Some(n) = common.frames {
         cfg.segmenter.history.frames = n;
         cfg.segmenter.validate().context("--frames")?;

@@ -9,8 +9,9 @@ use std::time::Instant;
 use anyhow::{Result, anyhow};
 use groundwork_detect::Proposal;
 use groundwork_detect::{Detections, Detector};
-use groundwork_eval::MethodsConfig;
-use groundwork_eval::{ObjectScore, Sequence, median, score_objects};
+use groundwork_eval::{ObjectScore, median, score_objects};
+use groundwork_io::MethodsConfig;
+use groundwork_io::Sequence;
 use groundwork_io::{OutputTarget, write_atomic};
 use tracing::{error, info};
 

@@ -4,7 +4,8 @@ use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::Result;
-use groundwork_eval::{Protocol, Sequence, evaluate};
+use groundwork_eval::{Protocol, evaluate};
+use groundwork_io::Sequence;
 use tracing::info;
 
 use crate::args::{Common, EvalArgs, ProtocolArg};

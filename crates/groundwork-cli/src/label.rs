@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use anyhow::{Result, bail};
 use groundwork_core::{Point, SegmentError};
-use groundwork_eval::MethodsConfig;
+use groundwork_io::MethodsConfig;
 use groundwork_io::{InputKind, outputs_complete, read_scan, scan_stem};
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
 use indicatif::ProgressBar;

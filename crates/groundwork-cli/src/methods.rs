@@ -3,7 +3,7 @@
 use anyhow::Result;
 use clap::ValueEnum;
 use groundwork_core::{GroundMethod, Segmenter};
-use groundwork_eval::MethodsConfig;
+use groundwork_io::MethodsConfig;
 use groundwork_pseudolabel::{GroundFrame, PseudoLabeler, Ransac};
 
 /// A ground segmentation method.

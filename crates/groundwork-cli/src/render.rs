@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, anyhow, bail};
 use groundwork_core::GroundFrame;
 use groundwork_detect::{Detections, Detector, Proposal};
-use groundwork_eval::MethodsConfig;
+use groundwork_io::MethodsConfig;
 use groundwork_io::{LabelMap, read_prob, read_scan, scan_stem};
 use groundwork_viz::{Colouring, Scene, View, render};
 

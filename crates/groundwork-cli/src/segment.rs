@@ -18,7 +18,8 @@ use std::time::Instant;
 
 use anyhow::{Result, anyhow, bail};
 use groundwork_core::{GroundMethod, Pose};
-use groundwork_eval::{Sequence, median};
+use groundwork_eval::median;
+use groundwork_io::Sequence;
 use groundwork_io::{OutputTarget, ScanItem, write_outputs};
 use groundwork_service::segmenter::{SegmenterOptions, SegmenterStage};
 use indicatif::ProgressBar;

@@ -1153,6 +1153,71 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     }
 }
 
+/// A calibrated file names the preset it was made from: `segment --config` alone lays it over
+/// that preset (not over the default), and another `--sensor` is refused, naming both.
+#[test]
+fn a_calibrated_file_carries_its_preset() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("seq");
+    let o = bin()
+        .args([
+            "synth", "--sensor", "vlp16", "--scene", "urban", "--frames", "6",
+        ])
+        .arg("--out")
+        .arg(&seq)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let cal = tmp.path().join("robot.toml");
+    let o = bin()
+        .args(["calibrate", "--sensor", "vlp16", "--keep-params", "--out"])
+        .arg(&cal)
+        .arg(&seq)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = fs::read_to_string(&cal).unwrap();
+    assert!(text.contains("\npreset = \"vlp16\"\n"), "{text}");
+    let segment = |extra: &[&str], out: &str| {
+        bin()
+            .args(["segment", "--frames", "1"])
+            .args(extra)
+            .arg("--config")
+            .arg(&cal)
+            .arg("--out")
+            .arg(tmp.path().join(out))
+            .arg(&seq)
+            .output()
+            .unwrap()
+    };
+    let alone = segment(&[], "alone");
+    assert!(
+        alone.status.success(),
+        "{}",
+        String::from_utf8_lossy(&alone.stderr)
+    );
+    let named = segment(&["--sensor", "vlp16"], "named");
+    assert!(
+        named.status.success(),
+        "{}",
+        String::from_utf8_lossy(&named.stderr)
+    );
+    for n in 0..6 {
+        let prob = |dir: &str| fs::read(tmp.path().join(dir).join(format!("{n:06}.prob"))).unwrap();
+        assert_eq!(prob("alone"), prob("named"), "scan {n}");
+    }
+    let other = segment(&["--sensor", "hdl64e"], "other");
+    let stderr = String::from_utf8_lossy(&other.stderr);
+    assert_eq!(other.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("robot.toml")
+            && stderr.contains("\"vlp16\"")
+            && stderr.contains("\"hdl64e\""),
+        "{stderr}"
+    );
+    assert!(!tmp.path().join("other").exists(), "nothing written");
+}
+
 #[test]
 fn calibrate_writes_a_mount_segment_loads_refuses_what_it_cannot_tell_and_never_overwrites() {
     let tmp = tempfile::tempdir().unwrap();

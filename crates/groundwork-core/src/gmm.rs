@@ -807,7 +807,8 @@ pub fn fit_segment(xs: &[f64], ys: &[f64], zs: &[f64], cfg: &GmmConfig) -> Segme
     fit_segment_with(xs, ys, zs, cfg, &mut EmScratch::default())
 }
 
-/// [`fit_segment`] with caller-provided scratch buffers.
+/// [`fit_segment`] with caller-provided scratch buffers: initialise, then E-step and
+/// M-step (with pruning) until the stopping rule, each a function below.
 ///
 /// The E-step runs in f32 over component-major arrays so that every inner loop is a
 /// straight loop over points that the compiler vectorises; sufficient statistics are taken
@@ -830,8 +831,7 @@ pub fn fit_segment_with(
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &z| {
             (lo.min(z), hi.max(z))
         });
-    let reg = cfg.covariance_regularization;
-
+    // What EM runs on, centred: a dense segment's summary cells, or its (subsampled) points.
     let summary = cfg.summary_cell != [0.0, 0.0]
         && cfg.max_fit_points != 0
         && n > cfg.max_fit_points as usize;
@@ -840,234 +840,36 @@ pub fn fit_segment_with(
     } else {
         subsample(xs, ys, zs, cfg, s)
     };
-    let m = s.x.len();
     let scale = n as f64 / total_weight;
-    let np = m.div_ceil(LANES) * LANES;
-    for v in [&mut s.x, &mut s.y, &mut s.z, &mut s.w] {
-        v.resize(np, 0.0);
-    }
-    // Only summary cells have a scatter of their own (the point path never reads `cov`).
-    if summary {
-        s.cov.resize(np * 6, 0.0);
-    }
-    s.max.resize(np, 0.0);
-    s.inv.resize(np, 0.0);
-    s.best.resize(np, 0);
-
-    // Initialisation (paper §III-B1): K = min(ceil(N / N_min), K_max) components at the
-    // horizontal mean, spread linearly in z from the lowest to the highest point, equal
-    // weights, unit covariance.
-    let k0 = n
-        .div_ceil(cfg.n_min as usize)
-        .min(cfg.k_max as usize)
-        .max(1);
-    let mut comps: Vec<Gaussian> = (0..k0)
-        .map(|k| {
-            let t = if k0 == 1 {
-                0.5
-            } else {
-                k as f64 / (k0 - 1) as f64
-            };
-            Gaussian {
-                weight: 1.0 / k0 as f64,
-                mean: [0.0, 0.0, zmin + t * (zmax - zmin) - centroid[2]],
-                covariance: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
-            }
-        })
-        .collect();
-    s.resp.resize(k0 * np, 0.0);
+    let np = s.pad_to_lanes(summary);
+    let mut comps = initial_components(n, (zmin, zmax), centroid[2], cfg);
+    s.resp.resize(comps.len() * np, 0.0);
 
     let mut prev_ll = f64::NEG_INFINITY;
     let mut mean_ll = f64::NEG_INFINITY;
     let mut iterations = 0;
-    let mut owned = vec![0u32; k0];
-    let mut lanes: Vec<Lanes> = Vec::with_capacity(k0);
-
+    let mut owned = vec![0u32; comps.len()];
+    let mut lanes: Vec<Lanes> = Vec::with_capacity(comps.len());
     for _ in 0..cfg.max_iterations {
         iterations += 1;
         let k = comps.len();
-        // With reg > 0 every covariance is positive definite; should rounding ever break
-        // that, the component falls back to unit covariance instead of poisoning EM.
-        lanes.clear();
-        lanes.extend(comps.iter().map(|g| {
-            let e = Evaluator::new(g).unwrap_or_else(|| Evaluator::unit(g));
-            let (u, b) = half_precision_factor(&e.precision, &e.mean);
-            Lanes {
-                m: e.mean.map(|v| v as f32),
-                u: u.map(|v| v as f32),
-                b: b.map(|v| v as f32),
-                c: e.log_coef as f32,
-            }
-        }));
-
-        // E-step, pass 1: log π_c N(x | μ_c, Σ_c) for every component and point; for a
-        // summary cell its points' mean (`log_densities`).
-        for (c, lc) in lanes.iter().enumerate() {
-            let row = &mut s.resp[c * np..(c + 1) * np];
-            if summary {
-                log_densities::<true>(row, [&s.x, &s.y, &s.z], &s.cov, lc);
-            } else {
-                log_densities::<false>(row, [&s.x, &s.y, &s.z], &s.cov, lc);
-            }
-        }
-        // Best component per point (for the log-sum-exp and for pruning).
-        // Block by block, the running best kept in registers: written as a pass per
-        // component with selects, LLVM stored only the changed lanes with masked stores,
-        // which Zen microcodes (a quarter of EM's time went there).
-        let block =
-            |v: &[f32], o: usize| v.get(o..).and_then(|v| v.first_chunk::<LANES>()).copied();
-        for (o, (m, b)) in (0..np).step_by(LANES).zip(
-            s.max
-                .chunks_exact_mut(LANES)
-                .zip(s.best.chunks_exact_mut(LANES)),
-        ) {
-            let Some(first) = block(&s.resp, o) else {
-                break; // cannot happen: every row holds np values, a multiple of LANES
-            };
-            let mut mv = f32x8::new(first);
-            let mut bv = i32x8::splat(0);
-            for c in 1..k {
-                let Some(l) = block(&s.resp, c * np + o) else {
-                    break;
-                };
-                let lv = f32x8::new(l);
-                // Lanes where this component is strictly better (false for NaN, as `>`).
-                let gt = lv.simd_gt(mv);
-                mv = gt.select(lv, mv);
-                bv = cast::<f32x8, i32x8>(gt).select(i32x8::splat(c as i32), bv);
-            }
-            m.copy_from_slice(&mv.to_array());
-            b.copy_from_slice(&cast::<i32x8, [u32; LANES]>(bv));
-        }
-        // Pass 2: exponentiate relative to the best, sum per point.
-        s.inv.fill(0.0);
-        for c in 0..k {
-            let row = &mut s.resp[c * np..(c + 1) * np];
-            for ((r, &m), acc) in row.iter_mut().zip(&s.max).zip(s.inv.iter_mut()) {
-                // Weights below e^-30 relative to the best are flushed to zero: they change
-                // nothing, and their products in the M-step would be denormal floats,
-                // which cost ~100 cycles each on x86.
-                let d = *r - m;
-                let e = if d < -30.0 { 0.0 } else { exp_nonpositive(d) };
-                *r = e;
-                *acc += e;
-            }
-        }
-        // Log-likelihood (for the stopping rule) and the normalisers w / Σ. A point's
-        // log-likelihood is its best log-density plus ln Σ, with Σ in [1, K]: the Σ of
-        // LN_GROUP blocks are multiplied per lane (at most 64^16 = 2^96, no overflow) and
-        // one ln taken of the product, instead of one per point (the ln's division was 15 %
-        // of EM).
-        // In explicit vectors: written per lane, LLVM left the division scalar.
-        let one = f32x8::splat(1.0);
-        let mut ll_v = f32x8::splat(0.0);
-        let mut prod = one;
-        for (b, ((inv, m), w)) in s
-            .inv
-            .chunks_exact_mut(LANES)
-            .zip(s.max.chunks_exact(LANES))
-            .zip(s.w.chunks_exact(LANES))
-            .enumerate()
-        {
-            let (Some(sum), Some(m), Some(w)) =
-                (inv.first_chunk(), m.first_chunk(), w.first_chunk())
-            else {
-                break; // cannot happen: exact chunks of LANES
-            };
-            let (sum, m, w) = (f32x8::new(*sum), f32x8::new(*m), f32x8::new(*w));
-            ll_v += w * m;
-            inv.copy_from_slice(&(w / sum).to_array());
-            if summary {
-                // A cell counts as many points: its ln Σ weighted by its count.
-                ll_v += w * ln_from(sum);
-                continue;
-            }
-            prod *= w.simd_gt(f32x8::splat(0.0)).select(sum, one);
-            if b % LN_GROUP == LN_GROUP - 1 {
-                ll_v += f32x8::new(prod.to_array().map(ln_positive));
-                prod = one;
-            }
-        }
-        let ll_lanes = (ll_v + f32x8::new(prod.to_array().map(ln_positive))).to_array();
-        let ll: f64 = ll_lanes.iter().map(|&v| f64::from(v)).sum();
-        // One vectorised count per component: a scattered `owned[best] += 1` serialises
-        // on store-to-load forwarding.
-        for (c, o) in owned[..k].iter_mut().enumerate() {
-            // Lane-wise sums: a single f32 sum is a serial chain of adds.
-            let (mut acc, cv) = (f32x8::splat(0.0), i32x8::splat(c as i32));
-            for (b, w) in s.best.chunks_exact(LANES).zip(s.w.chunks_exact(LANES)) {
-                let (Some(b), Some(w)) = (b.first_chunk::<LANES>(), w.first_chunk::<LANES>())
-                else {
-                    break; // cannot happen: exact chunks of LANES
-                };
-                let mine = cast::<i32x8, f32x8>(cast::<[u32; LANES], i32x8>(*b).simd_eq(cv));
-                acc += mine & f32x8::new(*w);
-            }
-            let count: f64 = acc.to_array().iter().map(|&v| f64::from(v)).sum();
-            *o = (count * scale).round() as u32;
-        }
-
-        // M-step (closed form, paper eq. 2) from moments about each component's current
-        // mean, then pruning of weakly supported components.
-        let mut next = Vec::with_capacity(k);
-        for (c, lc) in lanes.iter().enumerate() {
-            if owned[c] < cfg.tau_n {
-                continue;
-            }
-            let row = &s.resp[c * np..(c + 1) * np];
-            let xyz = [&s.x, &s.y, &s.z].map(|v| v.as_slice());
-            let [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9] = if summary {
-                moments::<true>(row, &s.inv, xyz, &s.cov, lc.m)
-            } else {
-                moments::<false>(row, &s.inv, xyz, &s.cov, lc.m)
-            };
-            let sum = |a: [f32; LANES]| a.iter().map(|&v| f64::from(v)).sum::<f64>();
-            let t = [
-                sum(s0),
-                sum(s1),
-                sum(s2),
-                sum(s3),
-                sum(s4),
-                sum(s5),
-                sum(s6),
-                sum(s7),
-                sum(s8),
-                sum(s9),
-            ];
-            let nk = t[0];
-            if nk < 1e-9 {
-                continue;
-            }
-            let d = [t[1] / nk, t[2] / nk, t[3] / nk];
-            let m = lc.m.map(f64::from);
-            next.push(Gaussian {
-                weight: nk,
-                mean: [m[0] + d[0], m[1] + d[1], m[2] + d[2]],
-                covariance: [
-                    t[4] / nk - d[0] * d[0] + reg,
-                    t[5] / nk - d[0] * d[1],
-                    t[6] / nk - d[0] * d[2],
-                    t[7] / nk - d[1] * d[1] + reg,
-                    t[8] / nk - d[1] * d[2],
-                    t[9] / nk - d[2] * d[2] + reg,
-                ],
-            });
-        }
+        evaluators(&comps, &mut lanes);
+        // E-step: each component's log-density at every point, the best per point, the
+        // responsibilities, the log-likelihood, and each component's support.
+        component_log_densities(s, &lanes, np, summary);
+        best_components(s, k, np);
+        relative_densities(s, k, np);
+        let ll = normalise_responsibilities(s, summary);
+        support(s, &mut owned[..k], scale);
+        // M-step (closed form, paper eq. 2), pruning weakly supported components.
+        let next = m_step(s, &lanes, &owned, cfg, np, summary);
         let pruned = next.len() != comps.len();
-        // Removed components' mass is shared out (and f32 rounding undone) so the weights
-        // sum to one.
-        let total: f64 = next.iter().map(|g| g.weight).sum();
-        if total > 0.0 {
-            for g in &mut next {
-                g.weight /= total;
-            }
-        }
-        comps = next;
+        comps = weights_summing_to_one(next);
         mean_ll = ll / total_weight;
         if comps.is_empty() {
             break;
         }
-        // The convergence test only compares like with like: not across a pruning step.
+        // The stopping rule compares like with like: not across a pruning step.
         if !pruned && (mean_ll - prev_ll).abs() < cfg.tolerance {
             break;
         }
@@ -1084,6 +886,263 @@ pub fn fit_segment_with(
         iterations,
         mean_log_likelihood: mean_ll,
     }
+}
+
+impl EmScratch {
+    /// Pads the fitted points (or cells) to a multiple of `LANES` with zero weight and
+    /// sizes the per-point buffers. Returns the padded count.
+    fn pad_to_lanes(&mut self, summary: bool) -> usize {
+        let np = self.x.len().div_ceil(LANES) * LANES;
+        for v in [&mut self.x, &mut self.y, &mut self.z, &mut self.w] {
+            v.resize(np, 0.0);
+        }
+        // Only summary cells have a scatter of their own (the point path never reads `cov`).
+        if summary {
+            self.cov.resize(np * 6, 0.0);
+        }
+        self.max.resize(np, 0.0);
+        self.inv.resize(np, 0.0);
+        self.best.resize(np, 0);
+        np
+    }
+}
+
+/// Initialisation (paper §III-B1): K = min(ceil(N / N_min), K_max) components at the
+/// horizontal mean, spread linearly in z from the lowest to the highest point (`z_range`,
+/// made relative to the centroid's `z_centre`), equal weights, unit covariance.
+fn initial_components(
+    n: usize,
+    z_range: (f64, f64),
+    z_centre: f64,
+    cfg: &GmmConfig,
+) -> Vec<Gaussian> {
+    let (zmin, zmax) = z_range;
+    let k0 = n
+        .div_ceil(cfg.n_min as usize)
+        .min(cfg.k_max as usize)
+        .max(1);
+    (0..k0)
+        .map(|k| {
+            let t = if k0 == 1 {
+                0.5
+            } else {
+                k as f64 / (k0 - 1) as f64
+            };
+            Gaussian {
+                weight: 1.0 / k0 as f64,
+                mean: [0.0, 0.0, zmin + t * (zmax - zmin) - z_centre],
+                covariance: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
+            }
+        })
+        .collect()
+}
+
+/// Each component in the E-step's f32 form. With reg > 0 every covariance is positive
+/// definite; should rounding ever break that, the component falls back to unit covariance
+/// instead of poisoning EM.
+fn evaluators(comps: &[Gaussian], lanes: &mut Vec<Lanes>) {
+    lanes.clear();
+    lanes.extend(comps.iter().map(|g| {
+        let e = Evaluator::new(g).unwrap_or_else(|| Evaluator::unit(g));
+        let (u, b) = half_precision_factor(&e.precision, &e.mean);
+        Lanes {
+            m: e.mean.map(|v| v as f32),
+            u: u.map(|v| v as f32),
+            b: b.map(|v| v as f32),
+            c: e.log_coef as f32,
+        }
+    }));
+}
+
+/// E-step, pass 1: log π_c N(x | μ_c, Σ_c) for every component and point (component-major
+/// rows of `resp`); for a summary cell its points' mean (`log_densities`).
+fn component_log_densities(s: &mut EmScratch, lanes: &[Lanes], np: usize, summary: bool) {
+    for (c, lc) in lanes.iter().enumerate() {
+        let row = &mut s.resp[c * np..(c + 1) * np];
+        if summary {
+            log_densities::<true>(row, [&s.x, &s.y, &s.z], &s.cov, lc);
+        } else {
+            log_densities::<false>(row, [&s.x, &s.y, &s.z], &s.cov, lc);
+        }
+    }
+}
+
+/// The best of `k` components per point, and its log-density (for the log-sum-exp and for
+/// the support counts). Block by block, the running best kept in registers: written as a
+/// pass per component with selects, LLVM stored only the changed lanes with masked stores,
+/// which Zen microcodes (a quarter of EM's time went there).
+fn best_components(s: &mut EmScratch, k: usize, np: usize) {
+    let block = |v: &[f32], o: usize| v.get(o..).and_then(|v| v.first_chunk::<LANES>()).copied();
+    for (o, (m, b)) in (0..np).step_by(LANES).zip(
+        s.max
+            .chunks_exact_mut(LANES)
+            .zip(s.best.chunks_exact_mut(LANES)),
+    ) {
+        let Some(first) = block(&s.resp, o) else {
+            break; // cannot happen: every row holds np values, a multiple of LANES
+        };
+        let mut mv = f32x8::new(first);
+        let mut bv = i32x8::splat(0);
+        for c in 1..k {
+            let Some(l) = block(&s.resp, c * np + o) else {
+                break;
+            };
+            let lv = f32x8::new(l);
+            // Lanes where this component is strictly better (false for NaN, as `>`).
+            let gt = lv.simd_gt(mv);
+            mv = gt.select(lv, mv);
+            bv = cast::<f32x8, i32x8>(gt).select(i32x8::splat(c as i32), bv);
+        }
+        m.copy_from_slice(&mv.to_array());
+        b.copy_from_slice(&cast::<i32x8, [u32; LANES]>(bv));
+    }
+}
+
+/// E-step, pass 2: each density relative to the point's best (e^{l_c − max}), and their
+/// sum per point in `inv`.
+fn relative_densities(s: &mut EmScratch, k: usize, np: usize) {
+    s.inv.fill(0.0);
+    for c in 0..k {
+        let row = &mut s.resp[c * np..(c + 1) * np];
+        for ((r, &m), acc) in row.iter_mut().zip(&s.max).zip(s.inv.iter_mut()) {
+            // Weights below e^-30 relative to the best are flushed to zero: they change
+            // nothing, and their products in the M-step would be denormal floats, which
+            // cost ~100 cycles each on x86.
+            let d = *r - m;
+            let e = if d < -30.0 { 0.0 } else { exp_nonpositive(d) };
+            *r = e;
+            *acc += e;
+        }
+    }
+}
+
+/// The normalisers w / Σ in `inv` (a point's responsibilities are its relative densities
+/// times it) and the weighted log-likelihood, for the stopping rule. A point's
+/// log-likelihood is its best log-density plus ln Σ, with Σ in [1, K]: the Σ of LN_GROUP
+/// blocks are multiplied per lane (at most 64^16 = 2^96, no overflow) and one ln taken of
+/// the product, instead of one per point (the ln's division was 15 % of EM). In explicit
+/// vectors: written per lane, LLVM left the division scalar.
+fn normalise_responsibilities(s: &mut EmScratch, summary: bool) -> f64 {
+    let one = f32x8::splat(1.0);
+    let mut ll_v = f32x8::splat(0.0);
+    let mut prod = one;
+    for (b, ((inv, m), w)) in s
+        .inv
+        .chunks_exact_mut(LANES)
+        .zip(s.max.chunks_exact(LANES))
+        .zip(s.w.chunks_exact(LANES))
+        .enumerate()
+    {
+        let (Some(sum), Some(m), Some(w)) = (inv.first_chunk(), m.first_chunk(), w.first_chunk())
+        else {
+            break; // cannot happen: exact chunks of LANES
+        };
+        let (sum, m, w) = (f32x8::new(*sum), f32x8::new(*m), f32x8::new(*w));
+        ll_v += w * m;
+        inv.copy_from_slice(&(w / sum).to_array());
+        if summary {
+            // A cell counts as many points: its ln Σ weighted by its count.
+            ll_v += w * ln_from(sum);
+            continue;
+        }
+        prod *= w.simd_gt(f32x8::splat(0.0)).select(sum, one);
+        if b % LN_GROUP == LN_GROUP - 1 {
+            ll_v += f32x8::new(prod.to_array().map(ln_positive));
+            prod = one;
+        }
+    }
+    let ll_lanes = (ll_v + f32x8::new(prod.to_array().map(ln_positive))).to_array();
+    ll_lanes.iter().map(|&v| f64::from(v)).sum()
+}
+
+/// Each component's support: the fit weight of the points it is best for, scaled to the
+/// whole segment (`scale`), for pruning against τ_N. One vectorised count per component: a
+/// scattered `owned[best] += 1` serialises on store-to-load forwarding.
+fn support(s: &EmScratch, owned: &mut [u32], scale: f64) {
+    for (c, o) in owned.iter_mut().enumerate() {
+        // Lane-wise sums: a single f32 sum is a serial chain of adds.
+        let (mut acc, cv) = (f32x8::splat(0.0), i32x8::splat(c as i32));
+        for (b, w) in s.best.chunks_exact(LANES).zip(s.w.chunks_exact(LANES)) {
+            let (Some(b), Some(w)) = (b.first_chunk::<LANES>(), w.first_chunk::<LANES>()) else {
+                break; // cannot happen: exact chunks of LANES
+            };
+            let mine = cast::<i32x8, f32x8>(cast::<[u32; LANES], i32x8>(*b).simd_eq(cv));
+            acc += mine & f32x8::new(*w);
+        }
+        let count: f64 = acc.to_array().iter().map(|&v| f64::from(v)).sum();
+        *o = (count * scale).round() as u32;
+    }
+}
+
+/// M-step (closed form, paper eq. 2) from moments about each component's current mean,
+/// leaving out components whose support is below τ_N (pruning) or whose responsibilities
+/// vanished. Weights are the responsibilities' sums, not yet normalised.
+fn m_step(
+    s: &EmScratch,
+    lanes: &[Lanes],
+    owned: &[u32],
+    cfg: &GmmConfig,
+    np: usize,
+    summary: bool,
+) -> Vec<Gaussian> {
+    let reg = cfg.covariance_regularization;
+    let mut next = Vec::with_capacity(lanes.len());
+    for (c, lc) in lanes.iter().enumerate() {
+        if owned[c] < cfg.tau_n {
+            continue;
+        }
+        let row = &s.resp[c * np..(c + 1) * np];
+        let xyz = [&s.x, &s.y, &s.z].map(|v| v.as_slice());
+        let [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9] = if summary {
+            moments::<true>(row, &s.inv, xyz, &s.cov, lc.m)
+        } else {
+            moments::<false>(row, &s.inv, xyz, &s.cov, lc.m)
+        };
+        let sum = |a: [f32; LANES]| a.iter().map(|&v| f64::from(v)).sum::<f64>();
+        let t = [
+            sum(s0),
+            sum(s1),
+            sum(s2),
+            sum(s3),
+            sum(s4),
+            sum(s5),
+            sum(s6),
+            sum(s7),
+            sum(s8),
+            sum(s9),
+        ];
+        let nk = t[0];
+        if nk < 1e-9 {
+            continue;
+        }
+        let d = [t[1] / nk, t[2] / nk, t[3] / nk];
+        let m = lc.m.map(f64::from);
+        next.push(Gaussian {
+            weight: nk,
+            mean: [m[0] + d[0], m[1] + d[1], m[2] + d[2]],
+            covariance: [
+                t[4] / nk - d[0] * d[0] + reg,
+                t[5] / nk - d[0] * d[1],
+                t[6] / nk - d[0] * d[2],
+                t[7] / nk - d[1] * d[1] + reg,
+                t[8] / nk - d[1] * d[2],
+                t[9] / nk - d[2] * d[2] + reg,
+            ],
+        });
+    }
+    next
+}
+
+/// The weights normalised: removed components' mass is shared out (and f32 rounding
+/// undone) so that they sum to one.
+fn weights_summing_to_one(mut comps: Vec<Gaussian>) -> Vec<Gaussian> {
+    let total: f64 = comps.iter().map(|g| g.weight).sum();
+    if total > 0.0 {
+        for g in &mut comps {
+            g.weight /= total;
+        }
+    }
+    comps
 }
 
 #[cfg(test)]

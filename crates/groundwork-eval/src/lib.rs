@@ -1,17 +1,13 @@
-//! groundwork-eval: metrics, the SemanticKITTI protocols of both papers, and the runner
-//! that segments a sequence folder and scores it; object proposals against instance labels;
-//! the whole configuration of a run (every method's section).
+//! groundwork-eval: the runner that segments a sequence and scores it against its labels,
+//! per scan and pooled, with speed; object proposals against instance labels. The metrics
+//! and the papers' protocols are `groundwork_io::metrics` (the service's consumer scores
+//! with them too), the sequences `groundwork_io::Sequence`, the configuration
+//! `groundwork_io::config`.
 
-pub mod methods_config;
-pub mod metrics;
 pub mod objects;
 pub mod sequence;
 
-pub use methods_config::{
-    MethodsConfig, load_methods_config_layers, load_methods_config_over, parse_methods_config,
-};
-pub use metrics::{Confusion, Metrics, Protocol};
+// Defined beside the label classes (`groundwork_io::metrics`), shared with the service.
+pub use groundwork_io::metrics::{Confusion, Metrics, Protocol};
 pub use objects::{ObjectMatch, ObjectScore, score_objects};
-pub use sequence::{
-    EvalReport, ScanResult, Sequence, SequenceError, evaluate, median, side_by_side,
-};
+pub use sequence::{EvalReport, ScanResult, SequenceError, evaluate, median, side_by_side};

@@ -1,6 +1,8 @@
 //! Loading the segmenter configuration from TOML: sensor presets (built in, from
 //! `config/sensors/`), and config files laid over a preset field by field.
 
+pub mod methods;
+
 use std::path::{Path, PathBuf};
 
 use groundwork_core::SegmenterConfig;
@@ -129,8 +131,8 @@ pub fn load_config_over(
     segmenter_config(&named, table)
 }
 
-/// The layers of a configuration merged into one table: the preset (`DEFAULT_SENSOR` if
-/// None), the file at `path` over it, and a table built in code over both (the Python API's
+/// The layers of a configuration merged into one table: the preset (the one the file names
+/// with [`PRESET_KEY`] if None, else `DEFAULT_SENSOR`), the file at `path` over it, and a table built in code over both (the Python API's
 /// keyword arguments, named `source` in errors). Returns the table and the name errors about
 /// it should carry: the last layer given (only its keys can be wrong: the presets are
 /// tested). Every file's syntax is checked here; the sections' keys by whoever reads them.
@@ -139,13 +141,35 @@ pub fn load_layers(
     path: Option<&Path>,
     overlay: Option<(&str, toml::Table)>,
 ) -> Result<(PathBuf, toml::Table), FormatError> {
-    let name = preset.unwrap_or(DEFAULT_SENSOR);
+    let mut file = match path {
+        Some(p) => Some((p, read_table(p)?)),
+        None => None,
+    };
+    let named_by_file = match &mut file {
+        Some((p, table)) => take_preset(p, table)?,
+        None => None,
+    };
+    let name = match (preset, &named_by_file, &file) {
+        (Some(given), Some(theirs), Some((p, _))) if given != theirs => {
+            return Err(FormatError::Config {
+                path: p.to_path_buf(),
+                message: format!(
+                    "made for the {theirs:?} preset (its `{PRESET_KEY}` key), but the {given:?} \
+                     preset was asked for: give --sensor {theirs} (Python: sensor=\"{theirs}\") \
+                     or nothing, or remove the key to lay the file over another preset"
+                ),
+            });
+        }
+        (Some(given), _, _) => given,
+        (None, Some(theirs), _) => theirs.as_str(),
+        (None, None, _) => DEFAULT_SENSOR,
+    };
     let base = sensor_preset_text(name)?;
     let preset_path = PathBuf::from(format!("config/sensors/{name}.toml"));
     let mut merged = parse_table(&preset_path, base)?;
     let mut named = preset_path;
-    if let Some(path) = path {
-        merge(&mut merged, read_table(path)?);
+    if let Some((path, table)) = file {
+        merge(&mut merged, table);
         named = path.to_path_buf();
     }
     if let Some((source, table)) = overlay {
@@ -153,6 +177,32 @@ pub fn load_layers(
         named = PathBuf::from(source);
     }
     Ok((named, merged))
+}
+
+/// The top-level key of a configuration file that names the preset it is laid over
+/// (`groundwork calibrate` writes it): `--config` alone then uses that preset, and another
+/// `--sensor` is refused, naming both.
+pub const PRESET_KEY: &str = "preset";
+
+/// The preset a configuration file names, if it names one ([`PRESET_KEY`]).
+pub fn config_preset(path: &Path) -> Result<Option<String>, FormatError> {
+    take_preset(path, &mut read_table(path)?)
+}
+
+/// [`PRESET_KEY`] taken out of a file's table: a known preset's name, or an error naming the
+/// file.
+fn take_preset(path: &Path, table: &mut toml::Table) -> Result<Option<String>, FormatError> {
+    match table.remove(PRESET_KEY) {
+        None => Ok(None),
+        Some(toml::Value::String(name)) => match sensor_preset_text(&name) {
+            Ok(_) => Ok(Some(name)),
+            Err(e) => Err(config_error(path, &format!("{PRESET_KEY}: {e}"))),
+        },
+        Some(v) => Err(config_error(
+            path,
+            &format!("{PRESET_KEY}: a preset's name (a string), not {v}"),
+        )),
+    }
 }
 
 /// A configuration file as a table. A file that sets nothing (empty, or only comments) is
@@ -197,7 +247,7 @@ pub fn config_error(path: &Path, e: &dyn std::fmt::Display) -> FormatError {
 }
 
 /// The sections of a configuration file that are not the segmenter's: each method reads
-/// and checks its own (`groundwork_eval::MethodsConfig` reads them all).
+/// and checks its own ([`methods::MethodsConfig`] reads them all).
 pub const METHOD_SECTIONS: [&str; 3] = ["pseudolabeler", "ransac", "detector"];
 
 /// The segmenter's configuration from a whole table: the method sections set aside, the rest
@@ -240,7 +290,12 @@ fn merge(base: &mut toml::Table, overlay: toml::Table) {
 /// Parses and validates a segmenter configuration. Unknown keys, wrong types and
 /// inconsistent values are errors naming the file (and the key, where TOML knows it).
 pub fn load_config(path: &Path) -> Result<SegmenterConfig, FormatError> {
-    segmenter_config(path, read_table(path)?)
+    let mut table = read_table(path)?;
+    match take_preset(path, &mut table)? {
+        // A file that names its preset is laid over it.
+        Some(preset) => load_config_over(Some(&preset), Some(path)),
+        None => segmenter_config(path, table),
+    }
 }
 
 /// Parses configuration text (method sections set aside); `path` is only used in error
@@ -253,6 +308,48 @@ pub fn parse_config(path: &Path, text: &str) -> Result<SegmenterConfig, FormatEr
 mod tests {
     use super::*;
     use std::fs;
+
+    #[test]
+    fn a_file_that_names_its_preset_is_laid_over_it_and_refuses_another() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("cal.toml");
+        fs::write(&p, "preset = \"vlp16\"\n\n[sensor.mount]\nheight = 0.9\n").unwrap();
+        let vlp16 = sensor_preset("vlp16").unwrap();
+        // Alone, and with the same preset named: the preset's zones, the file's mount.
+        for given in [None, Some("vlp16")] {
+            let c = load_config_over(given, Some(&p)).unwrap();
+            assert_eq!(c.zones, vlp16.zones);
+            assert_eq!(c.sensor.mount.height, 0.9);
+        }
+        assert_eq!(
+            load_config(&p).unwrap(),
+            load_config_over(None, Some(&p)).unwrap()
+        );
+        assert_eq!(config_preset(&p).unwrap().as_deref(), Some("vlp16"));
+        // Another preset asked for: refused, naming the file and both presets.
+        let e = load_config_over(Some("hdl64e"), Some(&p))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("cal.toml") && e.contains("\"vlp16\"") && e.contains("\"hdl64e\""),
+            "{e}"
+        );
+        // A name that is no preset, or no name at all.
+        fs::write(&p, "preset = \"vlp61\"\n").unwrap();
+        let e = load_config_over(None, Some(&p)).unwrap_err().to_string();
+        assert!(e.contains("cal.toml") && e.contains("vlp16"), "{e}");
+        fs::write(&p, "preset = 16\n").unwrap();
+        let e = load_config_over(None, Some(&p)).unwrap_err().to_string();
+        assert!(
+            e.contains("cal.toml") && e.contains("a preset's name"),
+            "{e}"
+        );
+        // A file without the key is laid over the default, as before.
+        fs::write(&p, "[gmm]\nk_max = 4\n").unwrap();
+        assert_eq!(config_preset(&p).unwrap(), None);
+        let c = load_config_over(None, Some(&p)).unwrap();
+        assert_eq!(c.zones, sensor_preset(DEFAULT_SENSOR).unwrap().zones);
+    }
 
     #[test]
     fn mount_angles_may_be_given_in_degrees_but_not_twice() {

@@ -47,6 +47,7 @@ pub mod file;
 pub mod input;
 pub mod kitti;
 pub mod labels;
+pub mod metrics;
 pub mod output;
 pub mod pcd;
 pub mod ply;
@@ -54,12 +55,17 @@ pub mod pointcloud2;
 pub mod recording;
 mod rosbag2;
 pub mod scan;
+pub mod sequence;
 pub mod transform;
 
 pub use bin::{kitti_bin_bytes, write_kitti_bin};
+pub use config::methods::{
+    MethodsConfig, load_methods_config_layers, load_methods_config_over, parse_methods_config,
+};
 pub use config::{
-    DEFAULT_SENSOR, METHOD_SECTIONS, SENSOR_PRESETS, config_error, load_config, load_config_over,
-    load_layers, parse_config, parse_table, read_table, segmenter_config, sensor_preset,
+    DEFAULT_SENSOR, METHOD_SECTIONS, PRESET_KEY, SENSOR_PRESETS, config_error, config_preset,
+    load_config, load_config_over, load_layers, parse_config, parse_table, read_table,
+    segmenter_config, sensor_preset,
 };
 pub use error::FormatError;
 pub use input::{
@@ -71,6 +77,7 @@ pub use kitti::{
     read_times, times_text, write_calib_tr, write_labels, write_poses, write_times,
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap, label_folder, label_folders};
+pub use metrics::{Confusion, Metrics, Protocol};
 pub use output::{
     OutputFiles, OutputTarget, check_not_an_input, check_output_names, earlier_outputs,
     outputs_complete, read_clusters, read_prob, warn_replaced, write_atomic, write_outputs,
@@ -79,3 +86,4 @@ pub use recording::{
     OtherMessage, OtherMessages, RecordedScan, RecordingReader, RecordingWriter, SchemaRecord,
 };
 pub use scan::Scan;
+pub use sequence::Sequence;

@@ -67,7 +67,13 @@ pub(crate) fn calibrate<'py>(
         };
         value_error(format!("{keyword}: {why}"))
     })?;
-    let base = sensor.unwrap_or(groundwork_io::DEFAULT_SENSOR);
+    // The preset: sensor=, else the one a config file names, else the default.
+    let named = match &config {
+        Some(path) => groundwork_io::config_preset(path).map_err(format_error)?,
+        None => None,
+    };
+    let base = sensor.map(str::to_owned).or(named);
+    let base = base.as_deref().unwrap_or(groundwork_io::DEFAULT_SENSOR);
     let cfg = load_config(sensor, config.clone(), None, overrides)?;
     let options = CalibrateOptions {
         mount: MountSearchConfig {

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use groundwork_core::{Point, Pose, pose_from_matrix};
-use groundwork_eval::MethodsConfig;
+use groundwork_io::MethodsConfig;
 use groundwork_io::{FormatError, Scan};
 use numpy::{PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyOSError, PyValueError};
@@ -84,7 +84,7 @@ pub(crate) fn load_config(
         }
         _ => None,
     };
-    let mut cfg = groundwork_eval::load_methods_config_layers(sensor, config.as_deref(), overlay)
+    let mut cfg = groundwork_io::load_methods_config_layers(sensor, config.as_deref(), overlay)
         .map_err(format_error)?;
     if let Some(n) = frames {
         cfg.segmenter.history.frames = n;

@@ -417,6 +417,13 @@ def test_calibrate_moves_the_zones_for_a_low_mount_as_the_cli_does(cli: Path, tm
     assert f"boundaries = {zones['boundaries']!r}".replace("'", "") in text, (zones, text)
     _, kept = groundwork.calibrate(scans, sensor="hdl32e", keep_zones=True)
     assert "height_scale" not in kept and "near_edge" not in kept
+    # The file names its preset: alone it is laid over hdl32e, as with sensor="hdl32e";
+    # another preset is refused, naming both.
+    alone = groundwork.Segmenter(frames=1, config=out).segment(scans[0])
+    named = groundwork.Segmenter(sensor="hdl32e", frames=1, config=out).segment(scans[0])
+    assert np.array_equal(alone, named)
+    with pytest.raises(ValueError, match='"hdl32e".*"vlp16"|"vlp16".*"hdl32e"'):
+        groundwork.Segmenter(sensor="vlp16", config=out)
 
 
 def test_calibrate_finds_the_mount_and_segmenter_takes_it_in_degrees(cli: Path, tmp_path: Path) -> None:

@@ -176,6 +176,38 @@ struct Held {
 /// Clouds held for their answers.
 const MAX_IN_FLIGHT: usize = 16;
 
+impl InFlight {
+    /// Holds a cloud for its answer; the oldest is dropped (and counted) when
+    /// [`MAX_IN_FLIGHT`] are held.
+    fn hold(&mut self, held: Held) {
+        if self.clouds.len() == MAX_IN_FLIGHT {
+            self.clouds.pop_front();
+            self.report.dropped += 1;
+        }
+        self.clouds.push_back(held);
+    }
+
+    /// The cloud a mask of scan (`epoch`, `sequence`) answers. Older clouds will never be
+    /// answered (the segmenter skipped them): dropped and counted. A mask for no held
+    /// cloud is counted as unmatched.
+    fn answered(&mut self, epoch: u64, sequence: u64) -> Option<Held> {
+        let at = self
+            .clouds
+            .iter()
+            .position(|c| c.epoch == epoch && c.sequence == sequence);
+        match at {
+            Some(i) => {
+                self.report.dropped += i as u64;
+                self.clouds.drain(..=i).next_back()
+            }
+            None => {
+                self.report.unmatched_masks += 1;
+                None
+            }
+        }
+    }
+}
+
 type Shared = Arc<Mutex<InFlight>>;
 
 fn lock(s: &Shared) -> std::sync::MutexGuard<'_, InFlight> {
@@ -341,12 +373,7 @@ impl CloudsIn {
     /// Holds a cloud until its answer (before it is published: the answer may come back
     /// at once).
     fn hold(&self, cloud: &Arc<PointCloud2>, points: &CloudPoints<'_>) {
-        let mut s = lock(&self.shared);
-        if s.clouds.len() == MAX_IN_FLIGHT {
-            s.clouds.pop_front();
-            s.report.dropped += 1;
-        }
-        s.clouds.push_back(Held {
+        lock(&self.shared).hold(Held {
             epoch: self.epoch,
             sequence: self.sequence,
             cloud: Arc::clone(cloud),
@@ -559,56 +586,24 @@ struct AnswersOut {
 
 impl AnswersOut {
     fn answer(&mut self, h: &MaskHeader, probs: &[f32]) -> anyhow::Result<()> {
-        let held = {
-            let mut s = lock(&self.shared);
-            let at = s
-                .clouds
-                .iter()
-                .position(|c| c.epoch == h.producer_epoch && c.sequence == h.scan_sequence);
-            match at {
-                // Older clouds will never be answered: the segmenter skipped them.
-                Some(i) => {
-                    s.report.dropped += i as u64;
-                    s.clouds.drain(..=i).next_back()
-                }
-                None => {
-                    s.report.unmatched_masks += 1;
-                    None
-                }
-            }
-        };
+        let held = lock(&self.shared).answered(h.producer_epoch, h.scan_sequence);
         let Some(held) = held else { return Ok(()) };
         if h.status != MaskStatus::OK || probs.len() != held.points {
             lock(&self.shared).report.bad_masks += 1;
             return Ok(());
         }
         self.place(&held.cloud.header);
-        let label = Path::new("ros2 answer");
-        let per_record = held.scan.expand(probs, 0.0);
-        // Each record's decision; none for a placeholder, which is neither ground nor not.
-        let decisions: Vec<Option<bool>> =
-            probs.iter().map(|&p| Some(p >= self.threshold)).collect();
-        let decisions = held.scan.expand(&decisions, None);
-        let cloud = held.cloud.view();
-        let header = held.cloud.header.clone();
-        let big = held.cloud.is_bigendian;
-        let with = with_probability(label, &cloud, &per_record, self.max_points)?;
-        self.send(
-            &self.points,
-            PointCloud2::from_data(header.clone(), big, with),
-        );
-        let pick =
-            |ground: bool| -> Vec<bool> { decisions.iter().map(|&d| d == Some(ground)).collect() };
-        let mut non = select_records(label, &cloud, &pick(false), self.max_points)?;
-        non.is_dense = true;
-        self.send(
-            &self.nonground,
-            PointCloud2::from_data(header.clone(), big, non),
-        );
-        if let Some(g) = &self.ground {
-            let mut gr = select_records(label, &cloud, &pick(true), self.max_points)?;
-            gr.is_dense = true;
-            self.send(g, PointCloud2::from_data(header, big, gr));
+        let answer = answer_clouds(
+            &held,
+            probs,
+            self.threshold,
+            self.max_points,
+            self.ground.is_some(),
+        )?;
+        self.send(&self.points, answer.points);
+        self.send(&self.nonground, answer.nonground);
+        if let (Some(g), Some(cloud)) = (&self.ground, answer.ground) {
+            self.send(g, cloud);
         }
         lock(&self.shared).report.answered += 1;
         Ok(())
@@ -628,29 +623,78 @@ impl AnswersOut {
             return;
         }
         frames.push(header.frame_id.clone());
-        let [x, y, z] = mount.translation;
-        let [qx, qy, qz, qw] = mount.rotation;
-        let transforms = frames
-            .iter()
-            .map(|child| TransformStamped {
-                header: Header {
-                    stamp: header.stamp,
-                    frame_id: mount.parent.clone(),
-                },
-                child_frame_id: child.clone(),
-                transform: Transform {
-                    translation: Vector3 { x, y, z },
-                    rotation: Quaternion {
-                        x: qx,
-                        y: qy,
-                        z: qz,
-                        w: qw,
-                    },
-                },
-            })
-            .collect();
-        send(&self.shared, publisher, TFMessage { transforms });
+        send(
+            &self.shared,
+            publisher,
+            static_transforms(mount, frames, header),
+        );
     }
+}
+
+/// The answers to one cloud: the cloud with a `ground_probability` field (0 for a record
+/// that is no point), its non-ground records, and with `with_ground` its ground records.
+/// A placeholder record (no return) is in neither part.
+struct Answer {
+    points: PointCloud2,
+    nonground: PointCloud2,
+    ground: Option<PointCloud2>,
+}
+
+/// [`Answer`] to `held` from its points' probabilities (`probs`, one per point published).
+fn answer_clouds(
+    held: &Held,
+    probs: &[f32],
+    threshold: f32,
+    max_points: usize,
+    with_ground: bool,
+) -> anyhow::Result<Answer> {
+    let label = Path::new("ros2 answer");
+    let per_record = held.scan.expand(probs, 0.0);
+    // Each record's decision; none for a placeholder, which is neither ground nor not.
+    let decisions: Vec<Option<bool>> = probs.iter().map(|&p| Some(p >= threshold)).collect();
+    let decisions = held.scan.expand(&decisions, None);
+    let cloud = held.cloud.view();
+    let header = &held.cloud.header;
+    let big = held.cloud.is_bigendian;
+    let with = with_probability(label, &cloud, &per_record, max_points)?;
+    let part = |ground: bool| -> anyhow::Result<PointCloud2> {
+        let pick: Vec<bool> = decisions.iter().map(|&d| d == Some(ground)).collect();
+        let mut records = select_records(label, &cloud, &pick, max_points)?;
+        records.is_dense = true;
+        Ok(PointCloud2::from_data(header.clone(), big, records))
+    };
+    Ok(Answer {
+        points: PointCloud2::from_data(header.clone(), big, with),
+        nonground: part(false)?,
+        ground: with_ground.then(|| part(true)).transpose()?,
+    })
+}
+
+/// The `/tf_static` message placing every frame in `frames` on the mount, as a static
+/// broadcaster sends it: one message with every frame's transform.
+fn static_transforms(mount: &StaticTransform, frames: &[String], header: &Header) -> TFMessage {
+    let [x, y, z] = mount.translation;
+    let [qx, qy, qz, qw] = mount.rotation;
+    let transforms = frames
+        .iter()
+        .map(|child| TransformStamped {
+            header: Header {
+                stamp: header.stamp,
+                frame_id: mount.parent.clone(),
+            },
+            child_frame_id: child.clone(),
+            transform: Transform {
+                translation: Vector3 { x, y, z },
+                rotation: Quaternion {
+                    x: qx,
+                    y: qy,
+                    z: qz,
+                    w: qw,
+                },
+            },
+        })
+        .collect();
+    TFMessage { transforms }
 }
 
 /// A leaving DDS writer takes its unacknowledged samples with it: the last answers get
@@ -698,105 +742,114 @@ impl DetectionsOut {
             Some(_) => self.cloud_frame(h),
             None => GROUND_FRAME.into(),
         };
-        let header = Header {
-            stamp: Time::from_ns(h.sensor_timestamp_ns),
-            frame_id,
-        };
-        let n = (h.proposal_count as usize).min(h.records.len());
-        let boxes: Vec<(&ProposalRecord, Pose, Vector3)> = h.records[..n]
-            .iter()
-            .map(|r| {
-                let ([x, y, z], [qx, qy, qz, qw]) = match self.sensor_from_ground {
-                    None => (r.box_center(), r.box_rotation()),
-                    Some(m) => {
-                        // A box is always finite (the detector's checks); the identity
-                        // would only stand in for one that is not.
-                        let in_ground = crate::pose::pose_of(r.box_center(), r.box_rotation())
-                            .unwrap_or_else(|_| Isometry::identity());
-                        let p = m * in_ground;
-                        let (t, q) = (p.translation.vector, p.rotation.quaternion().coords);
-                        ([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
-                    }
-                };
-                let pose = Pose {
-                    position: Vector3 { x, y, z },
-                    orientation: Quaternion {
-                        x: qx,
-                        y: qy,
-                        z: qz,
-                        w: qw,
-                    },
-                };
-                let [x, y, z] = r.box_size();
-                let size = Vector3 { x, y, z };
-                (r, pose, size)
-            })
-            .collect();
-        let detections = boxes
-            .iter()
-            .map(|&(r, pose, size)| Detection3D {
-                header: header.clone(),
-                results: vec![ObjectHypothesisWithPose {
-                    hypothesis: ObjectHypothesis {
-                        class_id: ProposalFlags(r.flags).class_name(),
-                        score: 1.0,
-                    },
-                    pose: PoseWithCovariance {
-                        pose,
-                        covariance: Covariance([0.0; 36]),
-                    },
-                }],
-                bbox: BoundingBox3D { center: pose, size },
-                id: r.id.to_string(),
-            })
-            .collect();
-        send(
-            &self.shared,
-            &self.detections,
-            Detection3DArray {
-                header: header.clone(),
-                detections,
-            },
-        );
-        // The last scan's boxes go, this scan's come.
-        let mut markers = vec![Marker::new(
-            header.clone(),
-            MARKER_NS,
-            0,
-            Marker::CUBE,
-            Marker::DELETE_ALL,
-        )];
-        markers.extend(boxes.iter().map(|&(r, pose, size)| {
-            let mut m = Marker::new(
-                header.clone(),
-                MARKER_NS,
-                r.id as i32,
-                Marker::CUBE,
-                Marker::ADD,
-            );
-            m.pose = pose;
-            m.scale = size;
-            // Object-like boxes green, flagged ones (walls, trees, ...) faint grey.
-            m.color = if r.flags == 0 {
-                ColorRGBA {
-                    r: 0.2,
-                    g: 0.85,
-                    b: 0.3,
-                    a: 0.5,
-                }
-            } else {
-                ColorRGBA {
-                    r: 0.6,
-                    g: 0.6,
-                    b: 0.6,
-                    a: 0.25,
-                }
-            };
-            m
-        }));
-        send(&self.shared, &self.markers, MarkerArray { markers });
+        let (detections, markers) = detection_messages(h, frame_id, self.sensor_from_ground);
+        send(&self.shared, &self.detections, detections);
+        send(&self.shared, &self.markers, markers);
         lock(&self.shared).report.detections += 1;
     }
+}
+
+/// A scan's proposals as `vision_msgs/Detection3DArray` and as `MarkerArray` cubes (the
+/// last scan's deleted first) in `frame_id`: the ground-aligned frame, or with
+/// `sensor_from_ground` the cloud's own.
+fn detection_messages(
+    h: &ProposalsHeader,
+    frame_id: String,
+    sensor_from_ground: Option<Isometry>,
+) -> (Detection3DArray, MarkerArray) {
+    let header = Header {
+        stamp: Time::from_ns(h.sensor_timestamp_ns),
+        frame_id,
+    };
+    let n = (h.proposal_count as usize).min(h.records.len());
+    let boxes: Vec<(&ProposalRecord, Pose, Vector3)> = h.records[..n]
+        .iter()
+        .map(|r| {
+            let ([x, y, z], [qx, qy, qz, qw]) = match sensor_from_ground {
+                None => (r.box_center(), r.box_rotation()),
+                Some(m) => {
+                    // A box is always finite (the detector's checks); the identity
+                    // would only stand in for one that is not.
+                    let in_ground = crate::pose::pose_of(r.box_center(), r.box_rotation())
+                        .unwrap_or_else(|_| Isometry::identity());
+                    let p = m * in_ground;
+                    let (t, q) = (p.translation.vector, p.rotation.quaternion().coords);
+                    ([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
+                }
+            };
+            let pose = Pose {
+                position: Vector3 { x, y, z },
+                orientation: Quaternion {
+                    x: qx,
+                    y: qy,
+                    z: qz,
+                    w: qw,
+                },
+            };
+            let [x, y, z] = r.box_size();
+            let size = Vector3 { x, y, z };
+            (r, pose, size)
+        })
+        .collect();
+    let detections = boxes
+        .iter()
+        .map(|&(r, pose, size)| Detection3D {
+            header: header.clone(),
+            results: vec![ObjectHypothesisWithPose {
+                hypothesis: ObjectHypothesis {
+                    class_id: ProposalFlags(r.flags).class_name(),
+                    score: 1.0,
+                },
+                pose: PoseWithCovariance {
+                    pose,
+                    covariance: Covariance([0.0; 36]),
+                },
+            }],
+            bbox: BoundingBox3D { center: pose, size },
+            id: r.id.to_string(),
+        })
+        .collect();
+    let detections = Detection3DArray {
+        header: header.clone(),
+        detections,
+    };
+    // The last scan's boxes go, this scan's come.
+    let mut markers = vec![Marker::new(
+        header.clone(),
+        MARKER_NS,
+        0,
+        Marker::CUBE,
+        Marker::DELETE_ALL,
+    )];
+    markers.extend(boxes.iter().map(|&(r, pose, size)| {
+        let mut m = Marker::new(
+            header.clone(),
+            MARKER_NS,
+            r.id as i32,
+            Marker::CUBE,
+            Marker::ADD,
+        );
+        m.pose = pose;
+        m.scale = size;
+        // Object-like boxes green, flagged ones (walls, trees, ...) faint grey.
+        m.color = if r.flags == 0 {
+            ColorRGBA {
+                r: 0.2,
+                g: 0.85,
+                b: 0.3,
+                a: 0.5,
+            }
+        } else {
+            ColorRGBA {
+                r: 0.6,
+                g: 0.6,
+                b: 0.6,
+                a: 0.25,
+            }
+        };
+        m
+    }));
+    (detections, MarkerArray { markers })
 }
 
 impl Stage for DetectionsOut {
@@ -1178,7 +1231,169 @@ pub fn run(cfg: &ServiceConfig, opts: &BridgeOptions) -> anyhow::Result<BridgeRe
 
 #[cfg(test)]
 mod tests {
+    #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
     use super::*;
+    use groundwork_io::pointcloud2::{decode_cloud, probabilities};
+
+    /// A cloud of `n` records as a driver sends it, record 2 a placeholder (NaN: no return),
+    /// held as the input stage holds it (the placeholders searched).
+    fn held(sequence: u64, n: usize) -> Held {
+        let field = |name: &str, offset| groundwork_io::pointcloud2::PointField {
+            name: name.into(),
+            offset,
+            datatype: 7, // FLOAT32
+            count: 1,
+        };
+        let data: Vec<u8> = (0..n)
+            .flat_map(|i| {
+                let v = if i == 2 { f32::NAN } else { i as f32 };
+                [v, 1.0, -1.7 + 0.1 * v]
+            })
+            .flat_map(f32::to_le_bytes)
+            .collect();
+        let cloud = PointCloud2 {
+            header: Header {
+                stamp: Time::from_ns(1_700_000_000_000_000_000),
+                frame_id: "lidar".into(),
+            },
+            height: 1,
+            width: n as u32,
+            fields: vec![field("x", 0), field("y", 4), field("z", 8)],
+            is_bigendian: false,
+            point_step: 12,
+            row_step: 12 * n as u32,
+            data,
+            is_dense: false,
+        };
+        let view = cloud.view();
+        let points = CloudPoints::new(Path::new("test"), &view, 1000).unwrap();
+        let (scan, count) = (points.records_map(), points.len());
+        Held {
+            epoch: 7,
+            sequence,
+            cloud: Arc::new(cloud),
+            scan,
+            points: count,
+        }
+    }
+
+    #[test]
+    fn in_flight_clouds_are_bounded_and_an_answer_drops_the_older_ones() {
+        let mut f = InFlight::default();
+        for q in 0..MAX_IN_FLIGHT as u64 + 3 {
+            f.hold(held(q, 4));
+        }
+        assert_eq!(f.clouds.len(), MAX_IN_FLIGHT);
+        assert_eq!(f.report.dropped, 3, "the three oldest, to keep the bound");
+        // Scan 5 answered: 3 and 4 were skipped by the segmenter and never will be.
+        assert_eq!(f.answered(7, 5).map(|h| h.sequence), Some(5));
+        assert_eq!(f.report.dropped, 5);
+        assert_eq!(f.clouds.front().map(|h| h.sequence), Some(6));
+        // Another producer run's scan, or one answered already: unmatched, nothing taken.
+        assert!(f.answered(8, 6).is_none() && f.answered(7, 5).is_none());
+        assert_eq!(f.report.unmatched_masks, 2);
+        assert_eq!(f.clouds.len(), MAX_IN_FLIGHT - 3);
+    }
+
+    #[test]
+    fn an_answer_keeps_every_record_and_splits_the_points_by_the_threshold() {
+        let h = held(0, 6);
+        assert_eq!(h.points, 5, "the placeholder is no point");
+        let probs = [0.9, 0.1, 0.7, 0.2, 0.5];
+        let a = answer_clouds(&h, &probs, 0.5, 1000, true).unwrap();
+        let label = Path::new("answer");
+        // Every record, in order, with its point's probability; 0 for the placeholder.
+        let with = probabilities(label, &a.points.view(), 1000).unwrap();
+        assert_eq!(with, vec![0.9, 0.1, 0.0, 0.7, 0.2, 0.5]);
+        assert_eq!(a.points.header, h.cloud.header);
+        let xs = |c: &PointCloud2| -> Vec<f32> {
+            let scan = decode_cloud(label, &c.view(), 1000).unwrap();
+            scan.points.iter().map(|p| p.x).collect()
+        };
+        // Records 0, 3, 5 (at or above 0.5) are ground; 1 and 4 are not; 2 neither.
+        assert_eq!(xs(a.ground.as_ref().unwrap()), vec![0.0, 3.0, 5.0]);
+        assert_eq!(xs(&a.nonground), vec![1.0, 4.0]);
+        assert!(a.nonground.is_dense && a.ground.as_ref().unwrap().is_dense);
+        assert!(
+            answer_clouds(&h, &probs, 0.5, 1000, false)
+                .unwrap()
+                .ground
+                .is_none()
+        );
+    }
+
+    #[test]
+    fn the_static_transform_places_every_frame_seen_on_the_mount() {
+        let mount = StaticTransform {
+            parent: "base_footprint".into(),
+            translation: [0.0, 0.0, 1.73],
+            rotation: [0.0, 0.0, 0.0, 1.0],
+        };
+        let header = Header {
+            stamp: Time::from_ns(5_000_000_001),
+            frame_id: "lidar_top".into(),
+        };
+        let frames = ["lidar_front".to_string(), "lidar_top".to_string()];
+        let tf = static_transforms(&mount, &frames, &header);
+        let children: Vec<&str> = tf
+            .transforms
+            .iter()
+            .map(|t| t.child_frame_id.as_str())
+            .collect();
+        assert_eq!(children, ["lidar_front", "lidar_top"]);
+        for t in &tf.transforms {
+            assert_eq!(t.header.frame_id, "base_footprint");
+            assert_eq!(t.header.stamp, header.stamp);
+            assert_eq!(t.transform.translation.z, 1.73);
+        }
+    }
+
+    #[test]
+    fn proposals_become_detections_and_markers_in_the_frame_asked() {
+        let mut h = ProposalsHeader {
+            proposal_count: 2,
+            sensor_timestamp_ns: 3_000_000_000,
+            ..ProposalsHeader::default()
+        };
+        h.records[0] = ProposalRecord {
+            id: 1,
+            center: [5.0, 1.0],
+            length: 4.0,
+            width: 1.8,
+            height: 1.5,
+            ..ProposalRecord::default()
+        };
+        h.records[1] = ProposalRecord {
+            id: 2,
+            flags: 1,
+            center: [9.0, -2.0],
+            length: 1.0,
+            width: 1.0,
+            height: 3.0,
+            ..ProposalRecord::default()
+        };
+        // In the ground-aligned frame: the boxes as the detector gave them.
+        let (d, m) = detection_messages(&h, GROUND_FRAME.into(), None);
+        assert_eq!(d.header.frame_id, GROUND_FRAME);
+        assert_eq!(d.detections.len(), 2);
+        assert_eq!(d.detections[0].id, "1");
+        assert_eq!(d.detections[0].bbox.size.x, 4.0);
+        assert_eq!(d.detections[0].bbox.center.position.x, 5.0);
+        // The last scan's markers deleted first, then one cube per box; flagged ones faint.
+        assert_eq!(m.markers.len(), 3);
+        assert_eq!(m.markers[0].action, Marker::DELETE_ALL);
+        assert!(m.markers[2].color.a < m.markers[1].color.a);
+        // In the sensor's frame 1.73 m above the ground: every box 1.73 m higher.
+        let up = Isometry::from_parts(
+            nalgebra::Translation3::new(0.0, 0.0, 1.73),
+            nalgebra::UnitQuaternion::identity(),
+        );
+        let (s, _) = detection_messages(&h, "lidar".into(), Some(up));
+        assert_eq!(s.header.frame_id, "lidar");
+        let dz = s.detections[1].bbox.center.position.z - d.detections[1].bbox.center.position.z;
+        assert!((dz - 1.73).abs() < 1e-9, "{dz}");
+    }
 
     #[test]
     fn gaps_in_each_publishers_sequence_are_the_samples_missed() {

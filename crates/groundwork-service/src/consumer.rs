@@ -11,7 +11,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use groundwork_eval::{Confusion, Metrics, Protocol};
+use groundwork_io::{Confusion, Metrics, Protocol};
 use groundwork_io::{LabelClass, LabelMap, OutputTarget, Scan};
 use groundwork_msg::{MaskHeader, MaskStatus, ProposalsHeader, ScanHeader, ScanPoint, ScanSource};
 use serde::Serialize;

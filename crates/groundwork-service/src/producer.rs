@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use groundwork_core::{Point, Pose};
-use groundwork_eval::Sequence;
+use groundwork_io::Sequence;
 use groundwork_msg::{FrameId, SCHEMA_VERSION, ScanHeader, ScanPoint, new_epoch, wall_clock_ns};
 use serde::Serialize;
 use tracing::{info, warn};

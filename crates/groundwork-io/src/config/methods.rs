@@ -1,14 +1,14 @@
 //! The whole configuration of a run: the segmenter's sections and every other method's own
 //! (`[pseudolabeler]`, `[ransac]`, `[detector]`), read from the same layers (a sensor
-//! preset, a file over it, a table built in code), each section checked by its crate. The
-//! I/O crate knows only the segmenter's; this is where they come together, for the CLI and
-//! the Python package alike.
+//! preset, a file over it, a table built in code), each section checked by its crate: the
+//! one schema the CLI, the service and the Python package read.
 
 use std::path::Path;
 
+use crate::FormatError;
+use crate::config::{config_error, load_layers, parse_table, segmenter_config};
 use groundwork_core::SegmenterConfig;
 use groundwork_detect::DetectorConfig;
-use groundwork_io::{FormatError, config_error, load_layers, parse_table, segmenter_config};
 use groundwork_pseudolabel::{PseudoLabelerConfig, RansacConfig};
 
 /// Everything a configuration file sets: the sensor and the GMM segmenter (top-level
@@ -140,10 +140,7 @@ mod tests {
         // The last layer wins; the file's other keys and the preset's stay.
         assert_eq!(c.ground.ground_threshold, 0.6);
         assert_eq!(c.gmm.k_max, 4);
-        assert_eq!(
-            c.zones,
-            groundwork_io::sensor_preset("vlp16").unwrap().zones
-        );
+        assert_eq!(c.zones, crate::sensor_preset("vlp16").unwrap().zones);
         let bad: toml::Table = toml::from_str("[gmm]\nk_maxx = 3\n").unwrap();
         let e = load_methods_config_layers(None, Some(&p), Some(("kwargs", bad)))
             .unwrap_err()

@@ -1,6 +1,8 @@
-//! Confusion counts and the metrics both papers report.
+//! Scoring a mask against labels: the two papers' protocols, confusion counts and the
+//! metrics both papers report. Beside the label classes it scores, so that every stage that
+//! reports accuracy (the evaluation, the service's consumer) shares one definition.
 
-use groundwork_io::LabelClass;
+use crate::LabelClass;
 use serde::Serialize;
 
 /// How vegetation is scored (the only class on which the two papers' protocols differ).
@@ -158,7 +160,7 @@ mod tests {
     #[test]
     fn metrics_of_a_known_matrix() {
         // labels: road, road, car, car, vegetation, unlabeled
-        let map = groundwork_io::LabelMap::semantickitti();
+        let map = crate::LabelMap::semantickitti();
         let labels: Vec<LabelClass> = [40, 40, 10, 10, 70, 0].map(|l| map.class(l)).to_vec();
         let probs = [0.9, 0.2, 0.7, 0.1, 0.9, 0.9];
         let c = Confusion::from_predictions(&probs, &labels, Protocol::Gmm, 0.5);
