@@ -6,7 +6,7 @@
 //! changes. In `correct` mode it also moves the mount in use towards what it observes,
 //! slowly and with a lock (`MountWatch::correct`).
 
-use nalgebra::{Matrix3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix4, Translation3, UnitQuaternion, Vector3, Vector4};
 use serde::Serialize;
 use tracing::{info, warn};
 
@@ -268,18 +268,63 @@ fn ground_plane(model: &FrameModel, range: f64, threshold: f64) -> Option<(Vecto
         .map(|c| c.gaussian.mean)
         .filter(|m| m[0].hypot(m[1]) <= range && m.iter().all(|v| v.is_finite()))
         .collect();
-    plane_through(&means)
+    // The ground nearest the sensor where it holds enough components: farther out, terrain
+    // that falls or rises away (a crest, rolling ground) is no longer the plane the vehicle
+    // stands on.
+    let near: Vec<[f64; 3]> = means
+        .iter()
+        .filter(|m| m[0].hypot(m[1]) <= NEAR_RANGE)
+        .copied()
+        .collect();
+    let dense = near.len() >= DENSE_NEAR_COMPONENTS && all_around(&near);
+    dense
+        .then(|| plane_through(&near, true))
+        .flatten()
+        .or_else(|| plane_through(&means, false))
 }
 
-/// The plane of [`ground_plane`] through `means`.
-fn plane_through(means: &[[f64; 3]]) -> Option<(Vector3<f64>, f64)> {
-    let mut coef = Vector3::zeros();
+/// The nearest ground the observation is made from where it is dense all around the
+/// sensor, metres (else the plane out to `mount_check.range`).
+const NEAR_RANGE: f64 = 12.0;
+
+/// Ground components within [`NEAR_RANGE`] that make it dense enough for the curved fit:
+/// spinning 64-beam sensors hold 65–117 (synthetic OS1-64 hill and off-road drives, the
+/// KITTI scans), a VLP-16 2.2 m up 23–51, too few rings for a curvature.
+const DENSE_NEAR_COMPONENTS: usize = 8 * MIN_COMPONENTS;
+
+/// Whether ground components lie all around the sensor (half [`MIN_COMPONENTS`] in each
+/// quadrant at least). Ground on one side (a forward-facing sensor, a pitched sparse one
+/// that sees the road behind it only far out) leaves a curvature and a tilt
+/// indistinguishable.
+fn all_around(means: &[[f64; 3]]) -> bool {
+    let mut quadrants = [0usize; 4];
+    for m in means {
+        quadrants[usize::from(m[0] < 0.0) * 2 + usize::from(m[1] < 0.0)] += 1;
+    }
+    quadrants.iter().all(|&n| n >= MIN_COMPONENTS / 2)
+}
+
+/// The plane of [`ground_plane`] through `means`; with `curved`, the tangent at the
+/// sensor's foot of z = a + b·x + c·y + d·(x² + y²), so that ground curving away from the
+/// sensor (a crest, a dip, rolling terrain) does not read as a higher or lower mount. Only
+/// over dense near ground: components on one or two rings (a sparse sensor) leave the
+/// curvature and the height indistinguishable (see [`all_around`]).
+fn plane_through(means: &[[f64; 3]], curved: bool) -> Option<(Vector3<f64>, f64)> {
+    let terms = |m: &[f64; 3]| {
+        let r2 = if curved {
+            m[0] * m[0] + m[1] * m[1]
+        } else {
+            0.0
+        };
+        Vector4::new(1.0, m[0], m[1], r2)
+    };
+    let mut coef = Vector4::zeros();
     let mut keep = vec![true; means.len()];
     for round in 0..3 {
-        let (mut a, mut rhs, mut used) = (Matrix3::zeros(), Vector3::zeros(), 0usize);
+        let (mut a, mut rhs, mut used) = (Matrix4::zeros(), Vector4::zeros(), 0usize);
         for (m, &k) in means.iter().zip(&keep) {
             if k {
-                let x = Vector3::new(1.0, m[0], m[1]);
+                let x = terms(m);
                 a += x * x.transpose();
                 rhs += m[2] * x;
                 used += 1;
@@ -288,10 +333,14 @@ fn plane_through(means: &[[f64; 3]]) -> Option<(Vector3<f64>, f64)> {
         if used < MIN_COMPONENTS {
             return None;
         }
+        if !curved {
+            // The plane alone: the curvature's unknown fixed at 0.
+            a[(3, 3)] = 1.0;
+        }
         coef = a.cholesky()?.solve(&rhs);
         if round < 2 {
             for (m, k) in means.iter().zip(keep.iter_mut()) {
-                let r = m[2] - (coef[0] + coef[1] * m[0] + coef[2] * m[1]);
+                let r = m[2] - terms(m).dot(&coef);
                 *k = (-0.15..=0.05).contains(&r);
             }
         }
@@ -365,20 +414,45 @@ mod tests {
     /// (a band of ±0.1 m keeps both and puts it 6 cm up), and drops the stray mean.
     #[test]
     fn the_plane_stands_on_the_lowest_ground() {
-        for sidewalks in [false, true] {
-            let (n, a) = plane_through(&street(sidewalks)).unwrap();
+        for (sidewalks, curved) in [(false, false), (true, false), (false, true), (true, true)] {
+            let (n, a) = plane_through(&street(sidewalks), curved).unwrap();
             let slope = Vector3::new(-0.02, 0.0, 1.0).normalize();
-            assert!((a + 0.3).abs() < 1e-9, "{sidewalks}: {a}");
-            assert!(n.angle(&slope) < 1e-9, "{sidewalks}: {n:?}");
+            assert!((a + 0.3).abs() < 1e-9, "{sidewalks} {curved}: {a}");
+            assert!(n.angle(&slope) < 1e-9, "{sidewalks} {curved}: {n:?}");
         }
+    }
+
+    /// Ground curving away from the sensor (a crest: 2 cm down at 3 m, 32 cm at 12 m):
+    /// the curved fit gives the height and the level tangent at the sensor's foot, where a
+    /// plane through the same means sits lower by the curvature's mean.
+    #[test]
+    fn a_crest_is_not_a_higher_mount() {
+        let crest: Vec<[f64; 3]> = (-4..=4)
+            .flat_map(|i| (-4..=4).map(move |j| (3.0 * f64::from(i), 3.0 * f64::from(j))))
+            .filter(|(x, y)| x.hypot(*y) <= 12.0)
+            .map(|(x, y)| [x, y, -1.5 - 0.0022 * (x * x + y * y)])
+            .collect();
+        assert!(crest.len() >= MIN_COMPONENTS && all_around(&crest));
+        let (n, a) = plane_through(&crest, true).unwrap();
+        assert!(
+            (a + 1.5).abs() < 1e-9 && n.angle(&Vector3::z()) < 1e-9,
+            "{a} {n:?}"
+        );
+        let (_, flat) = plane_through(&crest, false).unwrap();
+        assert!(flat < -1.6, "{flat}");
+        // Ground on one side only is not all around.
+        let ahead: Vec<[f64; 3]> = crest.iter().filter(|m| m[0] > 0.0).copied().collect();
+        assert!(!all_around(&ahead));
     }
 
     /// Fewer means than the plane needs give no plane, as do means on one line.
     #[test]
     fn too_few_or_collinear_means_give_no_plane() {
         let few: Vec<[f64; 3]> = street(false).into_iter().take(MIN_COMPONENTS - 1).collect();
-        assert!(plane_through(&few).is_none());
         let line: Vec<[f64; 3]> = (0..20).map(|i| [f64::from(i), 0.0, -1.0]).collect();
-        assert!(plane_through(&line).is_none());
+        for curved in [false, true] {
+            assert!(plane_through(&few, curved).is_none());
+            assert!(plane_through(&line, curved).is_none());
+        }
     }
 }
