@@ -46,34 +46,14 @@ pub(crate) fn calibrate<'py>(
     overwrite: bool,
     overrides: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
-    use groundwork_calibrate::{CalibrateOptions, MountSearchConfig, ParamSearchConfig, ScanInput};
+    use groundwork_calibrate::{CalibrateOptions, MountSearchConfig};
     if fit_zones && keep_params {
         return Err(value_error(
             "fit_zones fits the zones with the parameters: not with keep_params",
         ));
     }
-    let search = ParamSearchConfig {
-        trust_agreement: param_trust,
-        min_held_out_gain: param_min_gain,
-        fit_zones,
-        ..ParamSearchConfig::default()
-    };
-    // Named by the keyword the caller typed.
-    search.check().map_err(|(field, why)| {
-        let keyword = match field {
-            "trust_agreement" => "param_trust",
-            "min_held_out_gain" => "param_min_gain",
-            other => other,
-        };
-        value_error(format!("{keyword}: {why}"))
-    })?;
-    // The preset: sensor=, else the one a config file names, else the default.
-    let named = match &config {
-        Some(path) => groundwork_io::config_preset(path).map_err(format_error)?,
-        None => None,
-    };
-    let base = sensor.map(str::to_owned).or(named);
-    let base = base.as_deref().unwrap_or(groundwork_io::DEFAULT_SENSOR);
+    let search = param_search(param_trust, param_min_gain, fit_zones)?;
+    let base = base_preset(sensor, config.as_deref())?;
     let cfg = load_config(sensor, config.clone(), None, overrides)?;
     let options = CalibrateOptions {
         mount: MountSearchConfig {
@@ -83,34 +63,20 @@ pub(crate) fn calibrate<'py>(
         keep_zones,
         params: (!keep_params).then_some(search),
         param_scans,
-        ..CalibrateOptions::new(
-            base,
-            groundwork_io::sensor_preset(base)
-                .ok()
-                .map(|p| p.sensor.mount),
-            scans.len(),
-        )
+        ..CalibrateOptions::new(&base, preset_mount(&base), scans.len())
     };
     options.validate().map_err(value_error)?;
-    let xyz: Vec<Vec<[f32; 3]>> = scans
-        .iter()
-        .map(|s| {
-            let arr = points_array(s)?;
-            Ok(match Points::of(&arr)? {
-                Points::Xyz(p) => p.to_vec(),
-                Points::Xyzi(p) => p.iter().map(|&[x, y, z, _]| [x, y, z]).collect(),
-            })
-        })
-        .collect::<PyResult<_>>()?;
-    let inputs = xyz.into_iter().enumerate().map(|(k, points)| ScanInput {
-        place: k as u64,
-        name: format!("scans[{k}]"),
-        points: Ok(points),
-    });
+    // The CLI's file: claimed before the work (never an input, an existing one only with
+    // overwrite), written through a temporary name.
+    let file = match &out {
+        Some(path) => Some((claim_file(path, config.as_slice(), overwrite)?, path)),
+        None => None,
+    };
+    let inputs = scan_inputs(&scans)?;
     let cal = py
         .detach(|| {
             groundwork_calibrate::calibrate(
-                inputs,
+                inputs.into_iter(),
                 &cfg.segmenter,
                 &cfg.pseudolabeler,
                 &options,
@@ -119,16 +85,7 @@ pub(crate) fn calibrate<'py>(
         })
         .map_err(value_error)?;
     let est = cal.estimate().map_err(value_error)?;
-    if let Some(path) = &out {
-        // The CLI's file: never an input (the configuration), never half-written.
-        let mut files = groundwork_io::OutputFiles::new(config.as_slice());
-        files.claim(path).map_err(format_error)?;
-        if let (Some(first), false) = (files.existing().first(), overwrite) {
-            return Err(value_error(format!(
-                "{}: exists; pass overwrite=True to replace it",
-                first.display()
-            )));
-        }
+    if let Some((files, path)) = file {
         let name = path
             .file_stem()
             .map_or_else(|| "calibrated".into(), |s| s.to_string_lossy().into_owned());
@@ -141,6 +98,85 @@ pub(crate) fn calibrate<'py>(
         calibration_preset(py, &cal, est)?,
         calibration_report(py, &cal, est)?,
     ))
+}
+
+/// The parameter search the keywords ask for, refused by the keyword the caller typed.
+fn param_search(
+    trust: f64,
+    min_gain: f64,
+    fit_zones: bool,
+) -> PyResult<groundwork_calibrate::ParamSearchConfig> {
+    let search = groundwork_calibrate::ParamSearchConfig {
+        trust_agreement: trust,
+        min_held_out_gain: min_gain,
+        fit_zones,
+        ..Default::default()
+    };
+    search.check().map_err(|(field, why)| {
+        let keyword = match field {
+            "trust_agreement" => "param_trust",
+            "min_held_out_gain" => "param_min_gain",
+            other => other,
+        };
+        value_error(format!("{keyword}: {why}"))
+    })?;
+    Ok(search)
+}
+
+/// The preset: `sensor=`, else the one a configuration file names, else the default.
+fn base_preset(sensor: Option<&str>, config: Option<&std::path::Path>) -> PyResult<String> {
+    let named = match config {
+        Some(path) => groundwork_io::config_preset(path).map_err(format_error)?,
+        None => None,
+    };
+    Ok(sensor
+        .map(str::to_owned)
+        .or(named)
+        .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_owned()))
+}
+
+/// The mount the preset's own zone layout was made for.
+fn preset_mount(base: &str) -> Option<groundwork_core::config::MountConfig> {
+    groundwork_io::sensor_preset(base)
+        .ok()
+        .map(|p| p.sensor.mount)
+}
+
+/// `out=` claimed: never an input, an existing file only with `overwrite`.
+fn claim_file(
+    path: &std::path::Path,
+    inputs: &[PathBuf],
+    overwrite: bool,
+) -> PyResult<groundwork_io::OutputFiles> {
+    let mut files = groundwork_io::OutputFiles::new(inputs);
+    files.claim(path).map_err(format_error)?;
+    if let (Some(first), false) = (files.existing().first(), overwrite) {
+        return Err(value_error(format!(
+            "{}: exists; pass overwrite=True to replace it",
+            first.display()
+        )));
+    }
+    Ok(files)
+}
+
+/// The scans as the library takes them, each named by its place in the list.
+fn scan_inputs(scans: &[Bound<'_, PyAny>]) -> PyResult<Vec<groundwork_calibrate::ScanInput>> {
+    scans
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            let arr = points_array(s)?;
+            let points = match Points::of(&arr)? {
+                Points::Xyz(p) => p.to_vec(),
+                Points::Xyzi(p) => p.iter().map(|&[x, y, z, _]| [x, y, z]).collect(),
+            };
+            Ok(groundwork_calibrate::ScanInput {
+                place: k as u64,
+                name: format!("scans[{k}]"),
+                points: Ok(points),
+            })
+        })
+        .collect()
 }
 
 /// The configuration a calibration found, as keyword arguments: the mount, the zones where
