@@ -144,11 +144,9 @@ pub struct Calibration {
     pub prior: MountConfig,
     /// The mount found (absent when refused).
     pub mount: Option<MountEstimate>,
-    /// Why it was refused.
-    pub refused: Option<String>,
-    /// The refusal itself ([`Calibration::estimate`]).
-    #[serde(skip)]
-    pub refusal: Option<CalibrateError>,
+    /// Why it was refused (in the report as its message).
+    #[serde(serialize_with = "as_message")]
+    pub refused: Option<CalibrateError>,
     /// Scans looked at.
     pub scans: usize,
     /// Scans that could not be read.
@@ -190,26 +188,11 @@ pub struct Calibration {
 impl Calibration {
     /// The mount found, or why it was refused.
     pub fn estimate(&self) -> Result<&MountEstimate, CalibrateError> {
-        match (&self.mount, &self.refusal) {
+        match (&self.mount, &self.refused) {
             (Some(m), _) => Ok(m),
             (None, Some(e)) => Err(e.clone()),
             (None, None) => Err(CalibrateError::Refused("no mount found".into())),
         }
-    }
-
-    /// The configuration the calibration ends with: the base with the mount, the zones and
-    /// the fitted parameters in place (what [`Calibration::to_toml`] writes, laid over its
-    /// preset).
-    pub fn config(&self) -> Result<SegmenterConfig, CalibrateError> {
-        let mut c = self.base.clone();
-        c.sensor.mount = self.estimate()?.mount();
-        if let Some(z) = self.final_zones() {
-            c.zones = z.clone();
-        }
-        if let Some(fit) = self.parameters.as_ref().filter(|f| !f.kept_preset) {
-            c.ground = fit.config.ground.clone();
-        }
-        Ok(c)
     }
 
     /// The zones in use: the parameter fit's (it started from the moved near edge), else
@@ -220,6 +203,17 @@ impl Calibration {
             .map(|f| &f.config.zones)
             .or(self.mount_zones.as_ref())
             .filter(|z| !z.same_layout(&self.base.zones))
+    }
+}
+
+/// A refusal in the report: its message.
+fn as_message<S: serde::Serializer>(
+    refused: &Option<CalibrateError>,
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    match refused {
+        Some(e) => s.collect_str(e),
+        None => s.serialize_none(),
     }
 }
 
@@ -346,8 +340,7 @@ where
     Ok(Calibration {
         base_preset: options.base_preset.clone(),
         prior: prior_mount,
-        refused: result.as_ref().err().map(ToString::to_string),
-        refusal: result.as_ref().err().cloned(),
+        refused: result.as_ref().err().cloned(),
         mount: result.ok(),
         scans: looked.len(),
         unreadable,
@@ -386,7 +379,6 @@ fn look(
             if keep.is_some_and(|e| position.is_multiple_of(e)) {
                 points = Some(xyz);
             }
-            progress(CalibrateProgress::Looked);
             match m {
                 Ok(m) => (Some(m.clone()), None, Some(Ok(m))),
                 Err(no) => (None, Some(no.to_string()), Some(Err(no))),
@@ -394,10 +386,10 @@ fn look(
         }
         Err(e) => {
             progress(CalibrateProgress::Skipped { problem: &e });
-            progress(CalibrateProgress::Looked);
             (None, Some(e), None)
         }
     };
+    progress(CalibrateProgress::Looked);
     Looked {
         position,
         line: ScanReport {
@@ -458,7 +450,6 @@ mod tests {
         );
         let est = cal.estimate().unwrap();
         assert!((est.height.value - 1.9).abs() < 0.01, "{est:?}");
-        assert!((cal.config().unwrap().sensor.mount.height - 1.9).abs() < 0.01);
         let text = cal.to_toml("mine", &["here".to_owned()]).unwrap();
         assert!(
             text.contains("height = 1.9000") && text.contains("of here."),
@@ -485,7 +476,8 @@ mod tests {
         .unwrap();
         let why = cal.estimate().unwrap_err().to_string();
         assert!(why.contains("2 of 2 scans"), "{why}");
-        assert_eq!(cal.refused.as_deref(), Some(why.as_str()));
+        let report = serde_json::to_value(&cal).unwrap();
+        assert_eq!(report["refused"], why.as_str());
         assert!(cal.to_toml("mine", &[]).is_err() && cal.summary().is_empty());
         // Settings that cannot calibrate are an error before any scan is looked at.
         let bad = CalibrateOptions {

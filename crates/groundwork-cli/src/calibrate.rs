@@ -17,12 +17,12 @@ use groundwork_calibrate::{
 use groundwork_io::Sequence;
 use tracing::{error, info, warn};
 
-use crate::args::{CalibrateArgs, SensorArgs};
+use crate::args::CalibrateArgs;
 use crate::common::{open_inputs, progress};
 
 pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     let t = Instant::now();
-    let (base, methods) = preset_and_config(a.sensor)?;
+    let (base, methods) = crate::common::load_named(&a.sensor.into(), None)?;
     anyhow::ensure!(a.max_scans > 0, "--max-scans must be at least 1");
     anyhow::ensure!(a.param_scans > 0, "--param-scans must be at least 1");
     let search = param_search(a.param_trust, a.param_min_gain, a.fit_zones)?;
@@ -82,21 +82,6 @@ pub fn command(a: CalibrateArgs) -> Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     })
-}
-
-/// The preset (`--sensor`, else the one a `--config` file names, else the default) and the
-/// configuration the calibration starts from.
-fn preset_and_config(sensor: SensorArgs) -> Result<(String, groundwork_io::MethodsConfig)> {
-    let named = match &sensor.config {
-        Some(path) => groundwork_io::config_preset(path)?,
-        None => None,
-    };
-    let base = sensor
-        .sensor
-        .clone()
-        .or(named)
-        .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_string());
-    Ok((base, crate::common::load_methods(&sensor.into(), None)?))
 }
 
 /// The parameter search the flags ask for, checked before anything is read and refused by

@@ -100,22 +100,27 @@ pub fn load_methods(
     common: &Common,
     service_sensor: Option<&str>,
 ) -> Result<groundwork_io::MethodsConfig> {
-    // A file that names its preset is laid over it unless --sensor says otherwise (which it
-    // refuses, naming both): the service's sensor is the default only for other files.
-    let names_preset = match &common.config {
-        Some(path) => groundwork_io::config_preset(path)?.is_some(),
-        None => false,
-    };
-    let sensor = common
-        .sensor
-        .as_deref()
-        .or(service_sensor.filter(|_| !names_preset));
-    let mut cfg = groundwork_io::load_methods_config_over(sensor, common.config.as_deref())?;
+    Ok(load_named(common, service_sensor)?.1)
+}
+
+/// [`load_methods`], and the preset it was laid over: `--sensor`, else the one the
+/// `--config` file names (another `--sensor` is refused, naming both), else the service's,
+/// else hdl64e.
+pub fn load_named(
+    common: &Common,
+    service_sensor: Option<&str>,
+) -> Result<(String, groundwork_io::MethodsConfig)> {
+    let (preset, mut cfg) = groundwork_io::load_methods_config_named(
+        common.sensor.as_deref(),
+        service_sensor.unwrap_or(groundwork_io::DEFAULT_SENSOR),
+        common.config.as_deref(),
+        None,
+    )?;
     if let Some(n) = common.frames {
         cfg.segmenter.history.frames = n;
         cfg.segmenter.validate().context("--frames")?;
     }
-    Ok(cfg)
+    Ok((preset, cfg))
 }
 
 /// Opens each input (a scan file, a folder or a recording; a folder may carry poses for

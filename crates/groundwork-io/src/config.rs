@@ -127,30 +127,53 @@ pub fn load_config_over(
     preset: Option<&str>,
     path: Option<&Path>,
 ) -> Result<SegmenterConfig, FormatError> {
-    let (named, table) = load_layers(preset, path, None)?;
-    segmenter_config(&named, table)
+    let layers = load_layers(preset, DEFAULT_SENSOR, path, None)?;
+    segmenter_config(&layers.named, layers.table)
 }
 
-/// The layers of a configuration merged into one table: the preset (the one the file names
-/// with [`PRESET_KEY`] if None, else `DEFAULT_SENSOR`), the file at `path` over it, and a table built in code over both (the Python API's
-/// keyword arguments, named `source` in errors). Returns the table and the name errors about
-/// it should carry: the last layer given (only its keys can be wrong: the presets are
-/// tested). Every file's syntax is checked here; the sections' keys by whoever reads them.
+/// The layers of a configuration merged into one table ([`load_layers`]).
+#[derive(Debug, Clone)]
+pub struct Layers {
+    /// The preset under the other layers.
+    pub preset: String,
+    /// The name errors about the table should carry: the last layer given (only its keys
+    /// can be wrong: the presets are tested).
+    pub named: PathBuf,
+    /// The layers merged.
+    pub table: toml::Table,
+}
+
+/// The layers of a configuration merged into one table: a preset, the file at `path` over
+/// it, and a table built in code over both (the Python API's keyword arguments, named
+/// `source` in errors). The preset is `preset` if given, else the one the file names with
+/// [`PRESET_KEY`], else `fallback`; a `preset` that is not the file's is refused, naming
+/// both. Every file's syntax is checked here; the sections' keys by whoever reads them.
 pub fn load_layers(
     preset: Option<&str>,
+    fallback: &str,
     path: Option<&Path>,
     overlay: Option<(&str, toml::Table)>,
-) -> Result<(PathBuf, toml::Table), FormatError> {
-    let mut file = match path {
+) -> Result<Layers, FormatError> {
+    let file = match path {
         Some(p) => Some((p, read_table(p)?)),
         None => None,
     };
+    merge_layers(preset, fallback, file, overlay)
+}
+
+/// [`load_layers`] with the file already read.
+fn merge_layers(
+    preset: Option<&str>,
+    fallback: &str,
+    mut file: Option<(&Path, toml::Table)>,
+    overlay: Option<(&str, toml::Table)>,
+) -> Result<Layers, FormatError> {
     let named_by_file = match &mut file {
-        Some((p, table)) => take_preset(p, table)?,
+        Some((p, table)) => take_preset(p, table)?.map(|name| (*p, name)),
         None => None,
     };
-    let name = match (preset, &named_by_file, &file) {
-        (Some(given), Some(theirs), Some((p, _))) if given != theirs => {
+    let name = match (preset, &named_by_file) {
+        (Some(given), Some((p, theirs))) if given != theirs => {
             return Err(FormatError::Config {
                 path: p.to_path_buf(),
                 message: format!(
@@ -160,9 +183,9 @@ pub fn load_layers(
                 ),
             });
         }
-        (Some(given), _, _) => given,
-        (None, Some(theirs), _) => theirs.as_str(),
-        (None, None, _) => DEFAULT_SENSOR,
+        (Some(given), _) => given,
+        (None, Some((_, theirs))) => theirs.as_str(),
+        (None, None) => fallback,
     };
     let base = sensor_preset_text(name)?;
     let preset_path = PathBuf::from(format!("config/sensors/{name}.toml"));
@@ -176,18 +199,17 @@ pub fn load_layers(
         merge(&mut merged, table);
         named = PathBuf::from(source);
     }
-    Ok((named, merged))
+    Ok(Layers {
+        preset: name.to_owned(),
+        named,
+        table: merged,
+    })
 }
 
 /// The top-level key of a configuration file that names the preset it is laid over
 /// (`groundwork calibrate` writes it): `--config` alone then uses that preset, and another
 /// `--sensor` is refused, naming both.
 pub const PRESET_KEY: &str = "preset";
-
-/// The preset a configuration file names, if it names one ([`PRESET_KEY`]).
-pub fn config_preset(path: &Path) -> Result<Option<String>, FormatError> {
-    take_preset(path, &mut read_table(path)?)
-}
 
 /// [`PRESET_KEY`] taken out of a file's table: a known preset's name, or an error naming the
 /// file.
@@ -290,12 +312,13 @@ fn merge(base: &mut toml::Table, overlay: toml::Table) {
 /// Parses and validates a segmenter configuration. Unknown keys, wrong types and
 /// inconsistent values are errors naming the file (and the key, where TOML knows it).
 pub fn load_config(path: &Path) -> Result<SegmenterConfig, FormatError> {
-    let mut table = read_table(path)?;
-    match take_preset(path, &mut table)? {
-        // A file that names its preset is laid over it.
-        Some(preset) => load_config_over(Some(&preset), Some(path)),
-        None => segmenter_config(path, table),
+    let table = read_table(path)?;
+    if !table.contains_key(PRESET_KEY) {
+        return segmenter_config(path, table);
     }
+    // A file that names its preset is laid over it.
+    let layers = merge_layers(None, DEFAULT_SENSOR, Some((path, table)), None)?;
+    segmenter_config(&layers.named, layers.table)
 }
 
 /// Parses configuration text (method sections set aside); `path` is only used in error
@@ -325,7 +348,8 @@ mod tests {
             load_config(&p).unwrap(),
             load_config_over(None, Some(&p)).unwrap()
         );
-        assert_eq!(config_preset(&p).unwrap().as_deref(), Some("vlp16"));
+        let layers = |given| load_layers(given, DEFAULT_SENSOR, Some(&p), None);
+        assert_eq!(layers(None).unwrap().preset, "vlp16");
         // Another preset asked for: refused, naming the file and both presets.
         let e = load_config_over(Some("hdl64e"), Some(&p))
             .unwrap_err()
@@ -346,7 +370,12 @@ mod tests {
         );
         // A file without the key is laid over the default, as before.
         fs::write(&p, "[gmm]\nk_max = 4\n").unwrap();
-        assert_eq!(config_preset(&p).unwrap(), None);
+        assert_eq!(layers(None).unwrap().preset, DEFAULT_SENSOR);
+        assert_eq!(
+            load_layers(None, "os1-64", Some(&p), None).unwrap().preset,
+            "os1-64",
+            "the fallback, for a file that names no preset"
+        );
         let c = load_config_over(None, Some(&p)).unwrap();
         assert_eq!(c.zones, sensor_preset(DEFAULT_SENSOR).unwrap().zones);
     }

@@ -60,12 +60,13 @@ pub mod transform;
 
 pub use bin::{kitti_bin_bytes, write_kitti_bin};
 pub use config::methods::{
-    MethodsConfig, load_methods_config_layers, load_methods_config_over, parse_methods_config,
+    MethodsConfig, load_methods_config_layers, load_methods_config_named, load_methods_config_over,
+    parse_methods_config,
 };
 pub use config::{
-    DEFAULT_SENSOR, METHOD_SECTIONS, PRESET_KEY, SENSOR_PRESETS, config_error, config_preset,
-    load_config, load_config_over, load_layers, parse_config, parse_table, read_table,
-    segmenter_config, sensor_preset,
+    DEFAULT_SENSOR, Layers, METHOD_SECTIONS, PRESET_KEY, SENSOR_PRESETS, config_error, load_config,
+    load_config_over, load_layers, parse_config, parse_table, read_table, segmenter_config,
+    sensor_preset,
 };
 pub use error::FormatError;
 pub use input::{

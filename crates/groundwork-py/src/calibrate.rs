@@ -53,8 +53,7 @@ pub(crate) fn calibrate<'py>(
         ));
     }
     let search = param_search(param_trust, param_min_gain, fit_zones)?;
-    let base = base_preset(sensor, config.as_deref())?;
-    let cfg = load_config(sensor, config.clone(), None, overrides)?;
+    let (base, cfg) = load_config_named(sensor, config.clone(), None, overrides)?;
     let options = CalibrateOptions {
         mount: MountSearchConfig {
             seed,
@@ -121,18 +120,6 @@ fn param_search(
         value_error(format!("{keyword}: {why}"))
     })?;
     Ok(search)
-}
-
-/// The preset: `sensor=`, else the one a configuration file names, else the default.
-fn base_preset(sensor: Option<&str>, config: Option<&std::path::Path>) -> PyResult<String> {
-    let named = match config {
-        Some(path) => groundwork_io::config_preset(path).map_err(format_error)?,
-        None => None,
-    };
-    Ok(sensor
-        .map(str::to_owned)
-        .or(named)
-        .unwrap_or_else(|| groundwork_io::DEFAULT_SENSOR.to_owned()))
 }
 
 /// The mount the preset's own zone layout was made for.

@@ -65,6 +65,17 @@ pub(crate) fn load_config(
     frames: Option<u32>,
     overrides: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<MethodsConfig> {
+    Ok(load_config_named(sensor, config, frames, overrides)?.1)
+}
+
+/// [`load_config`], and the preset it was laid over: `sensor`, else the one the file names,
+/// else the default.
+pub(crate) fn load_config_named(
+    sensor: Option<&str>,
+    config: Option<PathBuf>,
+    frames: Option<u32>,
+    overrides: Option<&Bound<'_, PyDict>>,
+) -> PyResult<(String, MethodsConfig)> {
     let overlay = match overrides {
         Some(d) if !d.is_empty() => {
             let mut t = to_table(d)?;
@@ -84,15 +95,20 @@ pub(crate) fn load_config(
         }
         _ => None,
     };
-    let mut cfg = groundwork_io::load_methods_config_layers(sensor, config.as_deref(), overlay)
-        .map_err(format_error)?;
+    let (preset, mut cfg) = groundwork_io::load_methods_config_named(
+        sensor,
+        groundwork_io::DEFAULT_SENSOR,
+        config.as_deref(),
+        overlay,
+    )
+    .map_err(format_error)?;
     if let Some(n) = frames {
         cfg.segmenter.history.frames = n;
         cfg.segmenter
             .validate()
             .map_err(|e| value_error(format!("frames: {e}")))?;
     }
-    Ok(cfg)
+    Ok((preset, cfg))
 }
 
 /// `v` as a C-contiguous numpy array of `dtype` (float32, uint32, …): `v` itself when it

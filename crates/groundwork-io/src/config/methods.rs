@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use crate::FormatError;
-use crate::config::{config_error, load_layers, parse_table, segmenter_config};
+use crate::config::{DEFAULT_SENSOR, config_error, load_layers, parse_table, segmenter_config};
 use groundwork_core::SegmenterConfig;
 use groundwork_detect::DetectorConfig;
 use groundwork_pseudolabel::{PseudoLabelerConfig, RansacConfig};
@@ -41,8 +41,19 @@ pub fn load_methods_config_layers(
     path: Option<&Path>,
     overlay: Option<(&str, toml::Table)>,
 ) -> Result<MethodsConfig, FormatError> {
-    let (named, table) = load_layers(preset, path, overlay)?;
-    split_methods(&named, table)
+    load_methods_config_named(preset, DEFAULT_SENSOR, path, overlay).map(|(_, c)| c)
+}
+
+/// [`load_methods_config_layers`], and the preset the configuration was laid over: `preset`
+/// if given, else the one the file names, else `fallback` ([`load_layers`]).
+pub fn load_methods_config_named(
+    preset: Option<&str>,
+    fallback: &str,
+    path: Option<&Path>,
+    overlay: Option<(&str, toml::Table)>,
+) -> Result<(String, MethodsConfig), FormatError> {
+    let layers = load_layers(preset, fallback, path, overlay)?;
+    Ok((layers.preset, split_methods(&layers.named, layers.table)?))
 }
 
 /// Parses a whole configuration text; `path` is only used in error messages.
