@@ -165,7 +165,7 @@ fn kitti_config_iou(scans: &[Vec<Point>], cfg: &groundwork_core::SegmenterConfig
             &probs,
             &classes,
             Protocol::Gmm,
-            cfg.ground.ground_threshold,
+            cfg.decision_threshold(),
         ));
     }
     let m = pooled.metrics();

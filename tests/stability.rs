@@ -97,7 +97,7 @@ fn one_ulp_change(cfg: &SegmenterConfig, points: &[Point], what: &str) -> Change
     let c = Change::between(
         &probabilities(cfg, points),
         &probabilities(cfg, &one_ulp_up(points)),
-        cfg.ground.ground_threshold,
+        cfg.decision_threshold(),
     );
     eprintln!(
         "{what}: one ulp: {} flipped ({:.3} %), {} moved > 0.01 ({:.3} %), max {:.4}",
@@ -190,7 +190,7 @@ fn one_millimetre_of_jitter_flips_fewer_decisions_than_before() {
     for (cells, bar) in [([0.0, 0.0], 1.0), ([0.6, 0.12], 0.2)] {
         let mut cfg = hdl64e_single_frame();
         cfg.gmm.summary_cell = cells;
-        let thr = cfg.ground.ground_threshold;
+        let thr = cfg.decision_threshold();
         let noise = Normal::new(0.0f32, 0.001).unwrap();
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         let mut total = Change::default();
@@ -255,7 +255,7 @@ fn a_mount_a_two_hundredth_of_a_degree_off_moves_few_decisions_on_summaries() {
             total.merge(Change::between(
                 &probabilities(&a, points),
                 &probabilities(&b, points),
-                cfg.ground.ground_threshold,
+                cfg.decision_threshold(),
             ));
         }
         total

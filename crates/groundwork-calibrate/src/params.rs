@@ -535,7 +535,7 @@ pub fn agreement_by_ring(
     width: f64,
     rings: usize,
 ) -> Result<Vec<Agreement>, CalibrateError> {
-    let threshold = cfg.ground.ground_threshold;
+    let threshold = cfg.decision_threshold();
     scans
         .par_iter()
         .map(|s| {

@@ -140,7 +140,7 @@ pub fn run(job: &RenderJob<'_>) -> Result<()> {
     let scene = Scene {
         points: &xyz,
         probabilities: &probs,
-        threshold: cfg.ground.ground_threshold,
+        threshold: cfg.decision_threshold(),
         proposals: &proposals,
     };
     let png = render(&scene, colouring, job.view)?.to_png()?;

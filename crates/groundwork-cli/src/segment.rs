@@ -254,7 +254,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
             if cfg.history.frames > 1 && sequences.iter().all(|s| s.poses.is_none()) {
                 info!("no poses found: scans are segmented single-frame");
             }
-            let threshold = cfg.ground.ground_threshold;
+            let threshold = cfg.decision_threshold();
             let opts = SegmenterOptions {
                 segmenter: cfg,
                 count: None,
@@ -277,7 +277,7 @@ pub fn run(common: &Common, method: MethodArg, out: &Path, inputs: &[PathBuf]) -
                 .collect::<Result<Vec<_>>>()?;
             let threshold = match &engines[..] {
                 [Engine::Method(m), ..] => m.threshold(),
-                _ => cfg.ground.ground_threshold,
+                _ => cfg.decision_threshold(),
             };
             (engines, threshold)
         }

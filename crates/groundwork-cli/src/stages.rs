@@ -60,7 +60,7 @@ pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
             let opts = groundwork_view::ViewOptions {
                 addr,
                 mount: Some(mount.clone()),
-                ground_threshold: seg.ground.ground_threshold,
+                ground_threshold: seg.decision_threshold(),
                 backlog: DEFAULT_VIEW_BACKLOG,
                 stop: Some(Arc::clone(&stop_view)),
             };
@@ -84,7 +84,7 @@ pub fn ros2(a: Ros2CmdArgs) -> Result<ExitCode> {
             namespace: r.namespace.clone(),
             node: r.node.clone(),
             publish_ground: r.publish_ground,
-            ground_threshold: seg.ground.ground_threshold,
+            ground_threshold: seg.decision_threshold(),
             count: a.count,
             mount: Some(mount),
             odometry_topic: r.odom_topic.clone(),
@@ -144,7 +144,7 @@ pub fn view(a: ViewCmdArgs) -> Result<ExitCode> {
             mount: Some(groundwork_io::transform::StaticTransform::of_mount(
                 &seg.sensor.mount,
             )?),
-            ground_threshold: seg.ground.ground_threshold,
+            ground_threshold: seg.decision_threshold(),
             backlog: a.backlog,
             stop: None,
         },

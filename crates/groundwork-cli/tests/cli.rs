@@ -68,8 +68,13 @@ fn segment_writes_one_prob_and_one_ground_per_scan_and_survives_bad_files() {
     assert_eq!(prob.len(), n);
     assert_eq!(mask.len(), n);
     assert!(prob.iter().all(|p| (0.0..=1.0).contains(p)));
+    // The mask is the probability at the preset's threshold (moved by its map).
+    let threshold = groundwork_io::sensor_preset("hdl64e")
+        .unwrap()
+        .decision_threshold();
+    assert!(threshold > 0.5, "the HDL-64E map moves 0.5 up: {threshold}");
     for (p, m) in prob.iter().zip(&mask) {
-        assert_eq!(*m, u8::from(*p >= 0.5));
+        assert_eq!(*m, u8::from(*p >= threshold));
     }
     let ground = mask.iter().filter(|&&m| m == 1).count();
     assert!(ground > n / 4 && ground < n * 3 / 4, "{ground} of {n}");

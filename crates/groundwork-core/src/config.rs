@@ -32,6 +32,47 @@ pub struct SegmenterConfig {
     pub mount_check: MountCheckConfig,
     /// Uncertain points at the height of confident ground next to them become ground.
     pub continuity: ContinuityConfig,
+    /// The map from the equation's value to a calibrated probability.
+    pub probability: ProbabilityConfig,
+}
+
+/// Calibrated output (`crate::probability`): a monotone map from the equation's value to
+/// the fraction of points that are ground, fitted on labelled scans of the sensor. The
+/// decision threshold moves with it, so no point changes side.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct ProbabilityConfig {
+    /// The calibrated probability at the equation values 0, 1/(n−1), …, 1, linear between;
+    /// strictly increasing, in [0, 1]. Empty: the equation's value as it is.
+    pub map: Vec<f32>,
+}
+
+/// Knots of a probability map at most.
+pub const MAX_PROBABILITY_KNOTS: usize = 1025;
+
+impl ProbabilityConfig {
+    /// Checks the map: none, or 2 to [`MAX_PROBABILITY_KNOTS`] strictly increasing values in
+    /// [0, 1].
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let m = &self.map;
+        if m.is_empty() {
+            return Ok(());
+        }
+        if m.len() < 2 || m.len() > MAX_PROBABILITY_KNOTS {
+            return Err(ConfigError::invalid(
+                "probability.map",
+                "must hold 2 to 1025 values (or none: no map)",
+            ));
+        }
+        if !m.iter().all(|v| (0.0..=1.0).contains(v)) || !m.windows(2).all(|w| w[0] < w[1]) {
+            return Err(ConfigError::invalid(
+                "probability.map",
+                "must be strictly increasing values in [0, 1] (a map that keeps every \
+                 point on its side of the threshold)",
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// Ground continuity, a step after the query (docs/algorithm.md, "Ground continuity"): a
@@ -526,6 +567,14 @@ impl Default for HistoryConfig {
 pub const MAX_HISTORY_FRAMES: u32 = 16;
 
 impl SegmenterConfig {
+    /// The decision threshold on the output probabilities: a point is ground when its
+    /// probability is at least this. `ground.ground_threshold` under the probability map
+    /// (itself when there is none).
+    pub fn decision_threshold(&self) -> f32 {
+        crate::probability::ProbabilityMap::new(&self.probability, self.ground.ground_threshold)
+            .threshold()
+    }
+
     /// The coordinate bound in use (metres): `sensor.max_coordinate`, or 4 × max range.
     pub fn max_coordinate(&self) -> f64 {
         self.sensor
@@ -634,6 +683,7 @@ impl SegmenterConfig {
                 "must be in [0, 1]",
             ));
         }
+        self.probability.validate()?;
         let h = &self.height_filter;
         if !(h.smoothing > 0.0 && h.smoothing <= 1.0) {
             return Err(ConfigError::invalid(
@@ -1278,6 +1328,29 @@ mod tests {
         c.continuity.height_cutoff = c.continuity.height_tolerance;
         let e = c.validate().unwrap_err().to_string();
         assert!(e.contains("continuity.height_cutoff"), "{e}");
+    }
+
+    #[test]
+    fn a_probability_map_that_could_move_a_decision_is_refused() {
+        // Flat somewhere, not a number, or a single value: refused by name.
+        for map in [
+            vec![0.2, 0.5, 0.5],
+            vec![0.0, f32::NAN],
+            vec![0.5],
+            vec![0.5, 1.5],
+        ] {
+            let mut c = SegmenterConfig::default();
+            c.probability.map = map.clone();
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains("probability.map"), "{map:?}: {e}");
+        }
+        let mut c = SegmenterConfig::default();
+        c.probability.map = vec![0.1, 0.3, 0.9];
+        c.validate().unwrap();
+        // The threshold moves with the map: 0.5 is the middle knot, 0.75 halfway up to 1.
+        assert!((c.decision_threshold() - 0.3).abs() < 1e-6);
+        c.ground.ground_threshold = 0.75;
+        assert!((c.decision_threshold() - 0.6).abs() < 1e-6);
     }
 
     #[test]

@@ -10,7 +10,8 @@
 //! 5. query: a ground probability per input point, in input order, optionally over the
 //!    last N_f fitted frames ([`query`], [`Segmenter`]);
 //! 6. ground continuity: uncertain points at the height of confident ground next to them
-//!    are raised towards ground (docs/algorithm.md).
+//!    are raised towards ground (docs/algorithm.md);
+//! 7. the preset's monotone map to calibrated probabilities ([`probability`]).
 //!
 //! ```
 //! use groundwork_core::{Point, Segmenter, SegmenterConfig};
@@ -30,7 +31,7 @@
 //! let mut segmenter = Segmenter::new(cfg)?;
 //! let mut probabilities = vec![0.0f32; points.len()];
 //! segmenter.segment(&points, None, &mut probabilities)?;
-//! let threshold = segmenter.config().ground.ground_threshold;
+//! let threshold = segmenter.config().decision_threshold();
 //! // The road is ground, the wall's upper part is not.
 //! assert!(probabilities[..12_000].iter().filter(|&&p| p >= threshold).count() > 11_000);
 //! assert!(probabilities[12_000 + 200..].iter().all(|&p| p < threshold));
@@ -54,6 +55,7 @@ pub mod method;
 pub mod model;
 pub mod mount_watch;
 pub mod point;
+pub mod probability;
 pub mod query;
 pub mod segmenter;
 mod simd;

@@ -33,7 +33,7 @@ impl GroundMethod for Segmenter {
     }
 
     fn threshold(&self) -> f32 {
-        self.config().ground.ground_threshold
+        self.config().decision_threshold()
     }
 
     fn max_points(&self) -> usize {

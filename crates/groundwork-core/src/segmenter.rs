@@ -20,6 +20,7 @@ use crate::height_filter::HeightFilter;
 use crate::history::History;
 use crate::model::{FrameModel, fit_frame};
 use crate::point::{PointXyz, Pose, check_finite};
+use crate::probability::ProbabilityMap;
 use crate::query::{OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
 use crate::simd::LANES;
 use crate::zones::NEAR;
@@ -144,6 +145,8 @@ pub struct Segmenter {
     /// Layouts 1.. of `zones.layouts` (`SegmenterConfig::layout`), each a whole segmenter
     /// with its own history, and their probabilities of the current scan.
     layouts: Vec<(Segmenter, Vec<f32>)>,
+    /// The last step: equation values to calibrated probabilities (`[probability] map`).
+    map: ProbabilityMap,
 }
 
 impl Segmenter {
@@ -158,6 +161,7 @@ impl Segmenter {
             .collect::<Result<_, ConfigError>>()?;
         Ok(Self {
             layouts,
+            map: ProbabilityMap::new(&cfg.probability, cfg.ground.ground_threshold),
             history: History::default(),
             last_time_ns: None,
             cfg,
@@ -302,6 +306,7 @@ impl Segmenter {
         self.group(true);
         self.query_frames(model, None, out);
         self.continue_ground(model, out);
+        self.calibrate_output(out);
         Ok(())
     }
 
@@ -321,6 +326,7 @@ impl Segmenter {
         let pose = (self.pose_jump(pose).is_none()).then_some(pose);
         let (frames, _) = self.query_frames(model, pose, out);
         self.continue_ground(model, out);
+        self.calibrate_output(out);
         Ok(frames)
     }
 
@@ -445,9 +451,38 @@ impl Segmenter {
         out: &mut [f32],
     ) -> Result<FrameReport, SegmentError> {
         let mut report = self.segment_layout(points, pose, sensor_time_ns, out)?;
-        if self.layouts.is_empty() {
-            return Ok(report);
+        if !self.layouts.is_empty() {
+            self.add_layouts(points, pose, sensor_time_ns, out, &mut report)?;
         }
+        // Calibrate: the preset's map to how often points are ground; no point changes
+        // side of the (moved) threshold.
+        self.calibrate_output(out);
+        Ok(report)
+    }
+
+    /// Whether each point of the last scan segmented was judged: binned into a segment
+    /// (not inside the near edge or the ego radius, not a placeholder, within bounds).
+    /// Only those are calibrated ([`crate::probability`]); the others are 0.
+    pub fn judged_points(&self, points: usize) -> impl Iterator<Item = bool> + '_ {
+        self.bins.iter().take(points).map(|&b| b != NEAR)
+    }
+
+    /// The last step: the preset's map to calibrated probabilities, on every point binned
+    /// into a segment (the others keep their 0).
+    fn calibrate_output(&self, out: &mut [f32]) {
+        let bins = &self.bins[..out.len()];
+        self.map.apply(out, |i| bins[i] != NEAR);
+    }
+
+    /// Layouts 1.. on the same scan, their probabilities averaged with layout 0's in `out`.
+    fn add_layouts<P: PointXyz + Sync>(
+        &mut self,
+        points: &[P],
+        pose: Option<&Pose>,
+        sensor_time_ns: Option<u64>,
+        out: &mut [f32],
+        report: &mut FrameReport,
+    ) -> Result<(), SegmentError> {
         // The other layouts see the same scan (it passed this layout's checks) and keep
         // their own history; their probabilities are added in layout order, so the mean is
         // the same bits on any number of threads and for any order of the points.
@@ -472,7 +507,7 @@ impl Segmenter {
             ground += usize::from(*o >= thr);
         }
         report.ground_points = ground;
-        Ok(report)
+        Ok(())
     }
 
     /// One layout of the zone model: the method on one scan, a call per step

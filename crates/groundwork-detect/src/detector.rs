@@ -354,7 +354,7 @@ impl Detector {
         let frame = GroundFrame::from_config(segmenter)?;
         let threshold = cfg
             .ground_threshold
-            .unwrap_or(segmenter.ground.ground_threshold);
+            .unwrap_or(segmenter.decision_threshold());
         let min_range = cfg
             .min_range
             .unwrap_or(segmenter.zones.min_range as f32)

@@ -12,7 +12,7 @@ use serde::Serialize;
 use thiserror::Error;
 use tracing::warn;
 
-use groundwork_io::{Confusion, Metrics, Protocol};
+use groundwork_io::{Confusion, Metrics, Protocol, Reliability, ReliabilityBin};
 
 /// Why a sequence could not be evaluated.
 #[derive(Debug, Error)]
@@ -42,6 +42,9 @@ pub struct ScanResult {
     pub points: usize,
     /// Confusion counts, if the scan has labels.
     pub confusion: Option<Confusion>,
+    /// Probabilities against the labels, if the scan has labels (pooled in the report).
+    #[serde(skip)]
+    pub reliability: Option<Reliability>,
     /// Metrics, if the scan has labels.
     pub metrics: Option<Metrics>,
     /// Models queried.
@@ -81,6 +84,10 @@ pub struct EvalReport {
     pub pooled: Confusion,
     /// Pooled metrics.
     pub pooled_metrics: Metrics,
+    /// How often points are ground at each probability, pooled (ten bins).
+    pub reliability: Vec<ReliabilityBin>,
+    /// The expected calibration error of those bins.
+    pub expected_calibration_error: f64,
     /// Labeled scans.
     pub labeled_scans: usize,
     /// Median segmentation time (fit + query) per scan, ms.
@@ -107,6 +114,7 @@ pub fn evaluate(
     let thr = segmenter.threshold();
     let mut scans = Vec::with_capacity(seq.len_hint().unwrap_or(0));
     let mut pooled = Confusion::default();
+    let mut reliability = Reliability::default();
     let mut probs = Vec::new();
     let mut skipped = Vec::new();
     for item in seq.scans(max) {
@@ -114,6 +122,9 @@ pub fn evaluate(
             Ok(r) => {
                 if let Some(c) = &r.confusion {
                     pooled.merge(c);
+                }
+                if let Some(c) = &r.reliability {
+                    reliability.merge(c);
                 }
                 on_scan(&r);
                 scans.push(r);
@@ -139,6 +150,8 @@ pub fn evaluate(
         history_frames: segmenter.history_frames(),
         pooled_metrics: pooled.metrics(),
         pooled,
+        reliability: reliability.bins(),
+        expected_calibration_error: reliability.expected_calibration_error(),
         labeled_scans,
         median_ms,
         scans_per_second: if median_ms > 0.0 {
@@ -174,21 +187,25 @@ fn score_one(
             source,
         })?;
     let total = t.elapsed();
-    let confusion = match seq.label_path(item) {
+    let (confusion, reliability) = match seq.label_path(item) {
         Some(l) => {
             // Labels are per record of the input: placeholders the reader left out are
             // scored as the non-ground they were given (probability 0).
             let labels = seq.label_map.read(&l, scan.records)?;
             let all = scan.expand(probs, 0.0);
-            Some(Confusion::from_predictions(&all, &labels, protocol, thr))
+            (
+                Some(Confusion::from_predictions(&all, &labels, protocol, thr)),
+                Some(Reliability::from_predictions(&all, &labels, protocol)),
+            )
         }
-        None => None,
+        None => (None, None),
     };
     Ok(ScanResult {
         name: item.name.clone(),
         points: points.len(),
         metrics: confusion.as_ref().map(Confusion::metrics),
         confusion,
+        reliability,
         frames_queried: report.frames_queried,
         fit_ms: ms(report.fit_time),
         query_ms: ms(report.query_time),
@@ -323,6 +340,20 @@ impl EvalReport {
             String::new(),
             String::new(),
         );
+        if self.labeled_scans > 0 && self.method == "gmm" {
+            // Whether a probability says how often points are ground (docs/accuracy.md).
+            let bins: Vec<String> = self
+                .reliability
+                .iter()
+                .map(|b| format!("{:.2}:{:.2}", b.mean_probability, b.ground_fraction))
+                .collect();
+            let _ = writeln!(
+                s,
+                "reliability: ECE {:.3}; per bin mean probability:ground fraction {}",
+                self.expected_calibration_error,
+                bins.join(" ")
+            );
+        }
         let _ = writeln!(
             s,
             "median {:.2} ms per scan (fit + query) = {:.1} scans/s",

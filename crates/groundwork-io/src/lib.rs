@@ -78,7 +78,7 @@ pub use kitti::{
     read_times, times_text, write_calib_tr, write_labels, write_poses, write_times,
 };
 pub use labels::{LABEL_MAPS, LabelClass, LabelMap, label_folder, label_folders};
-pub use metrics::{Confusion, Metrics, Protocol};
+pub use metrics::{Confusion, Metrics, Protocol, Reliability, ReliabilityBin};
 pub use output::{
     OutputFiles, OutputTarget, check_not_an_input, check_output_names, earlier_outputs,
     outputs_complete, read_clusters, read_prob, warn_replaced, write_atomic, write_outputs,

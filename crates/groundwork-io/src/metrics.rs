@@ -177,3 +177,90 @@ mod tests {
         assert_eq!(pooled.tp, 2);
     }
 }
+
+/// How often points are ground at each probability: ten equal-width bins of the
+/// probability, each with its points, their mean probability and the fraction that is
+/// ground; scored points only (the protocol's ignored classes are left out).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Reliability {
+    /// Points per bin ([0, 0.1), [0.1, 0.2), …, [0.9, 1]).
+    pub points: [u64; 10],
+    /// Sum of the probabilities per bin.
+    pub probability_sum: [f64; 10],
+    /// Ground points per bin.
+    pub ground: [u64; 10],
+}
+
+/// One bin of a [`Reliability`], as a table prints it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct ReliabilityBin {
+    /// The bin's lower edge.
+    pub from: f64,
+    /// Points in it.
+    pub points: u64,
+    /// Their mean probability.
+    pub mean_probability: f64,
+    /// The fraction of them that is ground.
+    pub ground_fraction: f64,
+}
+
+impl Reliability {
+    /// Counts predictions against harmonised labels.
+    pub fn from_predictions(probs: &[f32], labels: &[LabelClass], protocol: Protocol) -> Self {
+        let mut r = Self::default();
+        for (&p, &l) in probs.iter().zip(labels) {
+            if let Some(truth) = protocol.truth(l) {
+                let p = if p.is_finite() {
+                    p.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                let b = ((p * 10.0) as usize).min(9);
+                r.points[b] += 1;
+                r.probability_sum[b] += f64::from(p);
+                r.ground[b] += u64::from(truth);
+            }
+        }
+        r
+    }
+
+    /// Pools another into this one.
+    pub fn merge(&mut self, o: &Self) {
+        for b in 0..10 {
+            self.points[b] += o.points[b];
+            self.probability_sum[b] += o.probability_sum[b];
+            self.ground[b] += o.ground[b];
+        }
+    }
+
+    /// The bins that hold points.
+    pub fn bins(&self) -> Vec<ReliabilityBin> {
+        (0..10)
+            .filter(|&b| self.points[b] > 0)
+            .map(|b| {
+                let n = self.points[b] as f64;
+                ReliabilityBin {
+                    from: b as f64 / 10.0,
+                    points: self.points[b],
+                    mean_probability: self.probability_sum[b] / n,
+                    ground_fraction: self.ground[b] as f64 / n,
+                }
+            })
+            .collect()
+    }
+
+    /// Expected calibration error: the points' mean gap between probability and ground
+    /// fraction, bin by bin (0: a probability says how often points are ground).
+    pub fn expected_calibration_error(&self) -> f64 {
+        let total: u64 = self.points.iter().sum();
+        if total == 0 {
+            return 0.0;
+        }
+        self.bins()
+            .iter()
+            .map(|b| {
+                b.points as f64 / total as f64 * (b.mean_probability - b.ground_fraction).abs()
+            })
+            .sum()
+    }
+}

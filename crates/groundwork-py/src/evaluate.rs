@@ -8,18 +8,25 @@ use pyo3::types::{IntoPyDict, PyDict};
 use crate::convert::*;
 
 /// Scores ground probabilities against labels as `groundwork eval` does: a point is ground
-/// when its probability is at least `threshold`; `protocol` "gmm" ignores vegetation,
-/// "terraseg" counts it as non-ground. Metrics in percent, and the counts.
+/// when its probability is at least `threshold` (default: the default preset's, as
+/// `Segmenter().threshold`; pass `seg.threshold` for another); `protocol` "gmm" ignores
+/// vegetation, "terraseg" counts it as non-ground. Metrics in percent, and the counts.
 #[pyfunction]
-#[pyo3(signature = (probabilities, labels, protocol="gmm", threshold=0.5, label_format="semantickitti"))]
+#[pyo3(signature = (probabilities, labels, protocol="gmm", threshold=None, label_format="semantickitti"))]
 pub(crate) fn evaluate<'py>(
     py: Python<'py>,
     probabilities: &Bound<'py, PyAny>,
     labels: &Bound<'py, PyAny>,
     protocol: &str,
-    threshold: f32,
+    threshold: Option<f32>,
     label_format: &str,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let threshold = match threshold {
+        Some(t) => t,
+        None => groundwork_io::sensor_preset(groundwork_io::DEFAULT_SENSOR)
+            .map_err(format_error)?
+            .decision_threshold(),
+    };
     let protocol = match protocol {
         "gmm" => Protocol::Gmm,
         "terraseg" => Protocol::Terraseg,

@@ -101,7 +101,7 @@ impl PySegmenter {
         pose: Option<&Bound<'py, PyAny>>,
         threshold: Option<f32>,
     ) -> PyResult<Bound<'py, PyArray1<bool>>> {
-        let thr = threshold.unwrap_or(self.inner.config().ground.ground_threshold);
+        let thr = threshold.unwrap_or(self.inner.config().decision_threshold());
         let probs = self.segment(points, pose)?;
         let mask: Vec<bool> = probs
             .readonly()
@@ -117,10 +117,10 @@ impl PySegmenter {
         self.inner.reset()
     }
 
-    /// Probability at or above which a point is ground.
+    /// Probability at or above which a point is ground: `ground_threshold` under the map.
     #[getter]
     fn threshold(&self) -> f32 {
-        self.inner.config().ground.ground_threshold
+        self.inner.config().decision_threshold()
     }
 
     /// Frames of history queried (1: single frame).

@@ -150,6 +150,7 @@ def test_evaluate_matches_groundwork_eval(cli: Path) -> None:
         labels = groundwork.read_labels(SEQ / "labels" / "000000.label", len(points))
         assert np.array_equal(labels, np.fromfile(SEQ / "labels" / "000000.label", np.uint32))
         got = groundwork.evaluate(probs, labels, protocol=protocol)
+        assert got == groundwork.evaluate(probs, labels, protocol, groundwork.Segmenter().threshold)
         scan = report["scans"][0]
         for k, v in scan["metrics"].items():
             assert got[k] == v, (protocol, k)
@@ -280,7 +281,10 @@ def test_keyword_arguments_configure_like_a_file(tmp_path: Path) -> None:
     cfg.write_text("[ground]\nground_threshold = 0.8\n")
     by_file = groundwork.Segmenter(config=cfg)
     by_kwargs = groundwork.Segmenter(ground={"ground_threshold": 0.8})
-    assert by_file.threshold == by_kwargs.threshold == pytest.approx(0.8)
+    # The threshold on the output: the preset's probability map at ground_threshold.
+    assert by_file.threshold == by_kwargs.threshold > groundwork.Segmenter().threshold
+    unmapped = groundwork.Segmenter(ground={"ground_threshold": 0.8}, probability={"map": []})
+    assert unmapped.threshold == pytest.approx(0.8)
     assert np.array_equal(by_file.ground(points), by_kwargs.ground(points))
     assert groundwork.Segmenter(frames=3).frames == 3
     assert "vlp16" in groundwork.sensors()

@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import groundwork
 import numpy as np
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
@@ -391,8 +392,10 @@ def test_the_bridge_answers_every_cloud_as_segment_would(cli: Path, tmp_path: Pa
         # Every input field survives (the ring field, the placeholders' NaN).
         raw = np.frombuffer(bytes(answer.data), np.uint8).reshape(-1, answer.point_step)
         assert raw[:, :sent.point_step].tobytes() == bytes(sent.data)
-        # Non-ground and ground: the classified records split at 0.5, in input order.
-        for name, pick in [("nonground", probs < 0.5), ("ground", probs >= 0.5)]:
+        # Non-ground and ground: the classified records split at the preset's threshold
+        # (its probability map's value at ground_threshold), in input order.
+        threshold = groundwork.Segmenter().threshold
+        for name, pick in [("nonground", probs < threshold), ("ground", probs >= threshold)]:
             part = got[name][k]
             assert part.header == sent.header and part.height == 1 and part.is_dense
             keep = pick & finite[k]

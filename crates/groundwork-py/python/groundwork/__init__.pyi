@@ -71,7 +71,8 @@ class Segmenter:
         scan with enough ground, or with mount_check={"mode": "off"}."""
     @property
     def threshold(self) -> float:
-        """Probability at or above which a point is ground."""
+        """Probability at or above which a point is ground: ``ground_threshold`` under the
+        preset's probability map (``probability={"map": [...]}``, docs/accuracy.md)."""
 
     @property
     def frames(self) -> int:
@@ -176,10 +177,11 @@ def evaluate(
     probabilities: npt.ArrayLike,
     labels: npt.ArrayLike,
     protocol: Literal["gmm", "terraseg"] = "gmm",
-    threshold: float = 0.5,
+    threshold: float | None = None,
     label_format: str = "semantickitti",
 ) -> dict[str, float]:
-    """Scores probabilities against raw labels as ``groundwork eval`` does: precision,
+    """Scores probabilities against raw labels as ``groundwork eval`` does (ground: at least
+    ``threshold``, by default the default preset's, ``Segmenter().threshold``): precision,
     recall, f1, accuracy, iou_ground, iou_nonground, miou (percent) and tp, fp, fn, tn,
     ignored (points). "gmm" ignores vegetation, "terraseg" counts it as non-ground."""
 
