@@ -352,7 +352,7 @@ pub struct SynthArgs {
     /// taken with (a tilted or low sensor).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Scene: urban, offroad, parking or hill.
+    /// Scene: urban, offroad, parking, hill or city.
     #[arg(long, default_value = "urban")]
     pub scene: String,
     /// Frames to generate.

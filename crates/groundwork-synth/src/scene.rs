@@ -30,15 +30,20 @@ pub enum SceneKind {
     /// over or into, a cut slope rising on the left and an embankment falling on the right,
     /// a guard rail, traffic, trees and bushes on the slopes.
     Hill,
+    /// A steep city intersection, as on a Pandar64 city drive: the town street climbing and
+    /// falling at up to 8 %, the whole block tilted 4 % across it (so the cross streets
+    /// climb one way and fall the other), and cars parked nose to tail along both kerbs.
+    City,
 }
 
 impl SceneKind {
     /// Every scene, in the order `groundwork synth` lists them.
-    pub const ALL: [SceneKind; 4] = [
+    pub const ALL: [SceneKind; 5] = [
         SceneKind::Urban,
         SceneKind::Offroad,
         SceneKind::Parking,
         SceneKind::Hill,
+        SceneKind::City,
     ];
 
     /// The scene's name on the command line.
@@ -48,6 +53,7 @@ impl SceneKind {
             SceneKind::Offroad => "offroad",
             SceneKind::Parking => "parking",
             SceneKind::Hill => "hill",
+            SceneKind::City => "city",
         }
     }
 
@@ -65,6 +71,7 @@ impl SceneKind {
             SceneKind::Offroad => 60.0,
             SceneKind::Parking => 25.0,
             SceneKind::Hill => 400.0,
+            SceneKind::City => 80.0,
         }
     }
 
@@ -75,6 +82,7 @@ impl SceneKind {
             SceneKind::Offroad => (0.0, 5.0),
             SceneKind::Parking => (0.0, 4.0),
             SceneKind::Hill => (-1.75, 12.0),
+            SceneKind::City => (-1.75, 6.0),
         }
     }
 }
@@ -151,6 +159,16 @@ fn parking_parts(x: f64, y: f64) -> (f64, f64, f64) {
     (height, ramp, walk)
 }
 
+/// City: the amplitude of the street's climbs and falls (1.6 m over an eighth of the
+/// circle: 8 % at the steepest) and the block's tilt across the street (4 %).
+const CITY_CLIMB: f64 = 1.6;
+const CITY_TILT: f64 = 0.04;
+
+/// Parked cars along a kerb: the gap to the next car (metres, from..to) and the chance a
+/// space holds one. In town every other space or so; in the city nose to tail.
+const URBAN_PARKING: ((f64, f64), f64) = ((5.5, 9.0), 0.6);
+const CITY_PARKING: ((f64, f64), f64) = ((4.9, 5.6), 0.92);
+
 /// Height of urban curbs and the parking lot's sidewalk, metres.
 const CURB: f64 = 0.15;
 /// Width over which a curb rises, metres.
@@ -184,7 +202,8 @@ impl Scene {
             next_instance: 1,
         };
         match kind {
-            SceneKind::Urban => layout.urban(s_from - reach, s_to + reach),
+            SceneKind::Urban => layout.urban(s_from - reach, s_to + reach, URBAN_PARKING),
+            SceneKind::City => layout.urban(s_from - reach, s_to + reach, CITY_PARKING),
             SceneKind::Offroad => layout.offroad(s_from, s_to, reach),
             SceneKind::Parking => layout.parking(),
             SceneKind::Hill => layout.hill(s_from - reach, s_to + reach),
@@ -225,6 +244,7 @@ impl Scene {
             SceneKind::Offroad => 0.42,
             SceneKind::Parking => 0.25,
             SceneKind::Hill => 0.4,
+            SceneKind::City => 0.14,
         }
     }
 
@@ -235,6 +255,7 @@ impl Scene {
             SceneKind::Offroad => 1.4 + 0.9 + 0.35 + 0.03,
             SceneKind::Parking => 0.01 * 100.0 + DECK + CURB,
             SceneKind::Hill => 3.2 + 0.5 + 3.0,
+            SceneKind::City => CITY_CLIMB + CITY_TILT * 80.0 + CURB + 0.5,
         }
     }
 
@@ -245,6 +266,7 @@ impl Scene {
             SceneKind::Offroad => self.offroad_surface(x, y),
             SceneKind::Parking => self.parking_surface(x, y),
             SceneKind::Hill => self.hill_surface(x, y),
+            SceneKind::City => self.urban_surface(x, y),
         }
     }
 
@@ -257,6 +279,7 @@ impl Scene {
             SceneKind::Offroad => offroad_height(x, y),
             SceneKind::Parking => parking_parts(x, y).0,
             SceneKind::Hill => self.hill_surface(x, y).height,
+            SceneKind::City => self.urban_surface(x, y).height,
         }
     }
 
@@ -275,7 +298,11 @@ impl Scene {
         // circle's centre the amplitude shrinks with the radius, so that the grade does not
         // steepen where the circles of equal height crowd together.
         let rho = self.radius - d;
-        let grade = (rho / self.radius).min(1.0) * (4.0 * s / self.radius).sin();
+        let (climb, tilt) = match self.kind {
+            SceneKind::City => (CITY_CLIMB, CITY_TILT * d),
+            _ => (1.0, 0.0),
+        };
+        let grade = climb * (rho / self.radius).min(1.0) * (4.0 * s / self.radius).sin() + tilt;
         // The road is crowned: 1 % down toward the curbs.
         let crown = -0.01 * d.abs().min(ROAD_HALF);
         // How far outside both roads (negative: on a road).
@@ -528,15 +555,16 @@ impl Layout<'_> {
         );
     }
 
-    fn urban(&mut self, s_from: f64, s_to: f64) {
+    fn urban(&mut self, s_from: f64, s_to: f64, parking: ((f64, f64), f64)) {
         let scene = self.scene;
         let near_cross = |s: f64, margin: f64| scene.cross_offset(s).abs() < CROSS_HALF + margin;
+        let ((gap_from, gap_to), parked) = parking;
         for side in [-1.0, 1.0] {
             // Parked cars in the parking lanes along the curbs.
             let mut s = s_from;
             while s < s_to {
-                s += self.rng.random_range(5.5..9.0);
-                if !near_cross(s, 3.0) && self.rng.random_bool(0.6) {
+                s += self.rng.random_range(gap_from..gap_to);
+                if !near_cross(s, 3.0) && self.rng.random_bool(parked) {
                     let (p, heading) = scene.place(s, side * 4.75);
                     let yaw = heading + self.rng.random_range(-0.05..0.05);
                     self.car(p, yaw);
@@ -855,6 +883,41 @@ mod tests {
             a.height,
             b.height
         );
+    }
+
+    #[test]
+    fn the_city_is_steep_and_parked_full() {
+        let city = Scene::new(SceneKind::City, 1, 0.0, 10.0, 60.0);
+        let town = Scene::new(SceneKind::Urban, 1, 0.0, 10.0, 60.0);
+        let cars = |scene: &Scene| {
+            let mut ids: Vec<u16> = scene
+                .objects()
+                .iter()
+                .filter(|o| o.class == CAR)
+                .map(|o| o.instance)
+                .collect();
+            ids.dedup();
+            ids.len()
+        };
+        assert!(
+            cars(&city) > cars(&town) * 3 / 2,
+            "{} {}",
+            cars(&city),
+            cars(&town)
+        );
+        // The street climbs ahead and falls behind, metres within 40 m of the start, and the
+        // block tilts across it.
+        let h = |scene: &Scene, s: f64, d: f64| {
+            let (p, _) = scene.place(s, d);
+            scene.height(p.x, p.y)
+        };
+        let along = || (-40..=40).map(|s| h(&city, f64::from(s), -1.75));
+        let (fall, rise) = (
+            along().fold(f64::NAN, f64::min),
+            along().fold(f64::NAN, f64::max),
+        );
+        assert!(rise - fall > 2.5, "{fall} {rise}");
+        assert!((h(&city, 0.0, 30.0) - h(&city, 0.0, -30.0)).abs() > 2.0);
     }
 
     #[test]
