@@ -32,8 +32,67 @@ pub struct SegmenterConfig {
     pub mount_check: MountCheckConfig,
     /// Uncertain points at the height of confident ground next to them become ground.
     pub continuity: ContinuityConfig,
+    /// Points at the height of the terrain the confident ground traces are raised, ground
+    /// standing above it lowered.
+    pub terrain: TerrainConfig,
     /// The map from the equation's value to a calibrated probability.
     pub probability: ProbabilityConfig,
+}
+
+/// Terrain following, a step after continuity (docs/algorithm.md, "Terrain following"):
+/// the confident ground's height in narrow sectors, walked outward from the sensor's foot
+/// with a bounded grade, raises the points at its height and lowers ground standing above
+/// it (the lower parts of cars).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TerrainConfig {
+    /// Off (the default, and every preset's but `pandar64`'s for now): the probabilities
+    /// as continuity left them.
+    pub enabled: bool,
+    /// Sectors around the sensor.
+    pub sectors: u32,
+    /// Depth of a cell along its sector (m).
+    pub cell: f64,
+    /// A point's weight in a cell's height ramps from 0 at the first probability to 1 at
+    /// the second (as continuity's `confident`).
+    pub confident: [f64; 2],
+    /// Confident weight a cell needs to be trusted fully (half of it to count at all).
+    pub support: f64,
+    /// Steepest grade the terrain follows (rise over run).
+    pub grade: f64,
+    /// A cell's height continues the terrain if within this (m) plus `grade` times the run
+    /// of the height predicted from the cells nearer the sensor.
+    pub step: f64,
+    /// Past the last cell of confident ground the terrain carries on at its grade, trusted
+    /// less and less, for this far (m).
+    pub gap: f64,
+    /// A point within the first height of the terrain (m) is raised fully, none beyond
+    /// the second.
+    pub tolerance: [f64; 2],
+    /// Ground standing above the terrain is lowered: not at all below the first height
+    /// (m), fully to 0 from the second; only in cells whose own confident ground is the
+    /// terrain (carried on past them, a curving slope would read as ground above it).
+    pub veto: [f64; 2],
+    /// What a point at the terrain's height, fully trusted, rises to.
+    pub probability: f64,
+}
+
+impl Default for TerrainConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            sectors: 180,
+            cell: 1.0,
+            confident: [0.6, 0.75],
+            support: 3.0,
+            grade: 0.15,
+            step: 0.1,
+            gap: 10.0,
+            tolerance: [0.05, 0.1],
+            veto: [0.15, 0.25],
+            probability: 0.8,
+        }
+    }
 }
 
 /// Calibrated output (`crate::probability`): a monotone map from the equation's value to
@@ -684,6 +743,47 @@ impl SegmenterConfig {
             ));
         }
         self.probability.validate()?;
+        let t = &self.terrain;
+        let cells = self.zones.max_range / t.cell * f64::from(t.sectors);
+        let fits = (4..=4096).contains(&t.sectors)
+            && (0.1..=10.0).contains(&t.cell)
+            && cells <= (1u64 << 22) as f64;
+        if !fits {
+            return Err(ConfigError::invalid(
+                "terrain.sectors / terrain.cell",
+                "sectors in 4..=4096, cell in [0.1, 10] m, at most 2^22 cells out to \
+                 zones.max_range",
+            ));
+        }
+        for (name, [a, b]) in [
+            ("terrain.confident", t.confident),
+            ("terrain.tolerance", t.tolerance),
+            ("terrain.veto", t.veto),
+        ] {
+            if !(a.is_finite() && b.is_finite() && a >= 0.0 && a < b) {
+                return Err(ConfigError::invalid(
+                    name,
+                    "must be [from, to] with 0 ≤ from < to",
+                ));
+            }
+        }
+        if t.tolerance[1] > t.veto[0] {
+            return Err(ConfigError::invalid(
+                "terrain.tolerance / terrain.veto",
+                "the raised band must end at or below where the lowered one begins",
+            ));
+        }
+        for (name, v, hi) in [
+            ("terrain.support", t.support, 1e6),
+            ("terrain.grade", t.grade, 1.0),
+            ("terrain.step", t.step, 10.0),
+            ("terrain.gap", t.gap, 1000.0),
+            ("terrain.probability", t.probability, 1.0),
+        ] {
+            if !(v.is_finite() && v >= 0.0 && v <= hi) {
+                return Err(ConfigError::invalid(name, &format!("must be in [0, {hi}]")));
+            }
+        }
         let h = &self.height_filter;
         if !(h.smoothing > 0.0 && h.smoothing <= 1.0) {
             return Err(ConfigError::invalid(
@@ -1328,6 +1428,28 @@ mod tests {
         c.continuity.height_cutoff = c.continuity.height_tolerance;
         let e = c.validate().unwrap_err().to_string();
         assert!(e.contains("continuity.height_cutoff"), "{e}");
+    }
+
+    #[test]
+    fn a_terrain_whose_bands_meet_or_that_would_take_gigabytes_is_refused() {
+        let mut c = SegmenterConfig::default();
+        c.terrain.tolerance = [0.05, 0.2];
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("terrain.tolerance / terrain.veto"), "{e}");
+        let mut c = SegmenterConfig::default();
+        c.terrain.sectors = 4096;
+        c.terrain.cell = 0.1;
+        c.zones.max_range = 200.0;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("terrain.sectors"), "{e}");
+        let mut c = SegmenterConfig::default();
+        c.terrain.grade = f64::NAN;
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("terrain.grade")
+        );
     }
 
     #[test]

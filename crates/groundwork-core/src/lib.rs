@@ -59,6 +59,7 @@ pub mod probability;
 pub mod query;
 pub mod segmenter;
 mod simd;
+mod terrain;
 pub mod zones;
 
 pub use config::{SegmenterConfig, mount_transform};

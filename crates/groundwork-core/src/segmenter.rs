@@ -23,6 +23,7 @@ use crate::point::{PointXyz, Pose, check_finite};
 use crate::probability::ProbabilityMap;
 use crate::query::{OutputTally, QueryFrame, QueryRules, QueryScratch, query_grouped};
 use crate::simd::LANES;
+use crate::terrain::{TerrainChange, TerrainScratch, follow_terrain};
 use crate::zones::NEAR;
 use crate::zones::{LaneBinner, ZoneModel};
 
@@ -142,6 +143,7 @@ pub struct Segmenter {
     sorted: SegmentedPoints,
     query_scratch: QueryScratch,
     continuity: ContinuityScratch,
+    terrain: TerrainScratch,
     /// Layouts 1.. of `zones.layouts` (`SegmenterConfig::layout`), each a whole segmenter
     /// with its own history, and their probabilities of the current scan.
     layouts: Vec<(Segmenter, Vec<f32>)>,
@@ -178,6 +180,7 @@ impl Segmenter {
             sorted: SegmentedPoints::default(),
             query_scratch: QueryScratch::default(),
             continuity: ContinuityScratch::default(),
+            terrain: TerrainScratch::default(),
         })
     }
 
@@ -306,6 +309,7 @@ impl Segmenter {
         self.group(true);
         self.query_frames(model, None, out);
         self.continue_ground(model, out);
+        self.follow_terrain(out);
         self.calibrate_output(out);
         Ok(())
     }
@@ -326,6 +330,7 @@ impl Segmenter {
         let pose = (self.pose_jump(pose).is_none()).then_some(pose);
         let (frames, _) = self.query_frames(model, pose, out);
         self.continue_ground(model, out);
+        self.follow_terrain(out);
         self.calibrate_output(out);
         Ok(frames)
     }
@@ -384,6 +389,20 @@ impl Segmenter {
             out,
             self.cfg.ground.ground_threshold,
             &mut self.continuity,
+        )
+    }
+
+    /// Terrain following (after continuity): see `crate::terrain`.
+    fn follow_terrain(&mut self, out: &mut [f32]) -> TerrainChange {
+        let n = out.len();
+        let g = &self.ground;
+        follow_terrain(
+            &self.cfg.terrain,
+            self.cfg.zones.max_range,
+            (&g.x[..n], &g.y[..n], &g.z[..n]),
+            out,
+            self.cfg.ground.ground_threshold,
+            &mut self.terrain,
         )
     }
 
@@ -547,6 +566,9 @@ impl Segmenter {
         let (frames, tally) = self.query_frames(&model, pose, out);
         // Continuity: ground that continues from confident ground is raised to it.
         let lifted = self.continue_ground(&model, out);
+        // Terrain: the confident ground's terrain raises the points at its height and
+        // lowers ground standing above it.
+        let terrain = self.follow_terrain(out);
         // History: this scan's model, kept for the next scans' queries.
         match pose {
             Some(pose) => self.remember(model, pose),
@@ -554,7 +576,7 @@ impl Segmenter {
         }
         report.query_time = queried.elapsed();
         report.frames_queried = frames;
-        self.finish_output(&mut report, tally, lifted, out);
+        self.finish_output(&mut report, tally, lifted, terrain, out);
         // The corrected mount from the next scan on: this scan was binned, queried and
         // stored in the history on the mount it was fitted with.
         if let Some(m) = mount {
@@ -660,9 +682,10 @@ impl Segmenter {
         report: &mut FrameReport,
         tally: OutputTally,
         lifted: usize,
+        terrain: TerrainChange,
         out: &mut [f32],
     ) {
-        report.ground_points = tally.ground + lifted;
+        report.ground_points = tally.ground + lifted + terrain.raised - terrain.lowered;
         let non_finite = tally.non_finite as u64;
         if non_finite > 0 {
             for p in out.iter_mut().filter(|p| !p.is_finite()) {

@@ -1,0 +1,301 @@
+//! Terrain following: a step after ground continuity, where the papers are silent
+//! (docs/algorithm.md, "Terrain following"; issue 89).
+//!
+//! Continuity reaches a metre; beyond 20 m the rings of a scan lie further apart than that,
+//! and there most missed ground lies where a segment's mixture has no ground-like component
+//! at the point's height at all (one beam's arc, a component over road and kerb), or where
+//! a component metres below the road (a reflection) has become the segment's reference. On
+//! a steep city street most of the ground lost is of that kind, and the lower parts of
+//! parked cars are called ground because the component they share with the road has its
+//! mean near the road (docs/dev/real-sensors-notes.md).
+//!
+//! Here the scan's confident ground gives the terrain: in narrow sectors around the
+//! sensor, cells a metre deep hold the weighted mean height of the confident ground in
+//! them; walking each sector outward from the sensor's foot, a cell's height is the
+//! terrain where it continues the terrain nearer the sensor (its grade bounded), and where
+//! a cell has no confident ground the terrain carries on at its last grade for a few
+//! metres, trusted less with distance. Then a point the mixtures leave below the threshold
+//! that lies at the terrain's height is raised towards ground, and a point called ground
+//! that stands clearly above the terrain (a car's skirt, a wall's foot) is lowered.
+//!
+//! Stable as continuity is: the sums are integers (exact in any order), the per-point rules
+//! are ramps.
+
+use crate::config::TerrainConfig;
+use crate::fastmath::round_i32;
+
+/// Fixed-point scale of a confident point's weight (a weight of 1 is 2¹⁶).
+const WEIGHT_ONE: f64 = 65_536.0;
+/// Fixed-point scale of heights (2⁻¹⁶ m).
+const HEIGHT_ONE: f64 = 65_536.0;
+/// Heights are clamped to ±this (m) before the fixed-point sum (no sum can wrap).
+const HEIGHT_CLAMP: f64 = 512.0;
+
+/// The terrain of one scan, kept between scans for its buffers.
+#[derive(Debug, Default, Clone)]
+pub(crate) struct TerrainScratch {
+    /// Per cell: Σ weight, Σ weight · height (fixed point).
+    sums: Vec<[i64; 2]>,
+    /// The same over the points at or below their cell's mean.
+    lower: Vec<[i64; 2]>,
+    /// Per cell: the terrain's height, how far it is trusted to raise points (0: no
+    /// terrain) and to lower them (only where the cell's own confident ground is the
+    /// terrain: carried on past it, a curving slope would read as ground above it).
+    terrain: Vec<[f32; 3]>,
+    /// Per point: its cell (`u32::MAX`: none).
+    cells: Vec<u32>,
+}
+
+/// Rises from 0 at `a` to 1 at `b`.
+#[inline(always)]
+fn rise(v: f64, [a, b]: [f64; 2]) -> f64 {
+    ((v - a) / (b - a)).clamp(0.0, 1.0)
+}
+
+/// A monotone stand-in for the azimuth in [0, 4) (no trigonometry): the "diamond angle".
+#[inline(always)]
+fn diamond_angle(x: f64, y: f64) -> f64 {
+    if y >= 0.0 {
+        if x >= 0.0 {
+            y / (x + y)
+        } else {
+            1.0 - x / (-x + y)
+        }
+    } else if x < 0.0 {
+        2.0 - y / (-x - y)
+    } else {
+        3.0 + x / (x - y)
+    }
+}
+
+/// Points changed across the threshold by the terrain: raised to ground, lowered from it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(crate) struct TerrainChange {
+    pub raised: usize,
+    pub lowered: usize,
+}
+
+/// Follows the terrain of one scan (points in the ground-aligned frame, input order, with
+/// their probabilities in `out`) out to `max_range`, raising and lowering as the module
+/// says. `threshold` is the decision threshold on `out`.
+pub(crate) fn follow_terrain(
+    cfg: &TerrainConfig,
+    max_range: f64,
+    (x, y, z): (&[f64], &[f64], &[f64]),
+    out: &mut [f32],
+    threshold: f32,
+    scratch: &mut TerrainScratch,
+) -> TerrainChange {
+    let mut change = TerrainChange::default();
+    if !cfg.enabled || out.is_empty() {
+        return change;
+    }
+    let sectors = cfg.sectors as usize;
+    let bins = ((max_range / cfg.cell).ceil() as usize).max(1);
+    let cells = sectors * bins;
+    scratch.sums.clear();
+    scratch.sums.resize(cells, [0, 0]);
+    scratch.terrain.clear();
+    scratch.terrain.resize(cells, [0.0; 3]);
+    scratch.cells.clear();
+    scratch.cells.reserve(out.len());
+    let per_sector = sectors as f64 / 4.0;
+    let inv_cell = 1.0 / cfg.cell;
+    let [c0, c1] = cfg.confident;
+    // Cells, and the confident ground's sums.
+    let mut weights = Vec::with_capacity(out.len());
+    for (((&px, &py), &pz), &p) in x.iter().zip(y).zip(z).zip(out.iter()) {
+        let r = (px * px + py * py).sqrt();
+        // NaN fails the comparison: no cell.
+        let cell = if r >= cfg.cell * 0.5 && r < max_range {
+            let q = ((diamond_angle(px, py) * per_sector) as usize).min(sectors - 1);
+            let b = ((r * inv_cell) as usize).min(bins - 1);
+            (q * bins + b) as u32
+        } else {
+            u32::MAX
+        };
+        scratch.cells.push(cell);
+        let c = rise(f64::from(p), [c0, c1]);
+        let w = if cell != u32::MAX {
+            round_i32(c * WEIGHT_ONE)
+        } else {
+            0
+        };
+        let h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
+        weights.push((w, h));
+        if w > 0 {
+            let s = &mut scratch.sums[cell as usize];
+            s[0] += i64::from(w);
+            s[1] += i64::from(w) * i64::from(h);
+        }
+    }
+    // The lower mean: again over the confident points at or below their cell's mean, so
+    // that the few returns of a car's skirt among a cell's road do not lift it (the
+    // confident ground of a cell is mostly road; what stands on it is above).
+    scratch.lower.clear();
+    scratch.lower.resize(cells, [0, 0]);
+    for (&cell, &(w, h)) in scratch.cells.iter().zip(&weights) {
+        if w > 0 {
+            let [sw, swh] = scratch.sums[cell as usize];
+            // h ≤ swh / sw, in integers (sw > 0).
+            if i128::from(h) * i128::from(sw) <= i128::from(swh) {
+                let l = &mut scratch.lower[cell as usize];
+                l[0] += i64::from(w);
+                l[1] += i64::from(w) * i64::from(h);
+            }
+        }
+    }
+    // Each sector, outward from the sensor's foot (height 0 in the ground-aligned frame).
+    for q in 0..sectors {
+        let row = q * bins;
+        let (mut last_b, mut last_h, mut slope) = (-0.5f64, 0.0f64, 0.0f64);
+        for b in 0..bins {
+            let [w, _] = scratch.sums[row + b];
+            let [lw, lwh] = scratch.lower[row + b];
+            let centre = (b as f64 + 0.5) * cfg.cell;
+            let run = centre - last_b * cfg.cell;
+            let predicted = last_h + slope * run;
+            let weight = w as f64 / WEIGHT_ONE;
+            let support = rise(weight, [0.0, cfg.support]);
+            let seen = (lw > 0).then(|| lwh as f64 / lw as f64 / HEIGHT_ONE);
+            let continues = seen.filter(|h| (h - predicted).abs() <= cfg.step + cfg.grade * run);
+            scratch.terrain[row + b] = match continues {
+                Some(h) if weight >= cfg.support * 0.5 => {
+                    let grade = ((h - last_h) / run).clamp(-cfg.grade, cfg.grade);
+                    slope = 0.7 * slope + 0.3 * grade;
+                    (last_b, last_h) = (b as f64 + 0.5, h);
+                    [h as f32, support as f32, support as f32]
+                }
+                _ => {
+                    let gap = run - 0.5 * cfg.cell;
+                    let trust = 1.0 - rise(gap, [0.0, cfg.gap]);
+                    [predicted as f32, trust as f32, 0.0]
+                }
+            };
+        }
+    }
+    // Raise the points at the terrain's height, lower those standing above it. The two
+    // bands never meet (`tolerance` ends below where `veto` begins), so one formula serves
+    // every point, continuous in its probability.
+    let [t0, t1] = cfg.tolerance;
+    let [v0, v1] = cfg.veto;
+    for (i, p) in out.iter_mut().enumerate() {
+        let cell = scratch.cells[i];
+        if cell == u32::MAX {
+            continue;
+        }
+        let [h, trust, seen] = scratch.terrain[cell as usize];
+        if trust <= 0.0 {
+            continue;
+        }
+        let above = z[i] - f64::from(h);
+        let trust = f64::from(trust);
+        let old = *p;
+        let matched = 1.0 - rise(above.abs(), [t0, t1]);
+        let raised = f64::from(old).max(cfg.probability * matched * trust);
+        let new = (raised * (1.0 - f64::from(seen) * rise(above, [v0, v1]))) as f32;
+        if new != old {
+            change.raised += usize::from(old < threshold && new >= threshold);
+            change.lowered += usize::from(old >= threshold && new < threshold);
+            *p = new;
+        }
+    }
+    change
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A road falling at 5 % away from the sensor along +x, 4 m wide, a point every 0.25 m
+    /// out to 45 m: confident (0.9) out to 20 m, left at 0 beyond (the mixtures lost it);
+    /// and a car's skirt 0.3 m above the road at 12 m, called ground (0.9).
+    fn street() -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f32>, usize) {
+        let (mut x, mut y, mut z, mut p) = (vec![], vec![], vec![], vec![]);
+        for i in 8..180 {
+            for j in -8..=8 {
+                let r = f64::from(i) * 0.25;
+                x.push(r);
+                y.push(f64::from(j) * 0.25);
+                z.push(-0.05 * r);
+                p.push(if r < 20.0 { 0.9 } else { 0.0 });
+            }
+        }
+        let skirt = x.len();
+        // A beam's few returns off the skirt, among the road's many in its cells.
+        for k in 0..6 {
+            let r = 12.0 + f64::from(k) * 0.4;
+            x.push(r);
+            y.push(0.6);
+            z.push(-0.05 * r + 0.3);
+            p.push(0.9);
+        }
+        (x, y, z, p, skirt)
+    }
+
+    fn run(
+        cfg: &TerrainConfig,
+        (x, y, z): (&[f64], &[f64], &[f64]),
+        p: &mut [f32],
+    ) -> TerrainChange {
+        follow_terrain(cfg, 80.0, (x, y, z), p, 0.5, &mut TerrainScratch::default())
+    }
+
+    #[test]
+    fn the_far_ground_rises_and_a_skirt_above_the_road_falls() {
+        let (x, y, z, mut p, skirt) = street();
+        let cfg = TerrainConfig {
+            enabled: true,
+            ..TerrainConfig::default()
+        };
+        let change = run(&cfg, (&x, &y, &z), &mut p);
+        // Past the confident road the lost road rises, trusted less with each metre of the
+        // gap (10 m): to ground for the first few metres, towards it up to 30 m, and not
+        // beyond.
+        let at = |lo: f64, hi: f64| -> Vec<f32> {
+            (0..skirt)
+                .filter(|&i| x[i] >= lo && x[i] < hi)
+                .map(|i| p[i])
+                .collect()
+        };
+        assert!(
+            at(20.0, 23.0).iter().all(|&v| v >= 0.5),
+            "{:?}",
+            at(20.0, 23.0)
+        );
+        assert!(at(24.0, 30.0).iter().all(|&v| v > 0.0 && v < 0.5));
+        assert!(at(31.0, 45.0).iter().all(|&v| v == 0.0));
+        assert!(p[skirt..].iter().all(|&v| v < 0.5), "{:?}", &p[skirt..]);
+        assert!(change.raised > 100 && change.lowered == 6, "{change:?}");
+        // Off: nothing moves.
+        let (x, y, z, mut q, _) = street();
+        let before = q.clone();
+        let off = TerrainConfig::default();
+        assert_eq!(run(&off, (&x, &y, &z), &mut q), TerrainChange::default());
+        assert_eq!(q, before);
+    }
+
+    #[test]
+    fn a_permuted_scan_gives_the_same_probabilities_permuted() {
+        let (x, y, z, p, _) = street();
+        let cfg = TerrainConfig {
+            enabled: true,
+            ..TerrainConfig::default()
+        };
+        let mut want = p.clone();
+        run(&cfg, (&x, &y, &z), &mut want);
+        // Reversed, and every third point moved to the front.
+        let order: Vec<usize> = (0..x.len())
+            .rev()
+            .filter(|i| i % 3 == 0)
+            .chain((0..x.len()).filter(|i| i % 3 != 0))
+            .collect();
+        let pick = |v: &[f64]| order.iter().map(|&i| v[i]).collect::<Vec<_>>();
+        let (px, py, pz) = (pick(&x), pick(&y), pick(&z));
+        let mut got: Vec<f32> = order.iter().map(|&i| p[i]).collect();
+        run(&cfg, (&px, &py, &pz), &mut got);
+        for (k, &i) in order.iter().enumerate() {
+            assert_eq!(got[k].to_bits(), want[i].to_bits(), "point {i}");
+        }
+    }
+}
