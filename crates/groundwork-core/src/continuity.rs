@@ -23,12 +23,12 @@ use crate::model::FrameModel;
 use crate::zones::{BEYOND, NEAR};
 
 /// Fixed-point scale of a confident point's weight (a weight of 1 is 2¹⁶).
-const WEIGHT_ONE: f64 = 65_536.0;
+pub(crate) const WEIGHT_ONE: f64 = 65_536.0;
 /// Fixed-point scale of heights (2⁻¹⁶ m, 15 µm: far below any tolerance).
-const HEIGHT_ONE: f64 = 65_536.0;
+pub(crate) const HEIGHT_ONE: f64 = 65_536.0;
 /// Heights are clamped to ±this (m) before the fixed-point sum, so that no sum can wrap
 /// for any scan the segmenter accepts (2⁹ m · 2¹⁶ · 2¹⁶ per point, 2²⁰ points: < 2⁶¹).
-const HEIGHT_CLAMP: f64 = 512.0;
+pub(crate) const HEIGHT_CLAMP: f64 = 512.0;
 
 /// The grid of one scan, kept between scans.
 #[derive(Debug, Default, Clone)]
@@ -81,7 +81,7 @@ impl Elevation<'_> {
 
 /// Rises from 0 at `a` to 1 at `b`.
 #[inline(always)]
-fn rise(v: f64, [a, b]: [f64; 2]) -> f64 {
+pub(crate) fn rise(v: f64, [a, b]: [f64; 2]) -> f64 {
     ((v - a) / (b - a)).clamp(0.0, 1.0)
 }
 

@@ -22,14 +22,9 @@
 //! are ramps.
 
 use crate::config::TerrainConfig;
+// The same fixed point and ramps as continuity's: weights and heights in 2⁻¹⁶.
+use crate::continuity::{HEIGHT_CLAMP, HEIGHT_ONE, WEIGHT_ONE, rise};
 use crate::fastmath::round_i32;
-
-/// Fixed-point scale of a confident point's weight (a weight of 1 is 2¹⁶).
-const WEIGHT_ONE: f64 = 65_536.0;
-/// Fixed-point scale of heights (2⁻¹⁶ m).
-const HEIGHT_ONE: f64 = 65_536.0;
-/// Heights are clamped to ±this (m) before the fixed-point sum (no sum can wrap).
-const HEIGHT_CLAMP: f64 = 512.0;
 
 /// The terrain of one scan, kept between scans for its buffers.
 #[derive(Debug, Default, Clone)]
@@ -44,12 +39,6 @@ pub(crate) struct TerrainScratch {
     terrain: Vec<[f32; 3]>,
     /// Per point: its cell (`u32::MAX`: none).
     cells: Vec<u32>,
-}
-
-/// Rises from 0 at `a` to 1 at `b`.
-#[inline(always)]
-fn rise(v: f64, [a, b]: [f64; 2]) -> f64 {
-    ((v - a) / (b - a)).clamp(0.0, 1.0)
 }
 
 /// A monotone stand-in for the azimuth in [0, 4) (no trigonometry): the "diamond angle".
