@@ -1066,9 +1066,9 @@ fn an_installed_binary_runs_from_anywhere_and_finds_its_samples_beside_it() {
 /// (`zones.scale_with_height`), it scales the first two inner boundaries by the height found
 /// over the preset's (about 0.44), for the Pandar64, whose scaling gains nothing with summary
 /// cells, it leaves them. The file loads over the preset, and the labels (used here only to
-/// score) say it segments better than the mount alone (`--keep-zones`): measured on 12 scans,
-/// +1.53 for the HDL-32E and +0.83 for the Pandar64 (scaled too: −0.36); since the Pandar64
-/// preset follows the terrain, −0.42 for it (below).
+/// score) compare it with the mount alone (`--keep-zones`): measured on 12 scans,
+/// +1.53 for the HDL-32E, and for the Pandar64, whose preset follows the terrain, −0.42
+/// (below).
 #[test]
 fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1165,9 +1165,9 @@ fn calibrate_moves_the_near_edge_in_for_a_low_mount() {
             "{sensor} single-frame IoU: zones moved {:.2}, mount only {:.2}",
             iou[0], iou[1]
         );
-        // The Pandar64 gained 0.83 before its preset followed the terrain (2026-12-07);
-        // with it, the mount alone does as well or better (−0.42 measured): the moved edge
-        // must not cost more than that (docs/dev/real-sensors-notes.md).
+        // With the Pandar64 preset following the terrain, the mount alone does as well or
+        // better (−0.42 measured): the moved edge must not cost more than that
+        // (docs/dev/real-sensors-notes.md has the history).
         let gain = if scaled { 1.0 } else { -0.6 };
         assert!(iou[0] > iou[1] + gain, "{sensor} {iou:?}");
     }

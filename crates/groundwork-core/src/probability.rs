@@ -149,9 +149,8 @@ pub fn fit_map(samples: &[(f32, bool)], knots: usize) -> Vec<f32> {
     for k in 1..knots {
         values[k] = values[k].max(values[k - 1] + STEP);
     }
-    let top = 1.0;
     for k in (0..knots).rev() {
-        let cap = top - STEP * (knots - 1 - k) as f64;
+        let cap = 1.0 - STEP * (knots - 1 - k) as f64;
         values[k] = values[k].min(cap);
     }
     values

@@ -39,6 +39,8 @@ pub(crate) struct TerrainScratch {
     terrain: Vec<[f32; 3]>,
     /// Per point: its cell (`u32::MAX`: none).
     cells: Vec<u32>,
+    /// Per point: its confident weight and height, fixed point (for the lower mean).
+    weights: Vec<(i32, i32)>,
 }
 
 /// A monotone stand-in for the azimuth in [0, 4) (no trigonometry): the "diamond angle".
@@ -92,7 +94,8 @@ pub(crate) fn follow_terrain(
     let inv_cell = 1.0 / cfg.cell;
     let [c0, c1] = cfg.confident;
     // Cells, and the confident ground's sums.
-    let mut weights = Vec::with_capacity(out.len());
+    scratch.weights.clear();
+    scratch.weights.reserve(out.len());
     for (((&px, &py), &pz), &p) in x.iter().zip(y).zip(z).zip(out.iter()) {
         let r = (px * px + py * py).sqrt();
         // NaN fails the comparison: no cell.
@@ -111,7 +114,7 @@ pub(crate) fn follow_terrain(
             0
         };
         let h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
-        weights.push((w, h));
+        scratch.weights.push((w, h));
         if w > 0 {
             let s = &mut scratch.sums[cell as usize];
             s[0] += i64::from(w);
@@ -123,7 +126,7 @@ pub(crate) fn follow_terrain(
     // confident ground of a cell is mostly road; what stands on it is above).
     scratch.lower.clear();
     scratch.lower.resize(cells, [0, 0]);
-    for (&cell, &(w, h)) in scratch.cells.iter().zip(&weights) {
+    for (&cell, &(w, h)) in scratch.cells.iter().zip(&scratch.weights) {
         if w > 0 {
             let [sw, swh] = scratch.sums[cell as usize];
             // h ≤ swh / sw, in integers (sw > 0).
