@@ -507,6 +507,8 @@ pub struct ParamFit {
     pub too_few_trusted_points: bool,
     /// `ParamSearchConfig::min_trusted_points` of the fit.
     pub trusted_points_needed: u64,
+    /// `ParamSearchConfig::min_held_out_gain` of the fit.
+    pub held_out_gain_needed: f64,
     /// Every round's agreement, the preset's first.
     pub history: Vec<RoundScore>,
     /// Only points within this horizontal distance of the sensor (m) were counted: where
@@ -761,6 +763,7 @@ pub fn fit_parameters(
         trusted_points_per_scan,
         too_few_trusted_points,
         trusted_points_needed: cfg.min_trusted_points,
+        held_out_gain_needed: cfg.min_held_out_gain,
         history,
         trusted_range,
         ring_agreement: by_ring

@@ -192,8 +192,10 @@ fn params_text(base: &SegmenterConfig, fit: &ParamFit) -> String {
             "# The PseudoLabeler called nothing ground there: the preset's parameters are kept.\n"
                 .to_owned()
         } else {
-            "# No change agreed better with the held-out scans: the preset's parameters are kept.\n"
-                .to_owned()
+            comment_lines(&format!(
+                "The preset's parameters are kept: {}.",
+                not_better_words(fit)
+            ))
         };
         return s;
     }
@@ -214,6 +216,35 @@ fn too_few_words(fit: &ParamFit) -> String {
          needed): too few to fit to",
         fit.trusted_points_per_scan, fit.trusted_range, fit.trusted_points_needed
     )
+}
+
+/// Why a search that ran kept the preset's parameters, in a sentence with its figures: no
+/// change gained on the fitted scans, or the best round's gain on the held-out scans was
+/// below the bar (and what the bar is for).
+fn not_better_words(fit: &ParamFit) -> String {
+    let before = fit.held_out_before.iou();
+    let best = fit
+        .history
+        .iter()
+        .skip(1)
+        .max_by(|a, b| a.held_out_iou.total_cmp(&b.held_out_iou));
+    match best {
+        None => "no change agreed better with the labels of the fitted scans".to_owned(),
+        Some(b) => format!(
+            "the fit agreed {:+.2} points with the held-out scans at best ({before:.2} -> {:.2}, \
+             round {}), {} {} needed; fits below that bar lost against the truth as often as \
+             they gained (docs/calibration.md)",
+            b.held_out_iou - before,
+            b.held_out_iou,
+            b.round,
+            if b.held_out_iou - before > 0.0 {
+                "less than the"
+            } else {
+                "not the"
+            },
+            fit.held_out_gain_needed,
+        ),
+    }
 }
 
 /// Whether the PseudoLabeler's labels of the sample hold no ground within the trusted range:
@@ -262,7 +293,7 @@ fn params_summary(fit: &ParamFit) -> String {
              below the road: docs/offline-labels.md)\n"
                 .to_owned()
         } else {
-            "  kept the preset's: no change agreed better with the held-out scans\n".to_owned()
+            format!("  kept the preset's: {}\n", not_better_words(fit))
         };
     }
     for c in &fit.changed {
@@ -453,6 +484,7 @@ mod tests {
             trusted_points_per_scan: 0.0,
             too_few_trusted_points: false,
             trusted_points_needed: 500,
+            held_out_gain_needed: 2.5,
             history: Vec::new(),
             trusted_range: 10.0,
             ring_agreement: vec![0.0],
@@ -468,7 +500,36 @@ mod tests {
             ..fit
         };
         assert!(params_summary(&fit).contains("no change agreed better"));
-        assert!(params_text(&base, &fit).contains("No change agreed better"));
+        assert!(params_text(&base, &fit).contains("no change agreed better"));
+        // A search whose best round gained too little on the held-out scans: said with
+        // the figures and the bar.
+        let b = fit.held_out_before.iou();
+        let round = |round, held_out_iou| crate::RoundScore {
+            round,
+            fitted_iou: 90.0,
+            held_out_iou,
+        };
+        let short = ParamFit {
+            history: vec![round(0, b), round(1, b + 0.5), round(2, b + 0.73)],
+            held_out_gain_needed: 2.5,
+            ..fit.clone()
+        };
+        let said = params_summary(&short);
+        assert!(
+            said.contains("+0.73 points")
+                && said.contains("round 2")
+                && said.contains("2.5 needed"),
+            "{said}"
+        );
+        let text = params_text(&base, &short);
+        assert!(
+            text.contains("+0.73 points")
+                && text
+                    .lines()
+                    .skip_while(|l| !l.starts_with("# The preset's parameters are kept"))
+                    .all(|l| l.starts_with("# ") && l.len() <= 92),
+            "{text}"
+        );
         // Too few trusted points: said with the figures.
         let sparse = ParamFit {
             trusted_points_per_scan: 115.4,

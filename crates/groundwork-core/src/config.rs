@@ -70,8 +70,10 @@ pub struct TerrainConfig {
     /// the second.
     pub tolerance: [f64; 2],
     /// Ground standing above the terrain is lowered: not at all below the first height
-    /// (m), fully to 0 from the second; only in cells whose own confident ground is the
-    /// terrain (carried on past them, a curving slope would read as ground above it).
+    /// (m), fully to 0 from the second. Past the last cell of confident ground both
+    /// heights grow by `step` and by what a change from the steepest fall to the steepest
+    /// climb (twice `grade`) rises over the gap, so that a slope starting to rise is not
+    /// lowered while a car's hood over hidden road is.
     pub veto: [f64; 2],
     /// What a point at the terrain's height, fully trusted, rises to.
     pub probability: f64,

@@ -34,9 +34,11 @@ pub(crate) struct TerrainScratch {
     /// The same over the points at or below their cell's mean.
     lower: Vec<[i64; 2]>,
     /// Per cell: the terrain's height, how far it is trusted to raise points (0: no
-    /// terrain) and to lower them (only where the cell's own confident ground is the
-    /// terrain: carried on past it, a curving slope would read as ground above it).
-    terrain: Vec<[f32; 3]>,
+    /// terrain) and to lower them, and how high above it the ground could be (0 where the
+    /// cell's own confident ground is the terrain; carried on past it, what the terrain
+    /// could rise over the gap, so that a slope that starts to climb is not lowered while
+    /// a car's hood where the road is hidden is).
+    terrain: Vec<[f32; 4]>,
     /// Per point: its cell (`u32::MAX`: none).
     cells: Vec<u32>,
     /// Per point: its confident weight and height, fixed point (for the lower mean).
@@ -87,7 +89,7 @@ pub(crate) fn follow_terrain(
     scratch.sums.clear();
     scratch.sums.resize(cells, [0, 0]);
     scratch.terrain.clear();
-    scratch.terrain.resize(cells, [0.0; 3]);
+    scratch.terrain.resize(cells, [0.0; 4]);
     scratch.cells.clear();
     scratch.cells.reserve(out.len());
     let per_sector = sectors as f64 / 4.0;
@@ -156,12 +158,15 @@ pub(crate) fn follow_terrain(
                     let grade = ((h - last_h) / run).clamp(-cfg.grade, cfg.grade);
                     slope = 0.7 * slope + 0.3 * grade;
                     (last_b, last_h) = (b as f64 + 0.5, h);
-                    [h as f32, support as f32, support as f32]
+                    [h as f32, support as f32, support as f32, 0.0]
                 }
                 _ => {
                     let gap = run - 0.5 * cfg.cell;
                     let trust = 1.0 - rise(gap, [0.0, cfg.gap]);
-                    [predicted as f32, trust as f32, 0.0]
+                    // How far the ground could have risen since the last confident cell:
+                    // from the steepest fall to the steepest climb over the gap.
+                    let reach = cfg.step + 2.0 * cfg.grade * gap.max(0.0);
+                    [predicted as f32, trust as f32, trust as f32, reach as f32]
                 }
             };
         }
@@ -176,7 +181,7 @@ pub(crate) fn follow_terrain(
         if cell == u32::MAX {
             continue;
         }
-        let [h, trust, seen] = scratch.terrain[cell as usize];
+        let [h, trust, lower, reach] = scratch.terrain[cell as usize];
         if trust <= 0.0 {
             continue;
         }
@@ -185,7 +190,8 @@ pub(crate) fn follow_terrain(
         let old = *p;
         let matched = 1.0 - rise(above.abs(), [t0, t1]);
         let raised = f64::from(old).max(cfg.probability * matched * trust);
-        let new = (raised * (1.0 - f64::from(seen) * rise(above, [v0, v1]))) as f32;
+        let lowered = f64::from(lower) * rise(above - f64::from(reach), [v0, v1]);
+        let new = (raised * (1.0 - lowered)) as f32;
         if new != old {
             change.raised += usize::from(old < threshold && new >= threshold);
             change.lowered += usize::from(old >= threshold && new < threshold);
@@ -220,6 +226,15 @@ mod tests {
             x.push(r);
             y.push(0.6);
             z.push(-0.05 * r + 0.3);
+            p.push(0.9);
+        }
+        // A car beyond the confident road, hiding the road under it: its hood 0.9 m up,
+        // called ground (the segment's lowest component).
+        for k in 0..4 {
+            let r = 20.2 + f64::from(k) * 0.4;
+            x.push(r);
+            y.push(-0.6);
+            z.push(-0.05 * r + 0.9);
             p.push(0.9);
         }
         (x, y, z, p, skirt)
@@ -257,8 +272,10 @@ mod tests {
         );
         assert!(at(24.0, 30.0).iter().all(|&v| v > 0.0 && v < 0.5));
         assert!(at(31.0, 45.0).iter().all(|&v| v == 0.0));
+        // The skirt over seen road, and the hood where the road is hidden: more than the
+        // steepest grade could have climbed since the last confident cell.
         assert!(p[skirt..].iter().all(|&v| v < 0.5), "{:?}", &p[skirt..]);
-        assert!(change.raised > 100 && change.lowered == 6, "{change:?}");
+        assert!(change.raised > 100 && change.lowered == 10, "{change:?}");
         // Off: nothing moves.
         let (x, y, z, mut q, _) = street();
         let before = q.clone();
