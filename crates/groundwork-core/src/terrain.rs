@@ -39,11 +39,16 @@ pub(crate) struct TerrainScratch {
     /// could rise over the gap, so that a slope that starts to climb is not lowered while
     /// a car's hood where the road is hidden is).
     terrain: Vec<[f32; 4]>,
+    /// Gap cells as the terrain beside them changes them (cell, its new terrain).
+    beside: Vec<(usize, [f32; 4])>,
     /// Per point: its cell (`u32::MAX`: none).
     cells: Vec<u32>,
     /// Per point: its confident weight and height, fixed point (for the lower mean).
     weights: Vec<(i32, i32)>,
 }
+
+/// Sectors either way a gap cell looks for confident terrain beside it.
+const LATERAL: usize = 3;
 
 /// A monotone stand-in for the azimuth in [0, 4) (no trigonometry): the "diamond angle".
 #[inline(always)]
@@ -171,6 +176,54 @@ pub(crate) fn follow_terrain(
             };
         }
     }
+    // Beside the gap: a cell past the last confident one of its sector whose neighbouring
+    // sectors (up to `LATERAL` either way) hold confident terrain at the same range (a
+    // parked car hides the road behind it, not beside it): the nearest such terrain raises
+    // as the cell's own would, trusted less with each sector across, and the lowest
+    // ceiling of the two ways (along: the climb over the gap; across: `grade` over the
+    // distance to that sector) is where lowering starts. Only the walk's own cells are
+    // read, so the order the sectors are visited in does not matter.
+    let sector_width = std::f64::consts::TAU / sectors as f64;
+    scratch.beside.clear();
+    for q in 0..sectors {
+        for b in 0..bins {
+            let [h, trust, lower, reach] = scratch.terrain[q * bins + b];
+            if reach <= 0.0 {
+                continue;
+            }
+            let across = (b as f64 + 0.5) * cfg.cell * sector_width;
+            let mut ceiling = (f64::from(h) + f64::from(reach), lower);
+            let mut near: Option<(f32, f32)> = None;
+            for k in 1..=LATERAL {
+                for n in [(q + k) % sectors, (q + sectors - k % sectors) % sectors] {
+                    let [hn, _, support, rn] = scratch.terrain[n * bins + b];
+                    if rn > 0.0 || support <= 0.0 {
+                        continue;
+                    }
+                    let c = f64::from(hn) + cfg.step + cfg.grade * across * k as f64;
+                    if c < ceiling.0 {
+                        ceiling = (c, support);
+                    }
+                    let t = support * (1.0 - k as f32 / (LATERAL + 1) as f32);
+                    // The nearer, then the lower of two at the same distance.
+                    if near.is_none_or(|(hm, tm)| t > tm || (t == tm && hn < hm)) {
+                        near = Some((hn, t));
+                    }
+                }
+            }
+            let (h, trust) = match near {
+                Some((hn, t)) if t > trust => (hn, t),
+                _ => (h, trust),
+            };
+            let reach = (ceiling.0 - f64::from(h)).max(0.0) as f32;
+            scratch
+                .beside
+                .push((q * bins + b, [h, trust, ceiling.1, reach]));
+        }
+    }
+    for &(cell, t) in &scratch.beside {
+        scratch.terrain[cell] = t;
+    }
     // Raise the points at the terrain's height, lower those standing above it. The two
     // bands never meet (`tolerance` ends below where `veto` begins), so one formula serves
     // every point, continuous in its probability.
@@ -282,6 +335,58 @@ mod tests {
         let off = TerrainConfig::default();
         assert_eq!(run(&off, (&x, &y, &z), &mut q), TerrainChange::default());
         assert_eq!(q, before);
+    }
+
+    #[test]
+    fn a_car_hiding_the_road_is_lowered_and_the_road_behind_it_raised_from_beside() {
+        // A flat road seen from 4 to 30 m over ±12°, confident (0.9); straight ahead
+        // (within 1.25°: two sectors) a car at 13–14 m hides it from 10 m on: its hood
+        // 0.9 m up called ground, and the road behind it, from 17 m, lost by the
+        // mixtures (0).
+        let (mut x, mut y, mut z, mut p) = (vec![], vec![], vec![], vec![]);
+        let (mut hood, mut behind) = (vec![], vec![]);
+        for i in -24..=24 {
+            let deg = f64::from(i) * 0.5;
+            let ahead = deg.abs() < 1.25;
+            for j in 16..120 {
+                let r = f64::from(j) * 0.25;
+                let (h, v) = match (ahead, r) {
+                    (true, r) if (13.0..14.0).contains(&r) => {
+                        hood.push(x.len());
+                        (0.9, 0.9)
+                    }
+                    (true, r) if r >= 17.0 => {
+                        behind.push(x.len());
+                        (0.0, 0.0)
+                    }
+                    (true, r) if r >= 10.0 => continue,
+                    _ => (0.0, 0.9),
+                };
+                let a = deg.to_radians();
+                x.push(r * a.cos());
+                y.push(r * a.sin());
+                z.push(h);
+                p.push(v);
+            }
+        }
+        let cfg = TerrainConfig {
+            enabled: true,
+            ..TerrainConfig::default()
+        };
+        // Ahead, the hood is within what the road could have climbed since 10 m, and the
+        // road behind the car is trusted too little to rise: what decides is the road
+        // beside.
+        run(&cfg, (&x, &y, &z), &mut p);
+        assert!(
+            hood.iter().all(|&i| p[i] < 0.5),
+            "{:?}",
+            hood.iter().map(|&i| p[i]).collect::<Vec<_>>()
+        );
+        assert!(
+            behind.iter().all(|&i| p[i] >= 0.5),
+            "{:?}",
+            behind.iter().map(|&i| p[i]).collect::<Vec<_>>()
+        );
     }
 
     #[test]
