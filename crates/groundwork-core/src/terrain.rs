@@ -33,18 +33,32 @@ pub(crate) struct TerrainScratch {
     sums: Vec<[i64; 2]>,
     /// The same over the points at or below their cell's mean.
     lower: Vec<[i64; 2]>,
-    /// Per cell: the terrain's height, how far it is trusted to raise points (0: no
-    /// terrain) and to lower them, and how high above it the ground could be (0 where the
-    /// cell's own confident ground is the terrain; carried on past it, what the terrain
-    /// could rise over the gap, so that a slope that starts to climb is not lowered while
-    /// a car's hood where the road is hidden is).
-    terrain: Vec<[f32; 4]>,
+    /// Per cell: its terrain.
+    terrain: Vec<TerrainCell>,
     /// Gap cells as the terrain beside them changes them (cell, its new terrain).
-    beside: Vec<(usize, [f32; 4])>,
+    beside: Vec<(usize, TerrainCell)>,
     /// Per point: its cell (`u32::MAX`: none).
     cells: Vec<u32>,
     /// Per point: its confident weight and height, fixed point (for the lower mean).
     weights: Vec<(i32, i32)>,
+}
+
+/// One cell's terrain.
+#[derive(Debug, Default, Clone, Copy)]
+struct TerrainCell {
+    /// The terrain's height (m, ground-aligned frame).
+    height: f32,
+    /// How far it is trusted to raise points (0: no terrain).
+    raise: f32,
+    /// How far it is trusted to lower them.
+    lower: f32,
+    /// How high above `height` the ground could be before lowering starts (0 where the
+    /// cell's own confident ground is the terrain; carried on past it, what the terrain
+    /// could rise over the gap, so that a slope that starts to climb is not lowered while
+    /// a car's hood where the road is hidden is).
+    reach: f32,
+    /// The cell's own confident ground continued the terrain (not a gap cell).
+    continued: bool,
 }
 
 /// Sectors either way a gap cell looks for confident terrain beside it.
@@ -94,7 +108,7 @@ pub(crate) fn follow_terrain(
     scratch.sums.clear();
     scratch.sums.resize(cells, [0, 0]);
     scratch.terrain.clear();
-    scratch.terrain.resize(cells, [0.0; 4]);
+    scratch.terrain.resize(cells, TerrainCell::default());
     scratch.cells.clear();
     scratch.cells.reserve(out.len());
     let per_sector = sectors as f64 / 4.0;
@@ -163,7 +177,13 @@ pub(crate) fn follow_terrain(
                     let grade = ((h - last_h) / run).clamp(-cfg.grade, cfg.grade);
                     slope = 0.7 * slope + 0.3 * grade;
                     (last_b, last_h) = (b as f64 + 0.5, h);
-                    [h as f32, support as f32, support as f32, 0.0]
+                    TerrainCell {
+                        height: h as f32,
+                        raise: support as f32,
+                        lower: support as f32,
+                        reach: 0.0,
+                        continued: true,
+                    }
                 }
                 _ => {
                     let gap = run - 0.5 * cfg.cell;
@@ -171,7 +191,13 @@ pub(crate) fn follow_terrain(
                     // How far the ground could have risen since the last confident cell:
                     // from the steepest fall to the steepest climb over the gap.
                     let reach = cfg.step + 2.0 * cfg.grade * gap.max(0.0);
-                    [predicted as f32, trust as f32, trust as f32, reach as f32]
+                    TerrainCell {
+                        height: predicted as f32,
+                        raise: trust as f32,
+                        lower: trust as f32,
+                        reach: reach as f32,
+                        continued: false,
+                    }
                 }
             };
         }
@@ -187,17 +213,18 @@ pub(crate) fn follow_terrain(
     scratch.beside.clear();
     for q in 0..sectors {
         for b in 0..bins {
-            let [h, trust, lower, reach] = scratch.terrain[q * bins + b];
-            if reach <= 0.0 {
+            let cell = scratch.terrain[q * bins + b];
+            if cell.continued {
                 continue;
             }
             let across = (b as f64 + 0.5) * cfg.cell * sector_width;
-            let mut ceiling = (f64::from(h) + f64::from(reach), lower);
+            let mut ceiling = (f64::from(cell.height) + f64::from(cell.reach), cell.lower);
             let mut near: Option<(f32, f32)> = None;
             for k in 1..=LATERAL {
                 for n in [(q + k) % sectors, (q + sectors - k % sectors) % sectors] {
-                    let [hn, _, support, rn] = scratch.terrain[n * bins + b];
-                    if rn > 0.0 || support <= 0.0 {
+                    let side = scratch.terrain[n * bins + b];
+                    let (hn, support) = (side.height, side.lower);
+                    if !side.continued || support <= 0.0 {
                         continue;
                     }
                     let c = f64::from(hn) + cfg.step + cfg.grade * across * k as f64;
@@ -211,14 +238,20 @@ pub(crate) fn follow_terrain(
                     }
                 }
             }
-            let (h, trust) = match near {
-                Some((hn, t)) if t > trust => (hn, t),
-                _ => (h, trust),
+            let (height, raise) = match near {
+                Some((hn, t)) if t > cell.raise => (hn, t),
+                _ => (cell.height, cell.raise),
             };
-            let reach = (ceiling.0 - f64::from(h)).max(0.0) as f32;
-            scratch
-                .beside
-                .push((q * bins + b, [h, trust, ceiling.1, reach]));
+            scratch.beside.push((
+                q * bins + b,
+                TerrainCell {
+                    height,
+                    raise,
+                    lower: ceiling.1,
+                    reach: (ceiling.0 - f64::from(height)).max(0.0) as f32,
+                    continued: false,
+                },
+            ));
         }
     }
     for &(cell, t) in &scratch.beside {
@@ -234,12 +267,18 @@ pub(crate) fn follow_terrain(
         if cell == u32::MAX {
             continue;
         }
-        let [h, trust, lower, reach] = scratch.terrain[cell as usize];
-        if trust <= 0.0 {
+        let TerrainCell {
+            height,
+            raise,
+            lower,
+            reach,
+            ..
+        } = scratch.terrain[cell as usize];
+        if raise <= 0.0 {
             continue;
         }
-        let above = z[i] - f64::from(h);
-        let trust = f64::from(trust);
+        let above = z[i] - f64::from(height);
+        let trust = f64::from(raise);
         let old = *p;
         let matched = 1.0 - rise(above.abs(), [t0, t1]);
         let raised = f64::from(old).max(cfg.probability * matched * trust);
