@@ -119,6 +119,7 @@ def main():
     ap.add_argument("--groundwork", required=True, help="the groundwork binary")
     ap.add_argument("--sensor", required=True, help="the preset calibrate starts from")
     ap.add_argument("--preset-only", action="store_true", help="segment with the preset, no calibrate")
+    ap.add_argument("--overlay", help="with --preset-only: a TOML laid over the preset (e.g. `[terrain] enabled = true`)")
     ap.add_argument("--frames", type=int, help="history length for segment (default: the config's)")
     ap.add_argument("--json", help="also write the figures here")
     ap.add_argument("sequences", nargs="+")
@@ -128,7 +129,7 @@ def main():
     for k, seq in enumerate(a.sequences):
         seq = usable(seq, os.path.join(tmp, f"seq{k}"))
         scans = os.path.join(seq, "velodyne")
-        cfg = ["--sensor", a.sensor]
+        cfg = ["--sensor", a.sensor] + (["--config", a.overlay] if a.overlay and a.preset_only else [])
         height = None
         if not a.preset_only:
             cal = os.path.join(tmp, f"cal{k}.toml")

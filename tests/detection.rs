@@ -126,7 +126,12 @@ fn synthetic_objects(
             .filter(|o| o.class == "car" && o.proposal > 0)
         {
             let instance = (o.label >> 16) as u16;
-            let Some(Shape::Box { center, half, yaw }) = generator
+            // A car's first part is its body, a box tilted with the ground under it.
+            let Some(Shape::TiltedBox {
+                center,
+                half,
+                rotation,
+            }) = generator
                 .scene()
                 .objects()
                 .iter()
@@ -136,7 +141,7 @@ fn synthetic_objects(
                 continue;
             };
             let c = world_to_vehicle.transform_point3(center);
-            let axis = world_to_vehicle.transform_vector3(DVec3::new(yaw.cos(), yaw.sin(), 0.0));
+            let axis = world_to_vehicle.transform_vector3(rotation * DVec3::X);
             let p = &out.proposals[o.proposal as usize - 1];
             errors
                 .centre

@@ -24,67 +24,71 @@ use SceneKind::{Hill, Offroad, Parking, Urban};
 
 /// Pooled ground IoU (gmm protocol, default history, true poses) measured per preset and
 /// scene (summary cells). The presets from `os0-64` on are synthetic-only (no labelled real
-/// scans of those sensors were at hand), measured when they were added.
+/// scans of those sensors were at hand), measured when they were added. Re-measured on
+/// 2026-12-07 when the scenes' cars came to stand tilted on the ground under their wheels
+/// (most entries within ±0.3; the car parks up to +4.0 for the Pandar64, −2.1 for the
+/// Mid-360, whose cars' lower points it takes for ground) and terrain following held the
+/// grade at the sensor's foot.
 const MEASURED: &[(&str, SceneKind, f64)] = &[
-    ("hdl64e", Urban, 98.98),
-    ("hdl64e", Offroad, 96.45),
-    ("hdl64e", Parking, 98.03),
+    ("hdl64e", Urban, 99.02),
+    ("hdl64e", Offroad, 96.49),
+    ("hdl64e", Parking, 98.10),
     ("hdl64e", Hill, 98.03),
-    ("hdl32e", Urban, 93.98),
-    ("hdl32e", Offroad, 93.24),
-    ("hdl32e", Parking, 92.21),
+    ("hdl32e", Urban, 94.16),
+    ("hdl32e", Offroad, 93.35),
+    ("hdl32e", Parking, 93.31),
     ("hdl32e", Hill, 93.77),
-    ("vlp16", Urban, 94.05),
-    ("vlp16", Offroad, 94.42),
-    ("vlp16", Parking, 94.32),
+    ("vlp16", Urban, 93.81),
+    ("vlp16", Offroad, 94.54),
+    ("vlp16", Parking, 95.37),
     ("vlp16", Hill, 96.73),
-    ("vlp32c", Urban, 91.65),
-    ("vlp32c", Offroad, 86.38),
-    ("vlp32c", Parking, 84.60),
-    ("vlp32c", Hill, 94.91),
-    ("os1-64", Urban, 98.26),
-    ("os1-64", Offroad, 95.37),
-    ("os1-64", Parking, 97.66),
+    ("vlp32c", Urban, 91.64),
+    ("vlp32c", Offroad, 86.54),
+    ("vlp32c", Parking, 84.62),
+    ("vlp32c", Hill, 94.87),
+    ("os1-64", Urban, 98.50),
+    ("os1-64", Offroad, 95.59),
+    ("os1-64", Parking, 97.81),
     ("os1-64", Hill, 98.09),
-    ("os1-128", Urban, 98.81),
-    ("os1-128", Offroad, 97.42),
-    ("os1-128", Parking, 99.07),
+    ("os1-128", Urban, 99.07),
+    ("os1-128", Offroad, 97.46),
+    ("os1-128", Parking, 99.11),
     ("os1-128", Hill, 98.58),
-    ("pandar64", Urban, 94.83),
-    ("pandar64", Offroad, 89.85),
-    ("pandar64", Parking, 87.99),
-    ("pandar64", Hill, 96.89),
-    ("livox", Urban, 97.85),
-    ("livox", Offroad, 91.34),
-    ("livox", Parking, 99.12),
-    ("livox", Hill, 99.23),
-    ("os0-64", Urban, 98.96),
-    ("os0-64", Offroad, 99.13),
-    ("os0-64", Parking, 98.47),
+    ("pandar64", Urban, 93.96),
+    ("pandar64", Offroad, 89.48),
+    ("pandar64", Parking, 92.01),
+    ("pandar64", Hill, 95.43),
+    ("livox", Urban, 97.96),
+    ("livox", Offroad, 90.96),
+    ("livox", Parking, 99.08),
+    ("livox", Hill, 99.26),
+    ("os0-64", Urban, 99.05),
+    ("os0-64", Offroad, 99.17),
+    ("os0-64", Parking, 98.57),
     ("os0-64", Hill, 99.09),
-    ("os2-64", Urban, 89.85),
-    ("os2-64", Offroad, 89.61),
-    ("os2-64", Parking, 88.18),
-    ("os2-64", Hill, 97.31),
-    ("xt32", Urban, 92.95),
-    ("xt32", Offroad, 92.33),
+    ("os2-64", Urban, 91.22),
+    ("os2-64", Offroad, 89.76),
+    ("os2-64", Parking, 88.20),
+    ("os2-64", Hill, 97.29),
+    ("xt32", Urban, 93.24),
+    ("xt32", Offroad, 92.31),
     ("xt32", Parking, 94.40),
-    ("xt32", Hill, 97.00),
-    ("qt128", Urban, 99.28),
-    ("qt128", Offroad, 99.33),
-    ("qt128", Parking, 99.25),
+    ("xt32", Hill, 96.98),
+    ("qt128", Urban, 99.27),
+    ("qt128", Offroad, 99.35),
+    ("qt128", Parking, 99.28),
     ("qt128", Hill, 99.52),
-    ("helios", Urban, 93.07),
-    ("helios", Offroad, 90.41),
-    ("helios", Parking, 91.17),
-    ("helios", Hill, 96.50),
-    ("mid360", Urban, 76.37),
-    ("mid360", Offroad, 79.82),
-    ("mid360", Parking, 75.81),
+    ("helios", Urban, 93.97),
+    ("helios", Offroad, 90.29),
+    ("helios", Parking, 90.91),
+    ("helios", Hill, 96.46),
+    ("mid360", Urban, 78.00),
+    ("mid360", Offroad, 80.03),
+    ("mid360", Parking, 73.68),
     ("mid360", Hill, 92.86),
-    ("m1", Urban, 99.33),
-    ("m1", Offroad, 90.97),
-    ("m1", Parking, 98.05),
+    ("m1", Urban, 99.34),
+    ("m1", Offroad, 91.23),
+    ("m1", Parking, 97.47),
     ("m1", Hill, 99.46),
 ];
 
@@ -364,9 +368,11 @@ fn the_pseudolabeler_leaves_out_placeholders_at_the_origin() {
 
 /// The PseudoLabeler's schedule for hills (docs/offline-labels.md, "Hills"): a plateau of
 /// 30 iterations at 0.3 % instead of 10 at 1 % before the rate drops. Measured (terraseg
-/// mIoU, frames 0–1, default / hills): hdl64e hill seed 0 25.58 / 75.31, os1-64 hill seed
-/// 0 27.12 / 73.79 (the default stops while the map is still climbing the hill), os1-64
-/// car park seed 0 97.38 / 97.35 (flat ground: the same). Thresholds 1.5 below.
+/// mIoU, frames 0–1, default / hills): hdl64e hill seed 0 25.54 / 86.31, os1-64 hill seed
+/// 0 27.15 / 66.38 (the default stops while the map is still climbing the hill), os1-64
+/// car park seed 0 97.38 / 97.35 (flat ground: the same). Thresholds 1.5 below. (With the
+/// scenes' cars upright, sunk into the uphill road: 25.58 / 75.31 and 27.12 / 73.79; where
+/// the map stops on a hill moves with what stands on the road.)
 #[test]
 fn the_pseudolabeler_hill_schedule_follows_hills() {
     use groundwork_eval::Protocol;
@@ -377,8 +383,8 @@ fn the_pseudolabeler_hill_schedule_follows_hills() {
         ..Default::default()
     };
     for (sensor, scene, seed, min, gain) in [
-        ("hdl64e", Hill, 0, 73.8, 30.0),
-        ("os1-64", Hill, 0, 72.2, 30.0),
+        ("hdl64e", Hill, 0, 84.8, 30.0),
+        ("os1-64", Hill, 0, 64.8, 30.0),
         ("os1-64", Parking, 0, 95.8, -0.5),
     ] {
         let generator = synthetic_seeded(sensor, scene, 2, None, seed);

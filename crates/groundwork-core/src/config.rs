@@ -46,7 +46,7 @@ pub struct SegmenterConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TerrainConfig {
-    /// Off (the default, and every preset's but `pandar64`'s for now): the probabilities
+    /// Off (the default, and every preset's but `pandar64`'s and `vlp16`'s for now): the probabilities
     /// as continuity left them.
     pub enabled: bool,
     /// Sectors around the sensor.

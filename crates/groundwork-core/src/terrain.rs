@@ -35,6 +35,8 @@ pub(crate) struct TerrainScratch {
     lower: Vec<[i64; 2]>,
     /// Per cell: its terrain.
     terrain: Vec<TerrainCell>,
+    /// Per sector with one: the height of its first cell of confident ground.
+    first: Vec<f64>,
     /// Gap cells as the terrain beside them changes them (cell, its new terrain).
     beside: Vec<(usize, TerrainCell)>,
     /// Per point: its cell (`u32::MAX`: none).
@@ -158,10 +160,42 @@ pub(crate) fn follow_terrain(
             }
         }
     }
-    // Each sector, outward from the sensor's foot (height 0 in the ground-aligned frame).
+    // The ground at the sensor's foot: the median over the sectors of the first cell of
+    // confident ground within `gap` (0, the mount's, if too few sectors have one). Not the
+    // mount's height alone, which is only as right as the mount: the first cells beside a
+    // foot set too high would fail the tight bound below everywhere.
+    scratch.first.clear();
     for q in 0..sectors {
         let row = q * bins;
-        let (mut last_b, mut last_h, mut slope) = (-0.5f64, 0.0f64, 0.0f64);
+        let first = (0..bins)
+            .take_while(|&b| (b as f64 + 0.5) * cfg.cell <= cfg.gap.max(cfg.cell))
+            .find(|&b| {
+                scratch.lower[row + b][0] > 0
+                    && scratch.sums[row + b][0] as f64 >= cfg.support * 0.5 * WEIGHT_ONE
+            });
+        if let Some(b) = first {
+            let [lw, lwh] = scratch.lower[row + b];
+            scratch.first.push(lwh as f64 / lw as f64 / HEIGHT_ONE);
+        }
+    }
+    let foot = if scratch.first.len() * 4 >= sectors {
+        scratch.first.sort_by(f64::total_cmp);
+        scratch.first[scratch.first.len() / 2]
+    } else {
+        0.0
+    };
+    // From the foot, where the vehicle stands on the ground (the frame is aligned to it),
+    // the grade can only have grown from 0 to `grade` over `gap`: the ground within `run`
+    // of it lies within this of the foot's height. A car's side beside the vehicle, seen
+    // before the lowest beam meets the road, stands above that.
+    let from_foot = |run: f64| {
+        let run = run.max(0.0);
+        cfg.step + cfg.grade * run * run.min(cfg.gap) / (2.0 * cfg.gap.max(f64::MIN_POSITIVE))
+    };
+    // Each sector, outward from the sensor's foot.
+    for q in 0..sectors {
+        let row = q * bins;
+        let (mut last_b, mut last_h, mut slope) = (-0.5f64, foot, 0.0f64);
         for b in 0..bins {
             let [w, _] = scratch.sums[row + b];
             let [lw, lwh] = scratch.lower[row + b];
@@ -171,7 +205,12 @@ pub(crate) fn follow_terrain(
             let weight = w as f64 / WEIGHT_ONE;
             let support = rise(weight, [0.0, cfg.support]);
             let seen = (lw > 0).then(|| lwh as f64 / lw as f64 / HEIGHT_ONE);
-            let continues = seen.filter(|h| (h - predicted).abs() <= cfg.step + cfg.grade * run);
+            let bound = if last_b < 0.0 {
+                from_foot(run)
+            } else {
+                cfg.step + cfg.grade * run
+            };
+            let continues = seen.filter(|h| (h - predicted).abs() <= bound);
             scratch.terrain[row + b] = match continues {
                 Some(h) if weight >= cfg.support * 0.5 => {
                     let grade = ((h - last_h) / run).clamp(-cfg.grade, cfg.grade);
@@ -189,8 +228,13 @@ pub(crate) fn follow_terrain(
                     let gap = run - 0.5 * cfg.cell;
                     let trust = 1.0 - rise(gap, [0.0, cfg.gap]);
                     // How far the ground could have risen since the last confident cell:
-                    // from the steepest fall to the steepest climb over the gap.
-                    let reach = cfg.step + 2.0 * cfg.grade * gap.max(0.0);
+                    // from the steepest fall to the steepest climb over the gap (from the
+                    // foot, as above).
+                    let reach = if last_b < 0.0 {
+                        from_foot(gap)
+                    } else {
+                        cfg.step + 2.0 * cfg.grade * gap.max(0.0)
+                    };
                     TerrainCell {
                         height: predicted as f32,
                         raise: trust as f32,
@@ -426,6 +470,49 @@ mod tests {
             "{:?}",
             behind.iter().map(|&i| p[i]).collect::<Vec<_>>()
         );
+    }
+
+    #[test]
+    fn a_car_side_beside_the_vehicle_is_not_taken_for_the_road_whatever_the_mount() {
+        // A flat road all around, seen from 4 to 20 m (a point every degree and 0.25 m),
+        // confident (0.9); on the left (80°–100°) a parked car's side 2–3.5 m away, 0.5 m
+        // above the road, called ground (0.9), hiding the road up to 6 m. The road lies
+        // at `road` in the frame: 0 where the mount is right, below or above the foot
+        // where it is set too high or too low.
+        for road in [0.0, -0.3, 0.2] {
+            let (mut x, mut y, mut z, mut p) = (vec![], vec![], vec![], vec![]);
+            let mut side = vec![];
+            for deg in 0..360 {
+                let a = f64::from(deg).to_radians();
+                let left = (80..=100).contains(&deg);
+                for j in 8..80 {
+                    let r = f64::from(j) * 0.25;
+                    let h = if left && r < 3.5 {
+                        side.push(x.len());
+                        road + 0.5
+                    } else if (left && r < 6.0) || r < 4.0 {
+                        continue;
+                    } else {
+                        road
+                    };
+                    x.push(r * a.cos());
+                    y.push(r * a.sin());
+                    z.push(h);
+                    p.push(0.9);
+                }
+            }
+            let cfg = TerrainConfig {
+                enabled: true,
+                ..TerrainConfig::default()
+            };
+            run(&cfg, (&x, &y, &z), &mut p);
+            let sides: Vec<f32> = side.iter().map(|&i| p[i]).collect();
+            assert!(sides.iter().all(|&v| v < 0.5), "road at {road}: {sides:?}");
+            let kept = (0..p.len())
+                .filter(|i| !side.contains(i) && p[*i] >= 0.5)
+                .count();
+            assert_eq!(kept, p.len() - side.len(), "road at {road}");
+        }
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! Solids the objects of a scene are built from, and where a ray first enters them.
 
-use glam::{DVec2, DVec3};
+use glam::{DQuat, DVec2, DVec3};
 
 /// A solid in world coordinates (z up).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -13,6 +13,16 @@ pub enum Shape {
         half: DVec3,
         /// Rotation about z.
         yaw: f64,
+    },
+    /// A box turned freely: a car standing on sloped ground, tilted with the ground under
+    /// its wheels (an upright box sinks into a street steeper than its clearance allows).
+    TiltedBox {
+        /// Centre of the box.
+        center: DVec3,
+        /// Half extents in the box's frame.
+        half: DVec3,
+        /// World from box.
+        rotation: DQuat,
     },
     /// An upright cylinder with a flat top.
     Cylinder {
@@ -37,6 +47,7 @@ impl Shape {
     pub fn footprint(&self) -> (DVec2, f64) {
         match *self {
             Shape::Box { center, half, .. } => (center.truncate(), half.truncate().length()),
+            Shape::TiltedBox { center, half, .. } => (center.truncate(), half.length()),
             Shape::Cylinder { base, radius, .. } => (base.truncate(), radius),
             Shape::Ellipsoid { center, radii } => (center.truncate(), radii.x.max(radii.y)),
         }
@@ -50,6 +61,14 @@ impl Shape {
                 let (s, c) = yaw.sin_cos();
                 let rot = |v: DVec3| DVec3::new(c * v.x + s * v.y, -s * v.x + c * v.y, v.z);
                 slab(rot(o - center), rot(d), half)?
+            }
+            Shape::TiltedBox {
+                center,
+                half,
+                rotation,
+            } => {
+                let inverse = rotation.inverse();
+                slab(inverse * (o - center), inverse * d, half)?
             }
             Shape::Cylinder {
                 base,
@@ -130,6 +149,41 @@ mod tests {
     use super::*;
 
     const X: DVec3 = DVec3::X;
+
+    #[test]
+    fn a_tilted_box_turned_about_z_only_is_the_upright_box() {
+        let (center, half, yaw) = (DVec3::new(5.0, 1.0, 0.7), DVec3::new(2.2, 0.9, 0.5), 0.6);
+        let upright = Shape::Box { center, half, yaw };
+        let tilted = Shape::TiltedBox {
+            center,
+            half,
+            rotation: DQuat::from_rotation_z(yaw),
+        };
+        let o = DVec3::new(0.0, 0.0, 1.8);
+        for k in 0..50 {
+            let a = -0.5 + 0.02 * f64::from(k);
+            let d = DVec3::new(a.cos(), a.sin(), -0.15).normalize();
+            let (u, t) = (upright.hit(o, d, 0.0, 100.0), tilted.hit(o, d, 0.0, 100.0));
+            assert_eq!(u.is_some(), t.is_some(), "ray {k}");
+            if let (Some(u), Some(t)) = (u, t) {
+                assert!((u - t).abs() < 1e-9, "ray {k}: {u} {t}");
+            }
+        }
+        // Pitched about its y axis by θ: a ray along x, 0.25 m above the centre, enters the
+        // near face where the face's local x is −half.x: at X = (0.25 sin θ − half.x) / cos θ
+        // from the centre (the upright box: at −half.x).
+        let theta: f64 = 0.1745;
+        let pitched = Shape::TiltedBox {
+            center,
+            half,
+            rotation: DQuat::from_rotation_y(theta),
+        };
+        let (o, d) = (DVec3::new(0.0, 1.0, center.z + 0.25), DVec3::X);
+        let t = pitched.hit(o, d, 0.0, 100.0).unwrap();
+        let want = center.x + (0.25 * theta.sin() - half.x) / theta.cos();
+        assert!((t - want).abs() < 1e-9, "{t} {want}");
+        assert!((t - (center.x - half.x)).abs() > 0.005);
+    }
 
     #[test]
     fn a_ray_enters_each_solid_at_its_near_surface() {
