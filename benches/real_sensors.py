@@ -119,7 +119,7 @@ def main():
     ap.add_argument("--groundwork", required=True, help="the groundwork binary")
     ap.add_argument("--sensor", required=True, help="the preset calibrate starts from")
     ap.add_argument("--preset-only", action="store_true", help="segment with the preset, no calibrate")
-    ap.add_argument("--overlay", help="with --preset-only: a TOML laid over the preset (e.g. `[terrain] enabled = true`)")
+    ap.add_argument("--overlay", help="a TOML laid over the preset, or appended to the calibrated file (e.g. `[terrain] enabled = true`)")
     ap.add_argument("--frames", type=int, help="history length for segment (default: the config's)")
     ap.add_argument("--json", help="also write the figures here")
     ap.add_argument("sequences", nargs="+")
@@ -134,6 +134,9 @@ def main():
         if not a.preset_only:
             cal = os.path.join(tmp, f"cal{k}.toml")
             run([a.groundwork, "calibrate", "--sensor", a.sensor, "--out", cal, scans])
+            if a.overlay:
+                with open(cal, "a") as f:
+                    f.write("\n" + open(a.overlay).read())
             cfg = ["--config", cal]
             height = tomllib.load(open(cal, "rb")).get("sensor", {}).get("mount", {}).get("height")
         if height is None:

@@ -5,7 +5,8 @@
 # they are; nothing is copied into the repository.
 #   bash benches/real_sensors.sh --sensor pandar64 ../shared/data/pandaset-001
 #   bash benches/real_sensors.sh --sensor livox /path/to/mydataset-for-cylinder3D/{00,01,02,03,04}
-# Options after --sensor: --preset-only (no calibrate), --frames N, --json OUT.
+# Options after --sensor: --preset-only (no calibrate), --overlay TOML (laid over the preset
+# or appended to the calibrated file: quick experiments), --frames N, --json OUT.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(cd "$here/.." && pwd)

@@ -397,11 +397,16 @@ fn synthetic_street() -> (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>) {
 /// The VLP-16 preset spoiled where a new sensor's guesses go wrong: objects up to 3 m
 /// tall pass the elevation test, and the decision threshold is high. (2 m would cost only
 /// 1.6 points on the held-out scans.)
-fn spoiled_vlp16() -> groundwork_core::SegmenterConfig {
+fn spoiled_vlp16_following_the_terrain() -> groundwork_core::SegmenterConfig {
     let mut cfg = sensor_preset("vlp16").unwrap();
     cfg.history.frames = 1;
     cfg.ground.elevation.beta = 3.0;
     cfg.ground.ground_threshold = 0.8;
+    cfg
+}
+
+fn spoiled_vlp16() -> groundwork_core::SegmenterConfig {
+    let mut cfg = spoiled_vlp16_following_the_terrain();
     // The search is under test, not terrain following, which makes up for much of the spoil
     // on its own (held-out 93.09 before any fit with it on).
     cfg.terrain.enabled = false;
@@ -624,6 +629,41 @@ fn a_sample_with_too_few_trusted_points_keeps_the_preset_unsearched() {
         !fit.too_few_trusted_points && fit.trusted_points_per_scan > 1000.0,
         "{}",
         fit.trusted_points_per_scan
+    );
+}
+
+/// The parameters are fitted to the mixtures' labels, without terrain following (which
+/// would hide a fit's gain from the held-out guard); the fitted configuration carries the
+/// preset's terrain following again. The VLP-16 preset follows the terrain.
+#[test]
+fn parameters_are_fitted_without_terrain_following_and_keep_it() {
+    let (scans, ground) = synthetic_street();
+    let sample = groundwork_calibrate::LabeledScan::pair(&scans, &ground);
+    let with = spoiled_vlp16_following_the_terrain();
+    assert!(with.terrain.enabled);
+    let mut without = with.clone();
+    without.terrain.enabled = false;
+    let search = exact_labels();
+    let a = groundwork_calibrate::fit_parameters(&with, &sample, &search, |_, _| {}).unwrap();
+    let b = groundwork_calibrate::fit_parameters(&without, &sample, &search, |_, _| {}).unwrap();
+    assert_eq!(a.history, b.history);
+    assert_eq!(a.changed, b.changed);
+    assert!(a.config.terrain.enabled && !b.config.terrain.enabled);
+    // Terrain following does change what the preset decides here: the guard would have
+    // seen other numbers.
+    let every = search.held_out_every;
+    let held: Vec<_> = sample
+        .iter()
+        .skip(every - 1)
+        .step_by(every)
+        .copied()
+        .collect();
+    let following = groundwork_calibrate::params::agreement(&with, &held, a.trusted_range).unwrap();
+    assert!(
+        (following.iou() - a.held_out_before.iou()).abs() > 0.5,
+        "{:.2} {:.2}",
+        following.iou(),
+        a.held_out_before.iou()
     );
 }
 

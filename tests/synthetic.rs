@@ -28,7 +28,8 @@ use SceneKind::{Hill, Offroad, Parking, Urban};
 /// 2026-12-07 when the scenes' cars came to stand tilted on the ground under their wheels
 /// (most entries within ±0.3; the car parks up to +4.0 for the Pandar64, −2.1 for the
 /// Mid-360, whose cars' lower points it takes for ground) and terrain following held the
-/// grade at the sensor's foot.
+/// grade at the sensor's foot; the `livox` rows again when its preset came to follow the
+/// terrain, raising only.
 const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("hdl64e", Urban, 99.02),
     ("hdl64e", Offroad, 96.49),
@@ -58,10 +59,10 @@ const MEASURED: &[(&str, SceneKind, f64)] = &[
     ("pandar64", Offroad, 89.48),
     ("pandar64", Parking, 92.01),
     ("pandar64", Hill, 95.43),
-    ("livox", Urban, 97.96),
-    ("livox", Offroad, 90.96),
-    ("livox", Parking, 99.08),
-    ("livox", Hill, 99.26),
+    ("livox", Urban, 98.06),
+    ("livox", Offroad, 91.07),
+    ("livox", Parking, 99.22),
+    ("livox", Hill, 99.42),
     ("os0-64", Urban, 99.05),
     ("os0-64", Offroad, 99.17),
     ("os0-64", Parking, 98.57),

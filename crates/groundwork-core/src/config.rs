@@ -75,6 +75,10 @@ pub struct TerrainConfig {
     /// climb (twice `grade`) rises over the gap, so that a slope starting to rise is not
     /// lowered while a car's hood over hidden road is.
     pub veto: [f64; 2],
+    /// Lower ground standing above the terrain (`veto`); off, the terrain only raises. Off
+    /// in the `livox` preset: a forward sensor's curving ground rises above the terrain
+    /// predicted for it more often than a car's skirt stands there (docs/algorithm.md).
+    pub lower: bool,
     /// What a point at the terrain's height, fully trusted, rises to.
     pub probability: f64,
 }
@@ -92,6 +96,7 @@ impl Default for TerrainConfig {
             gap: 10.0,
             tolerance: [0.05, 0.1],
             veto: [0.15, 0.25],
+            lower: true,
             probability: 0.8,
         }
     }

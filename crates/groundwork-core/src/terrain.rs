@@ -326,7 +326,11 @@ pub(crate) fn follow_terrain(
         let old = *p;
         let matched = 1.0 - rise(above.abs(), [t0, t1]);
         let raised = f64::from(old).max(cfg.probability * matched * trust);
-        let lowered = f64::from(lower) * rise(above - f64::from(reach), [v0, v1]);
+        let lowered = if cfg.lower {
+            f64::from(lower) * rise(above - f64::from(reach), [v0, v1])
+        } else {
+            0.0
+        };
         let new = (raised * (1.0 - lowered)) as f32;
         if new != old {
             change.raised += usize::from(old < threshold && new >= threshold);
@@ -412,6 +416,17 @@ mod tests {
         // steepest grade could have climbed since the last confident cell.
         assert!(p[skirt..].iter().all(|&v| v < 0.5), "{:?}", &p[skirt..]);
         assert!(change.raised > 100 && change.lowered == 10, "{change:?}");
+        // Raising only: the same ground rises, nothing is lowered.
+        let (x, y, z, mut q, _) = street();
+        let raising = TerrainConfig {
+            enabled: true,
+            lower: false,
+            ..TerrainConfig::default()
+        };
+        let only = run(&raising, (&x, &y, &z), &mut q);
+        assert_eq!(only.raised, change.raised);
+        assert_eq!(only.lowered, 0);
+        assert!(q[skirt..].iter().all(|&v| v >= 0.9), "{:?}", &q[skirt..]);
         // Off: nothing moves.
         let (x, y, z, mut q, _) = street();
         let before = q.clone();
