@@ -426,6 +426,21 @@ fn exact_labels() -> groundwork_calibrate::ParamSearchConfig {
     }
 }
 
+/// The scans `fit_parameters` holds out of the fit (one in `held_out_every`, the last of
+/// each run).
+fn held_out<'a>(
+    sample: &[groundwork_calibrate::LabeledScan<'a>],
+    search: &groundwork_calibrate::ParamSearchConfig,
+) -> Vec<groundwork_calibrate::LabeledScan<'a>> {
+    let every = search.held_out_every;
+    sample
+        .iter()
+        .skip(every - 1)
+        .step_by(every)
+        .copied()
+        .collect()
+}
+
 /// Pooled ground IoU (%) of `cfg`'s single-frame decisions against `ground`, every point.
 fn iou_against(
     cfg: &groundwork_core::SegmenterConfig,
@@ -510,13 +525,7 @@ fn parameters_fitted_to_labels_undo_a_spoiled_preset_on_any_number_of_threads() 
     let mut preset = sensor_preset("vlp16").unwrap();
     preset.history.frames = 1;
     preset.terrain.enabled = false;
-    let every = search.held_out_every;
-    let held: Vec<_> = sample
-        .iter()
-        .skip(every - 1)
-        .step_by(every)
-        .copied()
-        .collect();
+    let held = held_out(&sample, &search);
     let unspoiled =
         groundwork_calibrate::params::agreement(&preset, &held, fit.trusted_range).unwrap();
     eprintln!(
@@ -651,13 +660,7 @@ fn parameters_are_fitted_without_terrain_following_and_keep_it() {
     assert!(a.config.terrain.enabled && !b.config.terrain.enabled);
     // Terrain following does change what the preset decides here: the guard would have
     // seen other numbers.
-    let every = search.held_out_every;
-    let held: Vec<_> = sample
-        .iter()
-        .skip(every - 1)
-        .step_by(every)
-        .copied()
-        .collect();
+    let held = held_out(&sample, &search);
     let following = groundwork_calibrate::params::agreement(&with, &held, a.trusted_range).unwrap();
     assert!(
         (following.iou() - a.held_out_before.iou()).abs() > 0.5,

@@ -164,19 +164,20 @@ pub(crate) fn follow_terrain(
     // confident ground within `gap` (0, the mount's, if too few sectors have one). Not the
     // mount's height alone, which is only as right as the mount: the first cells beside a
     // foot set too high would fail the tight bound below everywhere.
+    // A cell's confident ground, where it has enough to count (half of `support`): its
+    // lower mean height.
+    let confident = |cell: usize| {
+        let [lw, lwh] = scratch.lower[cell];
+        let weight = scratch.sums[cell][0] as f64 / WEIGHT_ONE;
+        (lw > 0 && weight >= cfg.support * 0.5).then(|| lwh as f64 / lw as f64 / HEIGHT_ONE)
+    };
     scratch.first.clear();
     for q in 0..sectors {
         let row = q * bins;
         let first = (0..bins)
             .take_while(|&b| (b as f64 + 0.5) * cfg.cell <= cfg.gap.max(cfg.cell))
-            .find(|&b| {
-                scratch.lower[row + b][0] > 0
-                    && scratch.sums[row + b][0] as f64 >= cfg.support * 0.5 * WEIGHT_ONE
-            });
-        if let Some(b) = first {
-            let [lw, lwh] = scratch.lower[row + b];
-            scratch.first.push(lwh as f64 / lw as f64 / HEIGHT_ONE);
-        }
+            .find_map(|b| confident(row + b));
+        scratch.first.extend(first);
     }
     let foot = if scratch.first.len() * 4 >= sectors {
         scratch.first.sort_by(f64::total_cmp);
@@ -197,22 +198,21 @@ pub(crate) fn follow_terrain(
         let row = q * bins;
         let (mut last_b, mut last_h, mut slope) = (-0.5f64, foot, 0.0f64);
         for b in 0..bins {
-            let [w, _] = scratch.sums[row + b];
-            let [lw, lwh] = scratch.lower[row + b];
             let centre = (b as f64 + 0.5) * cfg.cell;
             let run = centre - last_b * cfg.cell;
             let predicted = last_h + slope * run;
-            let weight = w as f64 / WEIGHT_ONE;
-            let support = rise(weight, [0.0, cfg.support]);
-            let seen = (lw > 0).then(|| lwh as f64 / lw as f64 / HEIGHT_ONE);
+            let support = rise(
+                scratch.sums[row + b][0] as f64 / WEIGHT_ONE,
+                [0.0, cfg.support],
+            );
             let bound = if last_b < 0.0 {
                 from_foot(run)
             } else {
                 cfg.step + cfg.grade * run
             };
-            let continues = seen.filter(|h| (h - predicted).abs() <= bound);
+            let continues = confident(row + b).filter(|h| (h - predicted).abs() <= bound);
             scratch.terrain[row + b] = match continues {
-                Some(h) if weight >= cfg.support * 0.5 => {
+                Some(h) => {
                     let grade = ((h - last_h) / run).clamp(-cfg.grade, cfg.grade);
                     slope = 0.7 * slope + 0.3 * grade;
                     (last_b, last_h) = (b as f64 + 0.5, h);

@@ -117,16 +117,9 @@ impl Generator {
         let (lane, speed) = self.config.scene.drive();
         let s = speed * self.config.pattern.period * i as f64;
         let (p, heading) = self.scene.place(s, lane);
-        let fwd = DVec2::new(heading.cos(), heading.sin());
-        let left = fwd.perp();
-        let h = |q: DVec2| self.scene.height(q.x, q.y);
         // Wheelbase 2.8 m, track 1.6 m.
-        let pitch_slope = (h(p + 1.4 * fwd) - h(p - 1.4 * fwd)) / 2.8;
-        let roll_slope = (h(p + 0.8 * left) - h(p - 0.8 * left)) / 1.6;
-        let normal =
-            (DVec3::Z - pitch_slope * fwd.extend(0.0) - roll_slope * left.extend(0.0)).normalize();
-        let rotation = DQuat::from_rotation_arc(DVec3::Z, normal) * DQuat::from_rotation_z(heading);
-        DAffine3::from_rotation_translation(rotation, p.extend(h(p)))
+        let rotation = self.scene.on_wheels(p, heading, 2.8, 1.6);
+        DAffine3::from_rotation_translation(rotation, p.extend(self.scene.height(p.x, p.y)))
     }
 
     /// World pose of the sensor (world from sensor) at frame `i`.

@@ -270,6 +270,19 @@ impl Scene {
         }
     }
 
+    /// World from vehicle of a vehicle standing at `p` heading `heading` (radians): turned
+    /// about z, and tilted with the ground under its wheels, the slopes between its axles
+    /// (`wheelbase` apart) and between its wheels (`track` apart).
+    pub fn on_wheels(&self, p: DVec2, heading: f64, wheelbase: f64, track: f64) -> DQuat {
+        let fwd = DVec2::new(heading.cos(), heading.sin());
+        let left = fwd.perp();
+        let h = |q: DVec2| self.height(q.x, q.y);
+        let pitch = (h(p + 0.5 * wheelbase * fwd) - h(p - 0.5 * wheelbase * fwd)) / wheelbase;
+        let roll = (h(p + 0.5 * track * left) - h(p - 0.5 * track * left)) / track;
+        let normal = (DVec3::Z - pitch * fwd.extend(0.0) - roll * left.extend(0.0)).normalize();
+        DQuat::from_rotation_arc(DVec3::Z, normal) * DQuat::from_rotation_z(heading)
+    }
+
     /// Terrain height at (x, y).
     pub fn height(&self, x: f64, y: f64) -> f64 {
         // The ray marcher's inner loop: offroad and parking heights do not need the
@@ -415,15 +428,7 @@ impl Layout<'_> {
                 self.rng.random_range(1.7..1.9),
             )
         };
-        // As the vehicle's own pose: the slopes between the axles and between the wheels.
-        let fwd = DVec2::new(yaw.cos(), yaw.sin());
-        let left = fwd.perp();
-        let (base, track) = (0.6 * l, w - 0.2);
-        let pitch = (self.ground(p + 0.5 * base * fwd) - self.ground(p - 0.5 * base * fwd)) / base;
-        let roll =
-            (self.ground(p + 0.5 * track * left) - self.ground(p - 0.5 * track * left)) / track;
-        let normal = (DVec3::Z - pitch * fwd.extend(0.0) - roll * left.extend(0.0)).normalize();
-        let rotation = DQuat::from_rotation_arc(DVec3::Z, normal) * DQuat::from_rotation_z(yaw);
+        let rotation = self.scene.on_wheels(p, yaw, 0.6 * l, w - 0.2);
         let foot = p.extend(self.ground(p));
         // A part: half extents, and its centre in the car's frame (x forward, z up from the
         // ground under the car's centre).
