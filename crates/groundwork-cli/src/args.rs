@@ -78,7 +78,7 @@ pub enum Command {
     /// Run producer, segmenter, detector and consumer as four processes (three with
     /// --no-detector) on the bundled scans or --data.
     /// Stops cleanly on Ctrl-C, or after --count scans.
-    Pipeline(PipelineArgs),
+    Pipeline(Box<PipelineArgs>),
     /// Stage: publish scans from a folder (looping) or synthetic scans.
     Producer(ProducerArgs),
     /// Stage: segment scans into masks, keeping the multi-frame history.
@@ -139,7 +139,7 @@ pub struct PipelineArgs {
     /// Scans to replay (looping): a folder of scans or an MCAP recording; default:
     /// $GROUNDWORK_DATA, else the sample KITTI scans installed beside the binary
     /// (<prefix>/share/groundwork/) or in the checkout it was built in.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "packets")]
     pub data: Option<PathBuf>,
     /// Stop after this many scans (default: run until Ctrl-C).
     #[arg(long)]
@@ -161,8 +161,10 @@ pub struct PipelineArgs {
     pub no_detector: bool,
     /// Take scans from ROS 2 instead of files: the ROS 2 bridge replaces the producer
     /// (the options below say where it listens and answers).
-    #[arg(long, conflicts_with_all = ["data", "rate"])]
+    #[arg(long, conflicts_with_all = ["data", "rate", "packets"])]
     pub ros2: bool,
+    #[command(flatten)]
+    pub packets: PacketArgs,
     #[command(flatten)]
     pub ros2_args: Ros2Args,
     #[command(flatten)]
@@ -249,6 +251,34 @@ pub struct Ros2CmdArgs {
     pub count: Option<u64>,
 }
 
+/// A sensor's packets as the source of scans (producer and pipeline).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct PacketArgs {
+    /// Read the sensor's own packets: `velodyne` (VLP-16, Puck Hi-Res, VLP-32C, HDL-32E,
+    /// HDL-64E), from --pcap FILE or --udp ADDR, decoded straight into shared memory.
+    #[arg(long, value_name = "FAMILY")]
+    pub packets: Option<String>,
+    /// Replay a pcap capture of the sensor's packets, once (at its recorded rate; with
+    /// --rate 0 as fast as the scans are taken).
+    #[arg(long, requires = "packets", conflicts_with = "udp")]
+    pub pcap: Option<PathBuf>,
+    /// Listen for the sensor's packets on this UDP address, e.g. 0.0.0.0:2368.
+    #[arg(long, value_name = "ADDR", requires = "packets")]
+    pub udp: Option<String>,
+    /// The sensor's calibration file (Velodyne: the ROS driver's YAML; the HDL-64E needs
+    /// its own, the others default to the manual's table).
+    #[arg(long, value_name = "FILE", requires = "packets")]
+    pub sensor_config: Option<PathBuf>,
+    /// The sensor model, where the preset does not say it: vlp16, vlp16-hires, vlp32c,
+    /// hdl32e, hdl64e (S3), hdl64e-s2. Default: the sensor preset's name.
+    #[arg(long, requires = "packets")]
+    pub model: Option<String>,
+    /// A capture's datagrams to this port only (default 2368, the sensor's data port; 0:
+    /// every port).
+    #[arg(long, requires = "pcap")]
+    pub port: Option<u16>,
+}
+
 /// Arguments of `groundwork producer`.
 #[derive(clap::Args, Debug)]
 pub struct ProducerArgs {
@@ -274,8 +304,11 @@ pub struct ProducerArgs {
     /// PointCloud2 topic of a recording (default: its first point cloud topic).
     #[arg(long)]
     pub topic: Option<String>,
+    #[command(flatten)]
+    pub packets: PacketArgs,
     /// Folder of scans or MCAP recording to replay (a recording at its recorded rate
     /// unless --rate is given); default: the sample scans, found as for `pipeline`.
+    #[arg(conflicts_with = "packets")]
     pub data: Option<PathBuf>,
 }
 

@@ -61,7 +61,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Calibrate(a) => calibrate::command(a),
         Command::Synth(a) => synth::command(a),
         Command::Sensors => sensors::command(),
-        Command::Pipeline(a) => stages::pipeline_command(a),
+        Command::Pipeline(a) => stages::pipeline_command(*a),
         Command::Producer(a) => stages::producer(a),
         Command::Segmenter(a) => stages::segmenter(a),
         Command::Detector(a) => stages::detector(a),

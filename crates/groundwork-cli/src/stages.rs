@@ -8,12 +8,14 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
+use groundwork_packets::Model;
+use groundwork_service::packets::{PacketInput, PacketSource};
 use groundwork_service::{check_shared_memory, consumer, launcher, producer, segmenter, signals};
 use tracing::{error, info, warn};
 
 use crate::args::{
-    Common, ConsumerArgs, DetectorArgs, PipelineArgs, ProducerArgs, Ros2Args, Ros2CmdArgs,
-    SegmenterArgs, ServiceArgs, ShmSizeArgs, ViewCmdArgs,
+    Common, ConsumerArgs, DetectorArgs, PacketArgs, PipelineArgs, ProducerArgs, Ros2Args,
+    Ros2CmdArgs, SegmenterArgs, ServiceArgs, ShmSizeArgs, ViewCmdArgs,
 };
 use crate::common::{load, load_methods, load_service, sample_data};
 
@@ -30,6 +32,7 @@ pub fn pipeline_command(a: PipelineArgs) -> Result<ExitCode> {
             restart: a.restart,
             detector: !a.no_detector,
             ros2: a.ros2.then_some(a.ros2_args),
+            packets: a.packets,
             view: a.view.view,
         },
     )
@@ -161,9 +164,11 @@ pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
         a.linger
     );
     let linger = Duration::try_from_secs_f64(a.linger).unwrap_or(Duration::MAX);
-    let source = match a.synthetic {
-        Some(n) => producer::Source::Synthetic(n),
-        None => producer::Source::from_path(
+    let packets = packet_source(&a.packets, cfg.sensor.as_deref(), a.rate)?;
+    let source = match (a.synthetic, packets) {
+        (_, Some(p)) => producer::Source::Packets(p),
+        (Some(n), None) => producer::Source::Synthetic(n),
+        (None, None) => producer::Source::from_path(
             match a.data {
                 Some(d) => d,
                 None => sample_data()?,
@@ -176,7 +181,7 @@ pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
         &producer::ProducerOptions {
             source,
             count: a.count,
-            rate_hz: a.rate,
+            rate_hz: a.rate.filter(|_| a.packets.packets.is_none()),
             malformed_every: a.malformed_every,
             linger,
         },
@@ -187,6 +192,62 @@ pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
     } else {
         ExitCode::from(1)
     })
+}
+
+/// The packet source the options ask for (None: scans come from elsewhere). The model is
+/// `--model`, else the sensor preset's name (`vlp16`, `vlp32c`, `hdl32e`, `hdl64e`).
+pub fn packet_source(
+    a: &PacketArgs,
+    sensor: Option<&str>,
+    rate: Option<f64>,
+) -> Result<Option<PacketSource>> {
+    let Some(family) = &a.packets else {
+        return Ok(None);
+    };
+    anyhow::ensure!(
+        family == "velodyne",
+        "--packets {family}: the families read are: velodyne"
+    );
+    let names: Vec<&str> = Model::ALL.iter().map(|m| m.name()).collect();
+    let model = match (&a.model, sensor) {
+        (Some(m), _) => Model::from_name(m)
+            .with_context(|| format!("--model {m}: Velodyne models are {}", names.join(", ")))?,
+        (None, Some(s)) => Model::from_name(s).with_context(|| {
+            format!(
+                "the sensor preset {s} is not a Velodyne model; say which with --model ({})",
+                names.join(", ")
+            )
+        })?,
+        (None, None) => anyhow::bail!(
+            "--packets velodyne: which sensor? --sensor vlp16|vlp32c|hdl32e|hdl64e (the preset) or --model"
+        ),
+    };
+    let input = match (&a.pcap, &a.udp) {
+        (Some(p), None) => PacketInput::Pcap(p.clone()),
+        (None, Some(addr)) => PacketInput::Udp(
+            addr.parse()
+                .with_context(|| format!("--udp {addr}: not an address such as 0.0.0.0:2368"))?,
+        ),
+        _ => anyhow::bail!("--packets needs where they come from: --pcap FILE or --udp ADDR"),
+    };
+    let recorded_rate = match rate {
+        None => true,
+        Some(0.0) => false,
+        Some(r) => anyhow::bail!(
+            "--rate {r}: packets set their own pace; a capture replays at its recorded rate, or as fast as scans are taken with --rate 0"
+        ),
+    };
+    Ok(Some(PacketSource {
+        model,
+        calibration: a.sensor_config.clone(),
+        input,
+        port: match a.port {
+            Some(0) => None,
+            Some(p) => Some(p),
+            None => Some(groundwork_packets::velodyne::DATA_PORT),
+        },
+        recorded_rate,
+    }))
 }
 
 /// `groundwork segmenter`.
@@ -277,6 +338,8 @@ pub struct PipelineRun {
     detector: bool,
     /// Scans from ROS 2: the bridge instead of the producer.
     ros2: Option<Ros2Args>,
+    /// Scans from a sensor's packets.
+    packets: PacketArgs,
     /// Serve a live view on this address.
     view: Option<String>,
 }
@@ -290,9 +353,10 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
         restart,
         detector,
         ros2,
+        packets,
         view,
     } = run;
-    let (count, rate, restart) = (*count, *rate, *restart);
+    let (mut count, rate, restart) = (*count, *rate, *restart);
     // Validate everything here, before any process starts.
     let cfg = load_service(service)?;
     let seg_cfg = load(common, cfg.sensor.as_deref())?;
@@ -310,13 +374,36 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     if let Some(addr) = view {
         groundwork_view::parse_addr(addr)?;
     }
-    // The scans' source: files (a folder or a recording) or the ROS 2 bridge.
+    // The scans' source: files (a folder or a recording), a sensor's packets, or the ROS 2
+    // bridge.
     let mut what_ran = "clouds from ROS 2".to_string();
+    let sensor = common.sensor.as_deref().or(cfg.sensor.as_deref());
+    let packet_source = packet_source(packets, sensor, rate)?;
     let data = match (ros2, data) {
         (Some(_), _) => None,
+        _ if packet_source.is_some() => None,
         (None, Some(d)) => Some(d.clone()),
         (None, None) => Some(sample_data()?),
     };
+    if let Some(p) = &packet_source {
+        // A capture is replayed once: the pipeline ends with its last scan.
+        what_ran = match (&p.input, p.count_scans(cfg.max_points)?) {
+            (PacketInput::Pcap(path), Some(n)) => {
+                anyhow::ensure!(n > 0, "{}: no scan in the capture", path.display());
+                if count.is_some_and(|c| c > n) {
+                    warn!("--count: the capture holds {n} scans; the pipeline stops there");
+                }
+                count = Some(count.map_or(n, |c| c.min(n)));
+                format!(
+                    "{} scans of {} packets from {}",
+                    count.unwrap_or(n),
+                    p.model.name(),
+                    path.display()
+                )
+            }
+            (input, _) => format!("{} packets from {input:?}", p.model.name()),
+        };
+    }
     if let Some(data) = &data {
         anyhow::ensure!(
             data.exists(),
@@ -370,26 +457,58 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
     }
     if let Some(n) = count {
         con.arg("--count").arg(n.to_string());
-        // Replayed files that stop coming mean a stage is stuck; a ROS 2 driver may pause
-        // for as long as it likes.
-        if ros2.is_none() {
+        // Replayed files that stop coming mean a stage is stuck; a ROS 2 driver or a live
+        // sensor may pause for as long as it likes.
+        let live = packets.udp.is_some();
+        if ros2.is_none() && !live {
             con.arg("--idle-timeout").arg("5");
         }
     }
     if let Some(o) = &out {
         con.arg("--out").arg(o);
     }
+    let producer_with_count = |prod: &mut std::process::Command| {
+        if let Some(n) = count {
+            // The producer stays until the pipeline stops: the consumer reads the last
+            // scans (and counts them) after the producer has published them all.
+            prod.arg("--count")
+                .arg(n.to_string())
+                .arg("--linger")
+                .arg("inf");
+        }
+    };
     let source = match (&data, ros2) {
+        _ if packet_source.is_some() => {
+            let mut prod = stage("producer");
+            producer_with_count(&mut prod);
+            prod.arg("--packets")
+                .arg(packets.packets.as_deref().unwrap_or("velodyne"));
+            if let Some(p) = &packet_source {
+                prod.arg("--model").arg(p.model.name());
+                if let Some(port) = packets.port {
+                    prod.arg("--port").arg(port.to_string());
+                }
+            }
+            if let Some(f) = &packets.pcap {
+                prod.arg("--pcap").arg(f);
+            }
+            if let Some(a) = &packets.udp {
+                prod.arg("--udp").arg(a);
+            }
+            if let Some(f) = &packets.sensor_config {
+                prod.arg("--sensor-config").arg(f);
+            }
+            if let Some(r) = rate {
+                prod.arg("--rate").arg(r.to_string());
+            }
+            launcher::Stage {
+                name: "producer",
+                command: prod,
+            }
+        }
         (Some(data), _) => {
             let mut prod = stage("producer");
-            if let Some(n) = count {
-                // The producer stays until the pipeline stops: the consumer reads the last
-                // scans (and counts them) after the producer has published them all.
-                prod.arg("--count")
-                    .arg(n.to_string())
-                    .arg("--linger")
-                    .arg("inf");
-            }
+            producer_with_count(&mut prod);
             if let Some(r) = rate {
                 prod.arg("--rate").arg(r.to_string());
             }

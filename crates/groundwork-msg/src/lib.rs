@@ -191,6 +191,8 @@ impl ScanSource {
     pub const PRODUCER: Self = Self(0);
     /// The ROS 2 bridge (a PointCloud2 from DDS).
     pub const ROS2: Self = Self(1);
+    /// The producer, decoding a sensor's packets (live or from a capture).
+    pub const PACKETS: Self = Self(2);
 }
 
 /// Outcome of segmenting a scan: 0 = segmented, anything else names why the scan was

@@ -249,9 +249,9 @@ impl ConsumerStage {
         r.out_of_bounds_points += u64::from(h.out_of_bounds_points);
         if r.segmented > self.warmup {
             let s = h.stamps;
-            let bridged = paired.is_some_and(|(_, source)| source == ScanSource::ROS2);
+            let source = paired.map_or(ScanSource::PRODUCER, |(_, source)| source);
             self.stats.record(
-                bridged,
+                source,
                 s.produced_ns,
                 s.published_ns,
                 s.segmenter_received_ns,

@@ -9,6 +9,7 @@ pub mod consumer;
 pub mod cpu;
 pub mod detector;
 pub mod launcher;
+pub mod packets;
 pub mod producer;
 pub mod scene;
 pub mod segmenter;

@@ -12,7 +12,9 @@ use std::time::Duration;
 use anyhow::Context;
 use groundwork_core::{Point, Pose};
 use groundwork_io::Sequence;
-use groundwork_msg::{FrameId, SCHEMA_VERSION, ScanHeader, ScanPoint, new_epoch, wall_clock_ns};
+use groundwork_msg::{
+    FrameId, SCHEMA_VERSION, ScanHeader, ScanPoint, ScanSource, new_epoch, wall_clock_ns,
+};
 use serde::Serialize;
 use tracing::{info, warn};
 
@@ -31,6 +33,8 @@ pub enum Source {
     Recording(PathBuf, Option<String>),
     /// Generated scans of this many points (flat ground and a few boxes), no pose.
     Synthetic(usize),
+    /// A sensor's packets, live or from a capture, decoded into the loaned samples.
+    Packets(crate::packets::PacketSource),
 }
 
 impl Source {
@@ -92,6 +96,10 @@ pub struct ProducerReport {
     pub malformed: u64,
     /// Input files that could not be read (skipped), with the reason.
     pub skipped_files: Vec<String>,
+    /// The packet source's counters (packets, losses, refusals), when scans came from
+    /// packets.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub packets: Option<crate::packets::PacketSourceReport>,
 }
 
 /// One scan ready to publish.
@@ -121,6 +129,8 @@ pub enum Frames {
     Loaded(Vec<Frame>),
     /// A folder or recording read ahead by a thread of its own.
     Streamed(Box<Stream>),
+    /// A sensor's packets, gathered into scans by a receiving thread.
+    Packets(Box<crate::packets::PacketStream>),
 }
 
 /// Frames read ahead of the one being published: enough to keep a 10 Hz (or a flat-out)
@@ -278,6 +288,10 @@ impl Frames {
                 })?;
                 Ok((Self::Streamed(Box::new(stream)), skipped))
             }
+            Source::Packets(p) => Ok((
+                Self::Packets(Box::new(crate::packets::PacketStream::start(p)?)),
+                skipped,
+            )),
         }
     }
 
@@ -286,9 +300,20 @@ impl Frames {
         match self {
             Self::Loaded(f) => f.len(),
             Self::Streamed(s) => 1 + usize::from(s.next.is_some()),
+            Self::Packets(_) => 0,
         }
     }
 }
+
+/// The frame of a packet source, which has none (its scans are decoded in place).
+static NO_FRAME: Frame = Frame {
+    points: Vec::new(),
+    pose: None,
+    index: 0,
+    log_time_ns: None,
+    stamp_ns: None,
+    frame_id: None,
+};
 
 /// A pose as a scan header carries it: 4×4 row-major (the inverse of
 /// [`crate::segmenter::decode_pose`]).
@@ -311,6 +336,10 @@ pub struct ProducerStage {
     /// The sensor time of each message.
     clock: SensorClock,
     report: ProducerReport,
+    /// The most points a scan from packets may have.
+    max_points: usize,
+    /// The coordinate frame of scans from packets.
+    frame_id: Option<String>,
 }
 
 /// The sensor time a message carries: a scan's own stamp where its source has one (the
@@ -391,6 +420,8 @@ impl ProducerStage {
                 skipped_files: skipped,
                 ..Default::default()
             },
+            max_points: usize::MAX,
+            frame_id: None,
         }
     }
 
@@ -404,6 +435,7 @@ impl ProducerStage {
         match &self.frames {
             Frames::Loaded(f) => &f[self.last],
             Frames::Streamed(s) => &s.current,
+            Frames::Packets(_) => &NO_FRAME,
         }
     }
 
@@ -415,6 +447,7 @@ impl ProducerStage {
         match &mut self.frames {
             Frames::Loaded(f) => self.last = (self.last + 1) % f.len(),
             Frames::Streamed(stream) => stream.advance(&mut self.report.skipped_files),
+            Frames::Packets(_) => {}
         }
     }
 
@@ -495,6 +528,61 @@ impl ProducerStage {
         }
     }
 
+    /// Publishes the next scan of a packet source, if one is complete: its returns counted,
+    /// a sample of exactly that size loaned and the packets decoded straight into it. The
+    /// header's production stamp is the receipt of the scan's last packet, so the
+    /// consumer's "last packet to scan published" row is the decoding's latency.
+    fn publish_packets(&mut self, out: &mut Outbox) -> anyhow::Result<()> {
+        let Frames::Packets(stream) = &mut self.frames else {
+            return Ok(());
+        };
+        let Some(scan) = stream.next_scan() else {
+            return Ok(());
+        };
+        let len = stream.count(&scan);
+        if len == 0 || len > self.max_points {
+            if len > 0 {
+                warn!(
+                    points = len,
+                    max_points = self.max_points,
+                    "scan from packets skipped: more points than max_points"
+                );
+            }
+            stream.count_skipped();
+            stream.recycle(scan);
+            return Ok(());
+        }
+        let seq = self.sequence;
+        let sensor_time = self.clock.stamp(scan.stamp_ns(), wall_clock_ns());
+        let mut header = ScanHeader {
+            point_count: len as u32,
+            sequence: seq,
+            producer_epoch: self.epoch,
+            sensor_timestamp_ns: sensor_time,
+            source_index: seq,
+            source: ScanSource::PACKETS,
+            frame_id: FrameId::new(self.frame_id.as_deref().unwrap_or("")),
+            ..ScanHeader::default()
+        };
+        header.stamps.produced_ns = scan.completed_at_ns;
+        let Frames::Packets(stream) = &self.frames else {
+            return Ok(());
+        };
+        let reached =
+            out.send_scan_filled(len, |points| stream.decode_into(&scan, points), header)?;
+        if let Frames::Packets(stream) = &self.frames {
+            stream.recycle(scan);
+        }
+        match reached {
+            Some(0) => self.count_unreceived(),
+            Some(_) => {}
+            None => anyhow::bail!("a scan decoded to another number of points than counted"),
+        }
+        self.sequence += 1;
+        self.report.published += 1;
+        Ok(())
+    }
+
     /// Counts a send that reached no subscriber.
     pub fn count_unreceived(&mut self) {
         self.report.unreceived += 1;
@@ -518,6 +606,9 @@ impl Stage for ProducerStage {
     type Report = ProducerReport;
 
     fn process(&mut self, _: Input<'_>, now_ns: u64, out: &mut Outbox) -> anyhow::Result<()> {
+        if matches!(self.frames, Frames::Packets(_)) {
+            return self.publish_packets(out);
+        }
         let next = self.next_scan(now_ns);
         // The only copy of the scan on the hot path: from the "driver" into shared memory.
         let reached = out.send_scan(next.len, |i| self.point(&next, i), next.header)?;
@@ -528,7 +619,8 @@ impl Stage for ProducerStage {
     }
 
     fn done(&self) -> bool {
-        self.pace.count.is_some_and(|c| self.report.published >= c)
+        let ended = matches!(&self.frames, Frames::Packets(p) if p.ended());
+        ended || self.pace.count.is_some_and(|c| self.report.published >= c)
     }
 
     /// A recording replays at its recorded rate unless a rate is asked for.
@@ -550,7 +642,19 @@ impl Stage for ProducerStage {
         );
     }
 
-    fn stop(self, _: &Inputs) -> anyhow::Result<ProducerReport> {
+    fn stop(mut self, _: &Inputs) -> anyhow::Result<ProducerReport> {
+        if let Frames::Packets(p) = &self.frames {
+            let r = p.report();
+            info!(
+                packets = r.packets.counters.packets,
+                lost = r.packets.counters.lost,
+                out_of_order = r.packets.counters.out_of_order,
+                refused = r.packets.refused.values().sum::<u64>(),
+                scans_skipped = r.scans_skipped,
+                "packets"
+            );
+            self.report.packets = Some(r);
+        }
         if self.done() && !self.pace.linger.is_zero() {
             info!(
                 published = self.report.published,
@@ -578,6 +682,19 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
     crate::stage::run(cfg, || {
         let (frames, skipped) = Frames::load(&opts.source, cfg.max_points)?;
         let mut stage = ProducerStage::new(frames, skipped, opts.malformed_every);
+        stage.max_points = cfg.max_points;
+        if matches!(opts.source, Source::Packets(_)) {
+            // The packets set the pace; scans are taken as they complete.
+            stage.frame_id = Some("velodyne".into());
+            stage.pace = Pace {
+                count: opts.count,
+                linger: opts.linger,
+                period: None,
+                recorded: false,
+            };
+            info!("producer ready: scans from packets");
+            return Ok(stage);
+        }
         let rate = opts.rate_hz.unwrap_or(cfg.rate_hz);
         stage.pace = Pace {
             count: opts.count,

@@ -2,16 +2,20 @@
 
 use std::fmt::Write;
 
+use groundwork_msg::ScanSource;
 use hdrhistogram::Histogram;
 use serde::Serialize;
 
 /// Stages a message passes, in order; the last three are the detector's, from the stamps of
 /// its proposals (rows without samples are left out of the table).
-pub const STAGES: [&str; 11] = [
+pub const STAGES: [&str; 12] = [
     "producer fill",
     // A scan from the ROS 2 bridge: from DDS's receipt of the cloud's last fragment to the
     // scan published in shared memory (DDS queue, deserialization, checks, one copy).
     "ros2 receipt to scan published",
+    // A scan decoded from the sensor's packets: from the receipt of its last packet to the
+    // scan published (hand-over from the receiving thread, decoding into shared memory).
+    "last packet to scan published",
     "scan transport",
     "segment",
     "mask transport",
@@ -25,10 +29,10 @@ pub const STAGES: [&str; 11] = [
 ];
 
 /// Index of the first detector row of [`STAGES`].
-const DETECTOR_ROWS: usize = 8;
+const DETECTOR_ROWS: usize = 9;
 
 /// Index of the "segment" row, which every segmented message has.
-const SEGMENT_ROW: usize = 3;
+const SEGMENT_ROW: usize = 4;
 
 /// Percentiles of one stage, µs.
 #[derive(Debug, Clone, Serialize)]
@@ -70,11 +74,11 @@ impl Default for LatencyStats {
 }
 
 impl LatencyStats {
-    /// Records one message from its stamps (ns) and the consumer's receive time; `bridged`:
-    /// the scan came from the ROS 2 bridge (its fill is the bridge's row).
+    /// Records one message from its stamps (ns) and the consumer's receive time; `source`:
+    /// the stage that published the scan (its fill is that stage's row).
     pub fn record(
         &mut self,
-        bridged: bool,
+        source: ScanSource,
         produced: u64,
         published: u64,
         seg_in: u64,
@@ -85,8 +89,9 @@ impl LatencyStats {
         let mask_hop = consumed.saturating_sub(seg_out);
         let fill = published.saturating_sub(produced);
         let d = [
-            if bridged { None } else { Some(fill) },
-            bridged.then_some(fill),
+            (source == ScanSource::PRODUCER).then_some(fill),
+            (source == ScanSource::ROS2).then_some(fill),
+            (source == ScanSource::PACKETS).then_some(fill),
             Some(scan_hop),
             Some(seg_out.saturating_sub(seg_in)),
             Some(mask_hop),
@@ -176,24 +181,37 @@ mod tests {
     fn stages_are_differences_of_stamps() {
         let mut s = LatencyStats::default();
         for i in 0..100u64 {
-            s.record(false, 1000, 2000, 3000 + i, 10_000 + i, 11_000 + i);
+            s.record(
+                ScanSource::PRODUCER,
+                1000,
+                2000,
+                3000 + i,
+                10_000 + i,
+                11_000 + i,
+            );
         }
         let p = s.percentiles();
         assert_eq!(p[0].count, 100);
         assert!((p[0].p50 - 1.0).abs() < 0.01, "{:?}", p[0]);
         assert_eq!(p[1].count, 0, "no bridged scan");
-        assert!((p[3].p50 - 7.0).abs() < 0.01, "{:?}", p[3]);
+        assert_eq!(p[2].count, 0, "no scan from packets");
+        assert!((p[4].p50 - 7.0).abs() < 0.01, "{:?}", p[4]);
         // Transport: 1.0 + i ns scan hop + 1.0 µs mask hop, per message.
-        assert!((p[5].p50 - 2.05).abs() < 0.01, "{:?}", p[5]);
-        assert!((p[6].max - 9.099).abs() < 0.02, "{:?}", p[6]);
-        assert!((p[7].max - 10.099).abs() < 0.02, "{:?}", p[7]);
+        assert!((p[6].p50 - 2.05).abs() < 0.01, "{:?}", p[6]);
+        assert!((p[7].max - 9.099).abs() < 0.02, "{:?}", p[7]);
+        assert!((p[8].max - 10.099).abs() < 0.02, "{:?}", p[8]);
         assert!(!s.table().contains("ros2"));
         // A bridged scan's fill is the bridge's row, not the producer's.
-        s.record(true, 1000, 3000, 3500, 10_000, 11_000);
+        s.record(ScanSource::ROS2, 1000, 3000, 3500, 10_000, 11_000);
         assert_eq!(s.stage("producer fill").unwrap().count, 100);
         let b = s.stage("ros2 receipt to scan published").unwrap();
         assert!(b.count == 1 && (b.p50 - 2.0).abs() < 0.01, "{b:?}");
-        assert_eq!(s.len(), 101);
+        // A scan from packets: its fill starts at its last packet's receipt.
+        s.record(ScanSource::PACKETS, 1000, 1500, 3500, 10_000, 11_000);
+        let k = s.stage("last packet to scan published").unwrap();
+        assert!(k.count == 1 && (k.p50 - 0.5).abs() < 0.01, "{k:?}");
+        assert_eq!(s.stage("producer fill").unwrap().count, 100);
+        assert_eq!(s.len(), 102);
         assert!(s.table().contains("end to end"));
         assert!(
             !s.table().contains("detect"),
