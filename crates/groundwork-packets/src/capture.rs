@@ -224,3 +224,130 @@ impl UdpSource {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use proptest::prelude::*;
+
+    use super::*;
+
+    /// A little-endian pcap of Ethernet frames with µs stamps.
+    fn pcap(records: &[Vec<u8>]) -> Vec<u8> {
+        let mut b = Vec::new();
+        for v in [0xA1B2_C3D4u32] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend_from_slice(&2u16.to_le_bytes());
+        b.extend_from_slice(&4u16.to_le_bytes());
+        for v in [0u32, 0, 65_535, 1] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        for (k, r) in records.iter().enumerate() {
+            for v in [1_000 + k as u32, 0, r.len() as u32, r.len() as u32] {
+                b.extend_from_slice(&v.to_le_bytes());
+            }
+            b.extend_from_slice(r);
+        }
+        b
+    }
+
+    fn udp_frame(port: u16, payload: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        etherparse::PacketBuilder::ethernet2([1; 6], [2; 6])
+            .ipv4([192, 168, 1, 201], [192, 168, 1, 100], 64)
+            .udp(2368, port)
+            .write(&mut out, payload)
+            .unwrap();
+        out
+    }
+
+    fn read_all(
+        bytes: &[u8],
+        port: Option<u16>,
+    ) -> (Vec<(u64, Vec<u8>)>, Option<String>, CaptureCounters) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.pcap");
+        std::fs::write(&path, bytes).unwrap();
+        let mut src = match PcapSource::open(&path, port) {
+            Ok(s) => s,
+            Err(e) => return (Vec::new(), Some(e.to_string()), CaptureCounters::default()),
+        };
+        let mut got = Vec::new();
+        let mut error = None;
+        while let Some(d) = src.next_datagram() {
+            match d {
+                Ok(d) => got.push((d.time_ns, d.payload.to_vec())),
+                Err(e) => error = Some(e.to_string()),
+            }
+        }
+        (got, error, src.counters().clone())
+    }
+
+    #[test]
+    fn datagrams_to_the_port_are_handed_on_the_rest_counted() {
+        let arp = [vec![0xFF; 12], vec![0x08, 0x06], vec![0; 28]].concat();
+        let bytes = pcap(&[
+            udp_frame(2368, b"first"),
+            udp_frame(8308, b"position"),
+            arp,
+            udp_frame(2368, b"second"),
+        ]);
+        let (got, error, c) = read_all(&bytes, Some(2368));
+        assert!(error.is_none());
+        assert_eq!(
+            got,
+            [
+                (1_000_000_000_000, b"first".to_vec()),
+                (1_003_000_000_000, b"second".to_vec())
+            ]
+        );
+        assert_eq!((c.records, c.other_port, c.not_udp), (4, 1, 1));
+        let (all, _, _) = read_all(&bytes, None);
+        assert_eq!(all.len(), 3);
+        // Truncated in the last record: the records before it, then the file named.
+        let (got, error, _) = read_all(&bytes[..bytes.len() - 3], Some(2368));
+        assert_eq!(got.len(), 1);
+        let e = error.unwrap();
+        assert!(
+            e.contains("c.pcap") && e.contains("record 4") && e.contains("truncated"),
+            "{e}"
+        );
+        // Not a capture at all.
+        let (_, error, _) = read_all(b"hello, this is not a capture", None);
+        assert!(error.unwrap().contains("not a pcap capture"));
+    }
+
+    /// A record that claims 4 GB: refused as damaged, not allocated.
+    #[test]
+    fn a_record_claiming_gigabytes_is_refused() {
+        let mut bytes = pcap(&[udp_frame(2368, b"ok")]);
+        for v in [2_000u32, 0, 0xFFFF_FFF0, 0xFFFF_FFF0] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        bytes.extend_from_slice(&[0; 64]);
+        let (got, error, _) = read_all(&bytes, None);
+        assert_eq!(got.len(), 1);
+        assert!(error.unwrap().contains("record 2"));
+    }
+
+    proptest! {
+        /// Any bytes after a valid header, or a valid capture with damaged bytes: records
+        /// or a named error, never a panic, never a datagram larger than its record.
+        #[test]
+        fn damaged_captures_end_with_a_named_error(
+            payloads in prop::collection::vec(prop::collection::vec(any::<u8>(), 0..300), 1..6),
+            damage in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..12),
+            cut in any::<prop::sample::Index>(),
+        ) {
+            let mut bytes = pcap(&payloads.iter().map(|p| udp_frame(2368, p)).collect::<Vec<_>>());
+            for (at, b) in damage {
+                let i = at.index(bytes.len());
+                bytes[i] = b;
+            }
+            bytes.truncate(cut.index(bytes.len() + 1));
+            let (got, _, c) = read_all(&bytes, None);
+            prop_assert!(got.len() as u64 <= c.records);
+            prop_assert!(got.iter().all(|(_, p)| p.len() <= 65_535));
+        }
+    }
+}

@@ -15,6 +15,9 @@ use crate::velodyne::PacketView;
 
 /// A scan lasting longer than this is cut (a turn takes 0.05–0.2 s), seconds.
 pub const MAX_SCAN_S: f64 = 0.3;
+/// A scan of this many packets is cut whatever its azimuth and times say (an HDL-64E's
+/// dual-return turn at 5 Hz is about 2 900): memory stays bounded on any input.
+pub const MAX_SCAN_PACKETS: usize = 8_192;
 const TURN: i32 = 36_000;
 
 /// One scan's packets, as received.
@@ -142,11 +145,12 @@ impl ScanAssembler {
         let sensor_ns = sensor_time_ns(packet.toh_us(), host_ns);
         let last = packet.last_azimuth() as i32;
         // A scan that lasts too long ends before this packet, which starts the next.
-        let too_long = self
-            .current
-            .host_ns
-            .first()
-            .is_some_and(|&t0| host_ns.saturating_sub(t0) as f64 > MAX_SCAN_S * 1e9);
+        let too_long = self.current.len() >= MAX_SCAN_PACKETS
+            || self
+                .current
+                .host_ns
+                .first()
+                .is_some_and(|&t0| host_ns.saturating_sub(t0) as f64 > MAX_SCAN_S * 1e9);
         if too_long {
             self.finish(now_ns, out);
             let start = previous_end.unwrap_or(last);
@@ -292,6 +296,22 @@ mod tests {
         assert!(a.flush(0, &mut out));
         assert_eq!(out.len(), 1);
         assert!(!a.flush(0, &mut out));
+    }
+
+    /// Packets that never complete a turn (a stuck azimuth, one capture time): scans are
+    /// still cut, at [`MAX_SCAN_PACKETS`].
+    #[test]
+    fn a_turn_that_never_ends_is_cut_at_the_packet_limit() {
+        let d = Decoder::new(Model::Vlp16, None).unwrap();
+        let mut a = ScanAssembler::new();
+        let mut out = ScanPackets::default();
+        let bytes = packet(500, 0);
+        let p = d.check(&bytes).unwrap();
+        let cuts: Vec<usize> = (0..2 * MAX_SCAN_PACKETS + 5)
+            .filter(|_| a.push(&p, &bytes, 7, 0, &mut out))
+            .collect();
+        assert_eq!(cuts, [MAX_SCAN_PACKETS, 2 * MAX_SCAN_PACKETS]);
+        assert_eq!(out.len(), MAX_SCAN_PACKETS);
     }
 
     #[test]
