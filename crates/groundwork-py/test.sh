@@ -13,7 +13,7 @@ python -m pip install -q --disable-pip-version-check --no-build-isolation --forc
     "$root/crates/groundwork-py"
 cargo build -q --release --locked -p groundwork-cli
 GROUNDWORK_CLI="$root/target/release/groundwork" python -m pytest -q "$root/crates/groundwork-py/tests" "$@"
-# groundwork's packet decoding against an independent decoder (velodyne-decoder, installed
-# above): `cargo test` alone skips these, having no Python with the peer.
+# groundwork's packet decoding against independent decoders (velodyne-decoder, ouster-sdk,
+# installed above): `cargo test` alone skips these, having no Python with the peers.
 GROUNDWORK_PACKET_PEERS_PYTHON="$venv/bin/python" GROUNDWORK_REQUIRE_PACKET_PEERS=1 \
-    cargo test -q --release --locked -p groundwork-packets --test velodyne_decoder
+    cargo test -q --release --locked -p groundwork-packets --test velodyne_decoder --test ouster_sdk

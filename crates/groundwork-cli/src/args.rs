@@ -255,7 +255,8 @@ pub struct Ros2CmdArgs {
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct PacketArgs {
     /// Read the sensor's own packets: `velodyne` (VLP-16, Puck Hi-Res, VLP-32C, HDL-32E,
-    /// HDL-64E), from --pcap FILE or --udp ADDR, decoded straight into shared memory.
+    /// HDL-64E) or `ouster` (OS0/OS1/OS2), from --pcap FILE or --udp ADDR, decoded straight
+    /// into shared memory.
     #[arg(long, value_name = "FAMILY")]
     pub packets: Option<String>,
     /// Replay a pcap capture of the sensor's packets, once (at its recorded rate; with
@@ -265,16 +266,17 @@ pub struct PacketArgs {
     /// Listen for the sensor's packets on this UDP address, e.g. 0.0.0.0:2368.
     #[arg(long, value_name = "ADDR", requires = "packets")]
     pub udp: Option<String>,
-    /// The sensor's calibration file (Velodyne: the ROS driver's YAML; the HDL-64E needs
-    /// its own, the others default to the manual's table).
+    /// The sensor's calibration file: Velodyne, the ROS driver's YAML (the HDL-64E needs
+    /// its own, the others default to the manual's table); Ouster, the metadata JSON the
+    /// sensor gives (required).
     #[arg(long, value_name = "FILE", requires = "packets")]
     pub sensor_config: Option<PathBuf>,
     /// The sensor model, where the preset does not say it: vlp16, vlp16-hires, vlp32c,
     /// hdl32e, hdl64e (S3), hdl64e-s2. Default: the sensor preset's name.
     #[arg(long, requires = "packets")]
     pub model: Option<String>,
-    /// A capture's datagrams to this port only (default 2368, the sensor's data port; 0:
-    /// every port).
+    /// A capture's datagrams to this port only (default: the sensor's data port, 2368 for
+    /// Velodyne, 7502 for Ouster; 0: every port).
     #[arg(long, requires = "pcap")]
     pub port: Option<u16>,
 }

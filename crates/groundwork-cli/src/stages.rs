@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use groundwork_packets::Model;
-use groundwork_service::packets::{PacketInput, PacketSource};
+use groundwork_service::packets::{PacketInput, PacketSensor, PacketSource};
 use groundwork_service::{check_shared_memory, consumer, launcher, producer, segmenter, signals};
 use tracing::{error, info, warn};
 
@@ -204,23 +204,25 @@ pub fn packet_source(
     let Some(family) = &a.packets else {
         return Ok(None);
     };
-    anyhow::ensure!(
-        family == "velodyne",
-        "--packets {family}: the families read are: velodyne"
-    );
-    let names: Vec<&str> = Model::ALL.iter().map(|m| m.name()).collect();
-    let model = match (&a.model, sensor) {
-        (Some(m), _) => Model::from_name(m)
-            .with_context(|| format!("--model {m}: Velodyne models are {}", names.join(", ")))?,
-        (None, Some(s)) => Model::from_name(s).with_context(|| {
-            format!(
-                "the sensor preset {s} is not a Velodyne model; say which with --model ({})",
-                names.join(", ")
-            )
-        })?,
-        (None, None) => anyhow::bail!(
-            "--packets velodyne: which sensor? --sensor vlp16|vlp32c|hdl32e|hdl64e (the preset) or --model"
+    let (sensor, port) = match family.as_str() {
+        "velodyne" => (
+            PacketSensor::Velodyne(velodyne_model(a, sensor)?, a.sensor_config.clone()),
+            groundwork_packets::velodyne::DATA_PORT,
         ),
+        "ouster" => {
+            anyhow::ensure!(
+                a.model.is_none(),
+                "--model names a Velodyne model; an Ouster's packets are described by its metadata (--sensor-config)"
+            );
+            let metadata = a.sensor_config.clone().context(
+                "--packets ouster needs the sensor's metadata JSON: --sensor-config FILE.json (from http://SENSOR/api/v1/sensor/metadata)",
+            )?;
+            (
+                PacketSensor::Ouster(metadata),
+                groundwork_packets::ouster::LIDAR_PORT,
+            )
+        }
+        other => anyhow::bail!("--packets {other}: the families read are velodyne and ouster"),
     };
     let input = match (&a.pcap, &a.udp) {
         (Some(p), None) => PacketInput::Pcap(p.clone()),
@@ -238,16 +240,33 @@ pub fn packet_source(
         ),
     };
     Ok(Some(PacketSource {
-        model,
-        calibration: a.sensor_config.clone(),
+        sensor,
         input,
         port: match a.port {
             Some(0) => None,
             Some(p) => Some(p),
-            None => Some(groundwork_packets::velodyne::DATA_PORT),
+            None => Some(port),
         },
         recorded_rate,
     }))
+}
+
+/// The Velodyne model: `--model`, else the sensor preset's name.
+fn velodyne_model(a: &PacketArgs, sensor: Option<&str>) -> Result<Model> {
+    let names: Vec<&str> = Model::ALL.iter().map(|m| m.name()).collect();
+    Ok(match (&a.model, sensor) {
+        (Some(m), _) => Model::from_name(m)
+            .with_context(|| format!("--model {m}: Velodyne models are {}", names.join(", ")))?,
+        (None, Some(s)) => Model::from_name(s).with_context(|| {
+            format!(
+                "the sensor preset {s} is not a Velodyne model; say which with --model ({})",
+                names.join(", ")
+            )
+        })?,
+        (None, None) => anyhow::bail!(
+            "--packets velodyne: which sensor? --sensor vlp16|vlp32c|hdl32e|hdl64e (the preset) or --model"
+        ),
+    })
 }
 
 /// `groundwork segmenter`.
@@ -397,11 +416,11 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
                 format!(
                     "{} scans of {} packets from {}",
                     count.unwrap_or(n),
-                    p.model.name(),
+                    p.sensor.name(),
                     path.display()
                 )
             }
-            (input, _) => format!("{} packets from {input:?}", p.model.name()),
+            (input, _) => format!("{} packets from {input:?}", p.sensor.name()),
         };
     }
     if let Some(data) = &data {
@@ -483,11 +502,15 @@ pub fn pipeline(common: &Common, service: &ServiceArgs, run: &PipelineRun) -> Re
             producer_with_count(&mut prod);
             prod.arg("--packets")
                 .arg(packets.packets.as_deref().unwrap_or("velodyne"));
-            if let Some(p) = &packet_source {
-                prod.arg("--model").arg(p.model.name());
-                if let Some(port) = packets.port {
-                    prod.arg("--port").arg(port.to_string());
-                }
+            if let Some(PacketSource {
+                sensor: PacketSensor::Velodyne(model, _),
+                ..
+            }) = &packet_source
+            {
+                prod.arg("--model").arg(model.name());
+            }
+            if let Some(port) = packets.port {
+                prod.arg("--port").arg(port.to_string());
             }
             if let Some(f) = &packets.pcap {
                 prod.arg("--pcap").arg(f);

@@ -97,6 +97,54 @@ fn a_capture_replays_through_the_pipeline_with_every_scan_masked() {
     }
 }
 
+/// An Ouster capture (an OS1-16, 3.3 kB packets in IP fragments) with its metadata: every
+/// frame masked.
+#[test]
+fn an_ouster_capture_replays_through_the_pipeline() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let data = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/packets");
+    let out = groundwork()
+        .args([
+            "pipeline",
+            "--sensor",
+            "os1-64",
+            "--packets",
+            "ouster",
+            "--pcap",
+        ])
+        .arg(data.join("os1-16-kitti-000002.pcap"))
+        .arg("--sensor-config")
+        .arg(data.join("os1-16-kitti-000002.json"))
+        .args(["--no-detector", "--prefix", &prefix("ouster")])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("3 masks (3 segmented")
+            && stdout.contains("scan fate: 3 masked + 0 rejected + 0 unanswered + 0 dropped = 3"),
+        "{stdout}"
+    );
+    assert_eq!(
+        logged(&stderr, "producer: packets ", "packets"),
+        56,
+        "{stderr}"
+    );
+    assert_eq!(logged(&stderr, "producer: packets ", "lost"), 1);
+    assert_eq!(logged(&stderr, "producer: packets ", "refused"), 1);
+    // Without its metadata an Ouster's packets cannot be read: said so.
+    let bare = groundwork()
+        .args(["producer", "--packets", "ouster", "--pcap"])
+        .arg(data.join("os1-16-kitti-000002.pcap"))
+        .args(["--prefix", &prefix("ouster-bare")])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&bare.stderr);
+    assert_eq!(bare.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("metadata JSON"), "{stderr}");
+}
+
 /// Live: the pipeline listens on a UDP port; a test process sends the capture's packets
 /// to it at the sensor's pace until two scans are masked.
 #[test]

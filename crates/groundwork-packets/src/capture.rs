@@ -31,8 +31,12 @@ pub struct CaptureCounters {
     pub records: u64,
     /// Records that are not UDP over IP (ARP, TCP, ...), or whose headers do not parse.
     pub not_udp: u64,
-    /// Fragments of IP datagrams (not reassembled: no Velodyne packet is fragmented).
+    /// IP fragments read (an Ouster packet of 12 kB travels in nine on a 1500-byte MTU);
+    /// they are reassembled into their datagrams.
     pub fragments: u64,
+    /// Fragments that could not be reassembled (inconsistent, or never completed within
+    /// a second of capture time).
+    pub bad_fragments: u64,
     /// UDP datagrams to other ports.
     pub other_port: u64,
 }
@@ -47,7 +51,12 @@ pub struct PcapSource {
     counters: CaptureCounters,
     payload: Vec<u8>,
     ended: bool,
+    /// Datagrams being reassembled from their fragments, by capture time.
+    defrag: etherparse::defrag::IpDefragPool<u64, ()>,
 }
+
+/// A datagram whose fragments have not all come within this much capture time is given up.
+const DEFRAG_WINDOW_NS: u64 = 1_000_000_000;
 
 impl PcapSource {
     /// Opens a capture; only datagrams to `port` are handed on (None: all).
@@ -84,6 +93,7 @@ impl PcapSource {
             counters: CaptureCounters::default(),
             payload: Vec::with_capacity(2048),
             ended: false,
+            defrag: etherparse::defrag::IpDefragPool::new(),
         })
     }
 
@@ -124,14 +134,48 @@ impl PcapSource {
                 self.counters.not_udp += 1;
                 continue;
             };
-            let fragmented = match &sliced.net {
-                Some(etherparse::NetSlice::Ipv4(ip)) => ip.is_payload_fragmented(),
-                Some(etherparse::NetSlice::Ipv6(ip)) => ip.is_payload_fragmented(),
-                _ => false,
-            };
-            if fragmented {
+            if sliced.is_ip_payload_fragmented() {
                 self.counters.fragments += 1;
-                continue;
+                let done = match self.defrag.process_sliced_packet(&sliced, time_ns, ()) {
+                    Ok(done) => done,
+                    Err(_) => {
+                        self.counters.bad_fragments += 1;
+                        None
+                    }
+                };
+                // Give up on datagrams whose fragments stopped coming (bounded memory).
+                let stale = std::cell::Cell::new(0u64);
+                self.defrag.retain(|&t| {
+                    let keep = time_ns.saturating_sub(t) <= DEFRAG_WINDOW_NS;
+                    stale.set(stale.get() + u64::from(!keep));
+                    keep
+                });
+                self.counters.bad_fragments += stale.get();
+                let Some(done) = done else {
+                    continue;
+                };
+                let udp = (done.ip_number == etherparse::IpNumber::UDP)
+                    .then(|| etherparse::UdpSlice::from_slice(&done.payload).ok())
+                    .flatten();
+                let port = udp.as_ref().map(|u| u.destination_port());
+                if let Some(u) = &udp {
+                    self.payload.clear();
+                    self.payload.extend_from_slice(u.payload());
+                }
+                self.defrag.return_buf(done);
+                let Some(port) = port else {
+                    self.counters.not_udp += 1;
+                    continue;
+                };
+                if self.port.is_some_and(|p| p != port) {
+                    self.counters.other_port += 1;
+                    continue;
+                }
+                return Some(Ok(Datagram {
+                    time_ns,
+                    port,
+                    payload: &self.payload,
+                }));
             }
             let Some(TransportSlice::Udp(udp)) = &sliced.transport else {
                 self.counters.not_udp += 1;
@@ -234,9 +278,7 @@ mod tests {
     /// A little-endian pcap of Ethernet frames with µs stamps.
     fn pcap(records: &[Vec<u8>]) -> Vec<u8> {
         let mut b = Vec::new();
-        for v in [0xA1B2_C3D4u32] {
-            b.extend_from_slice(&v.to_le_bytes());
-        }
+        b.extend_from_slice(&0xA1B2_C3D4u32.to_le_bytes());
         b.extend_from_slice(&2u16.to_le_bytes());
         b.extend_from_slice(&4u16.to_le_bytes());
         for v in [0u32, 0, 65_535, 1] {
@@ -261,10 +303,10 @@ mod tests {
         out
     }
 
-    fn read_all(
-        bytes: &[u8],
-        port: Option<u16>,
-    ) -> (Vec<(u64, Vec<u8>)>, Option<String>, CaptureCounters) {
+    /// Datagrams read (time, payload), the error that ended the capture, the counters.
+    type Read = (Vec<(u64, Vec<u8>)>, Option<String>, CaptureCounters);
+
+    fn read_all(bytes: &[u8], port: Option<u16>) -> Read {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("c.pcap");
         std::fs::write(&path, bytes).unwrap();

@@ -4,6 +4,7 @@
 //!
 //! - [`velodyne`]: the packet layout, the laser tables (built in or read from the
 //!   sensor's calibration file) and the decoder.
+//! - [`ouster`]: Ouster lidar packets with the sensor's metadata JSON.
 //! - [`scan`]: packets gathered into scans (cut where the rotation wraps), with lost
 //!   packets counted from azimuth gaps.
 //! - [`capture`]: UDP datagrams from a pcap capture (Ethernet, VLAN, Linux cooked or raw
@@ -12,6 +13,7 @@
 //! No shared memory and no threads here: the producer (`groundwork-service`) owns those.
 
 pub mod capture;
+pub mod ouster;
 pub mod scan;
 pub mod velodyne;
 
@@ -139,22 +141,95 @@ pub struct PacketReport {
     pub refused: std::collections::BTreeMap<&'static str, u64>,
 }
 
-/// A Velodyne sensor's datagrams turned into scans: checked, gathered, decoded.
+/// A sensor's decoder, of either family.
+#[derive(Debug, Clone)]
+pub enum SensorDecoder {
+    /// Velodyne (boxed, as the Ouster's: their tables are hundreds of bytes to kB).
+    Velodyne(Box<Decoder>),
+    /// Ouster.
+    Ouster(Box<ouster::Decoder>),
+}
+
+/// One return of either family, as a scan carries it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Point {
+    /// Position (metres, the sensor's frame: x forward, y left, z up).
+    pub x: f32,
+    /// See `x`.
+    pub y: f32,
+    /// See `x`.
+    pub z: f32,
+    /// Velodyne: calibrated reflectivity (0–255); Ouster: signal photons.
+    pub intensity: f32,
+    /// The ring (Velodyne: rank by elevation, lowest 0; Ouster: beam row, top 0).
+    pub ring: u16,
+    /// The firing's sensor time, ns.
+    pub time_ns: u64,
+}
+
+impl SensorDecoder {
+    /// The returns a scan's packets decode to (to size the scan before decoding it).
+    pub fn count_scan(&self, scan: &ScanPackets) -> usize {
+        match self {
+            Self::Velodyne(d) => d.count_scan(scan),
+            Self::Ouster(d) => d.count_scan(scan),
+        }
+    }
+
+    /// Decodes a scan's returns in the order the packets hold them.
+    pub fn decode_scan(&self, scan: &ScanPackets, mut sink: impl FnMut(Point)) {
+        match self {
+            Self::Velodyne(d) => d.decode_scan(scan, |r, t| {
+                sink(Point {
+                    x: r.x,
+                    y: r.y,
+                    z: r.z,
+                    intensity: r.intensity,
+                    ring: r.ring,
+                    time_ns: t,
+                })
+            }),
+            Self::Ouster(d) => d.decode_scan(scan, |r| {
+                sink(Point {
+                    x: r.x,
+                    y: r.y,
+                    z: r.z,
+                    intensity: r.intensity,
+                    ring: r.row,
+                    time_ns: r.time_ns,
+                })
+            }),
+        }
+    }
+}
+
 #[derive(Debug)]
-pub struct VelodyneScans {
-    decoder: Decoder,
-    assembler: ScanAssembler,
+enum Assembling {
+    Velodyne(ScanAssembler),
+    Ouster(ouster::Assembler),
+}
+
+/// A sensor's datagrams turned into scans: checked, gathered at the sensor's frame
+/// boundary, decoded.
+#[derive(Debug)]
+pub struct PacketScans {
+    decoder: SensorDecoder,
+    assembler: Assembling,
     refused: std::collections::BTreeMap<&'static str, u64>,
     /// Log the first refused packet of each kind.
     warn: bool,
 }
 
-impl VelodyneScans {
+impl PacketScans {
     /// Scans of the sensor `decoder` decodes.
-    pub fn new(decoder: Decoder) -> Self {
+    pub fn new(decoder: SensorDecoder) -> Self {
+        let assembler = match &decoder {
+            SensorDecoder::Velodyne(_) => Assembling::Velodyne(ScanAssembler::new()),
+            SensorDecoder::Ouster(d) => Assembling::Ouster(ouster::Assembler::new(d.metadata())),
+        };
         Self {
             decoder,
-            assembler: ScanAssembler::new(),
+            assembler,
             refused: Default::default(),
             warn: true,
         }
@@ -168,15 +243,24 @@ impl VelodyneScans {
     }
 
     /// The decoder.
-    pub fn decoder(&self) -> &Decoder {
+    pub fn decoder(&self) -> &SensorDecoder {
         &self.decoder
     }
 
     /// Feeds one datagram; true when `out` holds a complete scan. A datagram that is not a
     /// good packet is counted by fault (the first of each kind logged) and skipped.
     pub fn push(&mut self, d: &Datagram, now_ns: u64, out: &mut ScanPackets) -> bool {
-        match self.decoder.check(d.payload) {
-            Ok(p) => self.assembler.push(&p, d.payload, d.time_ns, now_ns, out),
+        let pushed = match (&self.decoder, &mut self.assembler) {
+            (SensorDecoder::Velodyne(dec), Assembling::Velodyne(a)) => dec
+                .check(d.payload)
+                .map(|p| a.push(&p, d.payload, d.time_ns, now_ns, out)),
+            (SensorDecoder::Ouster(dec), Assembling::Ouster(a)) => dec
+                .check(d.payload)
+                .map(|p| a.push(dec, &p, d.payload, d.time_ns, now_ns, out)),
+            _ => Ok(false),
+        };
+        match pushed {
+            Ok(done) => done,
             Err(e) => {
                 let n = self.refused.entry(e.kind()).or_default();
                 if *n == 0 && self.warn {
@@ -190,7 +274,10 @@ impl VelodyneScans {
 
     /// The packets gathered since the last scan as a last, partial scan (false: none).
     pub fn flush(&mut self, now_ns: u64, out: &mut ScanPackets) -> bool {
-        self.assembler.flush(now_ns, out)
+        match &mut self.assembler {
+            Assembling::Velodyne(a) => a.flush(now_ns, out),
+            Assembling::Ouster(a) => a.flush(now_ns, out),
+        }
     }
 
     /// The returns a scan decodes to.
@@ -198,15 +285,19 @@ impl VelodyneScans {
         self.decoder.count_scan(scan)
     }
 
-    /// Decodes a scan's returns in firing order, each with its sensor time (ns).
-    pub fn decode(&self, scan: &ScanPackets, sink: impl FnMut(velodyne::Return, u64)) {
+    /// Decodes a scan's returns in the order the packets hold them.
+    pub fn decode(&self, scan: &ScanPackets, sink: impl FnMut(Point)) {
         self.decoder.decode_scan(scan, sink)
     }
 
     /// The counters so far.
     pub fn report(&self) -> PacketReport {
+        let counters = match &self.assembler {
+            Assembling::Velodyne(a) => a.counters().clone(),
+            Assembling::Ouster(a) => a.counters().clone(),
+        };
         PacketReport {
-            counters: self.assembler.counters().clone(),
+            counters,
             refused: self.refused.clone(),
         }
     }

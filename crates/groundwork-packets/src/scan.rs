@@ -62,7 +62,7 @@ impl ScanPackets {
         self.sensor_ns.first().copied()
     }
 
-    fn push(&mut self, bytes: &[u8], host_ns: u64, sensor_ns: u64) {
+    pub(crate) fn push(&mut self, bytes: &[u8], host_ns: u64, sensor_ns: u64) {
         self.bytes.extend_from_slice(bytes);
         self.sizes.push(bytes.len());
         self.host_ns.push(host_ns);

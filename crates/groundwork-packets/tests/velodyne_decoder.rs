@@ -17,7 +17,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use groundwork_packets::{Calibration, Decoder, Model, PcapSource, ScanPackets, VelodyneScans};
+use groundwork_packets::{
+    Calibration, Decoder, Model, PacketScans, PcapSource, ScanPackets, SensorDecoder,
+};
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -133,14 +135,16 @@ fn compare_capture(
     );
     let expected = read_reference(&reference);
 
-    let mut scans = VelodyneScans::new(Decoder::new(model_id, calibration).unwrap());
+    let mut scans = PacketScans::new(SensorDecoder::Velodyne(Box::new(
+        Decoder::new(model_id, calibration).unwrap(),
+    )));
     let mut source = PcapSource::open(&pcap, Some(2368)).unwrap();
     let mut got: Vec<Vec<([f32; 6], u64)>> = Vec::new();
     let mut out = ScanPackets::default();
-    let mut take = |scans: &VelodyneScans, out: &ScanPackets| {
+    let mut take = |scans: &PacketScans, out: &ScanPackets| {
         let mut points = Vec::with_capacity(scans.count(out));
-        scans.decode(out, |r, t| {
-            points.push(([r.x, r.y, r.z, r.intensity, r.ring as f32, 0.0], t));
+        scans.decode(out, |r| {
+            points.push(([r.x, r.y, r.z, r.intensity, r.ring as f32, 0.0], r.time_ns));
         });
         assert_eq!(points.len(), scans.count(out), "count agrees with decode");
         got.push(points);

@@ -18,7 +18,8 @@ use anyhow::Context;
 use groundwork_msg::{ScanPoint, monotonic_ns};
 use groundwork_packets::capture::CaptureCounters;
 use groundwork_packets::{
-    Calibration, Decoder, Model, PacketReport, PcapSource, ScanPackets, UdpSource, VelodyneScans,
+    Calibration, Decoder, Model, PacketReport, PacketScans, PcapSource, ScanPackets, SensorDecoder,
+    UdpSource, ouster,
 };
 use serde::Serialize;
 use tracing::{info, warn};
@@ -32,13 +33,51 @@ pub enum PacketInput {
     Udp(SocketAddr),
 }
 
+/// Which sensor sends the packets, and what decoding them needs.
+#[derive(Debug, Clone)]
+pub enum PacketSensor {
+    /// A Velodyne: its model, and its calibration file (None: the manual's table).
+    Velodyne(Model, Option<PathBuf>),
+    /// An Ouster: its metadata JSON.
+    Ouster(PathBuf),
+}
+
+impl PacketSensor {
+    /// The decoder for these packets (reads the calibration or metadata file).
+    pub fn decoder(&self) -> anyhow::Result<SensorDecoder> {
+        Ok(match self {
+            Self::Velodyne(model, calibration) => {
+                let calibration = calibration.as_deref().map(Calibration::read).transpose()?;
+                SensorDecoder::Velodyne(Box::new(Decoder::new(*model, calibration)?))
+            }
+            Self::Ouster(metadata) => SensorDecoder::Ouster(Box::new(ouster::Decoder::new(
+                ouster::Metadata::read(metadata)?,
+            ))),
+        })
+    }
+
+    /// The coordinate frame its scans are in: the ROS drivers' default names.
+    pub fn frame_id(&self) -> &'static str {
+        match self {
+            Self::Velodyne(..) => "velodyne",
+            Self::Ouster(_) => "os_sensor",
+        }
+    }
+
+    /// A short name for logs and reports.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Velodyne(model, _) => model.name().to_string(),
+            Self::Ouster(metadata) => format!("ouster ({})", metadata.display()),
+        }
+    }
+}
+
 /// A sensor's packets, as the producer is asked to read them.
 #[derive(Debug, Clone)]
 pub struct PacketSource {
-    /// The sensor model (which packet layout and laser table).
-    pub model: Model,
-    /// The sensor's calibration file (None: the manual's table).
-    pub calibration: Option<PathBuf>,
+    /// The sensor.
+    pub sensor: PacketSensor,
     /// Live or a capture.
     pub input: PacketInput,
     /// A capture's datagrams to this port only (None: every port).
@@ -64,7 +103,7 @@ pub struct PacketSourceReport {
 /// Scans arriving from the receiving thread.
 #[derive(Debug)]
 pub struct PacketStream {
-    decoder: Decoder,
+    decoder: SensorDecoder,
     scans: Receiver<ScanPackets>,
     /// Emptied scans go back to the receiving thread (no allocation per scan).
     recycle: Sender<ScanPackets>,
@@ -88,14 +127,9 @@ const SCAN_WAIT: Duration = Duration::from_millis(100);
 impl PacketStream {
     /// Opens the input and starts the receiving thread.
     pub fn start(source: &PacketSource) -> anyhow::Result<Self> {
-        let calibration = source
-            .calibration
-            .as_deref()
-            .map(Calibration::read)
-            .transpose()?;
-        let decoder = Decoder::new(source.model, calibration)?;
+        let decoder = source.sensor.decoder()?;
         let input = match &source.input {
-            PacketInput::Pcap(path) => Input::Pcap(PcapSource::open(path, source.port)?),
+            PacketInput::Pcap(path) => Input::Pcap(Box::new(PcapSource::open(path, source.port)?)),
             PacketInput::Udp(addr) => Input::Udp(UdpSource::bind(*addr, SCAN_WAIT)?),
         };
         let (tx, scans) = sync_channel(crate::producer::READ_AHEAD);
@@ -104,7 +138,7 @@ impl PacketStream {
         let stop = Arc::new(AtomicBool::new(false));
         let receiver = Receiving {
             stop: Arc::clone(&stop),
-            scans: VelodyneScans::new(decoder.clone()),
+            scans: PacketScans::new(decoder.clone()),
             tx,
             returned,
             report: Arc::clone(&report),
@@ -115,7 +149,7 @@ impl PacketStream {
             .spawn(move || receiver.run(input))
             .context("start the packet receiving thread")?;
         info!(
-            model = source.model.name(),
+            sensor = source.sensor.name(),
             input = ?source.input,
             "packets: receiving"
         );
@@ -163,7 +197,7 @@ impl PacketStream {
     /// Decodes a scan into `points` (exactly [`PacketStream::count`] long).
     pub fn decode_into(&self, scan: &ScanPackets, points: &mut [ScanPoint]) -> bool {
         let mut k = 0;
-        self.decoder.decode_scan(scan, |r, _| {
+        self.decoder.decode_scan(scan, |r| {
             if let Some(p) = points.get_mut(k) {
                 *p = ScanPoint {
                     x: r.x,
@@ -191,13 +225,13 @@ impl PacketStream {
 }
 
 enum Input {
-    Pcap(PcapSource),
+    Pcap(Box<PcapSource>),
     Udp(UdpSource),
 }
 
 /// The receiving thread's state.
 struct Receiving {
-    scans: VelodyneScans,
+    scans: PacketScans,
     tx: SyncSender<ScanPackets>,
     returned: Receiver<ScanPackets>,
     report: Arc<Mutex<PacketSourceReport>>,
@@ -292,16 +326,11 @@ impl PacketSource {
         let PacketInput::Pcap(path) = &self.input else {
             return Ok(None);
         };
-        let calibration = self
-            .calibration
-            .as_deref()
-            .map(Calibration::read)
-            .transpose()?;
-        let mut scans = VelodyneScans::new(Decoder::new(self.model, calibration)?).quiet();
+        let mut scans = PacketScans::new(self.sensor.decoder()?).quiet();
         let mut pcap = PcapSource::open(path, self.port)?;
         let mut out = ScanPackets::default();
         let mut n = 0;
-        let mut take = |scans: &VelodyneScans, out: &ScanPackets| {
+        let mut take = |scans: &PacketScans, out: &ScanPackets| {
             let len = scans.count(out);
             n += u64::from(len > 0 && len <= max_points);
         };

@@ -683,9 +683,9 @@ pub fn run(cfg: &ServiceConfig, opts: &ProducerOptions) -> anyhow::Result<Produc
         let (frames, skipped) = Frames::load(&opts.source, cfg.max_points)?;
         let mut stage = ProducerStage::new(frames, skipped, opts.malformed_every);
         stage.max_points = cfg.max_points;
-        if matches!(opts.source, Source::Packets(_)) {
+        if let Source::Packets(p) = &opts.source {
             // The packets set the pace; scans are taken as they complete.
-            stage.frame_id = Some("velodyne".into());
+            stage.frame_id = Some(p.sensor.frame_id().into());
             stage.pace = Pace {
                 count: opts.count,
                 linger: opts.linger,

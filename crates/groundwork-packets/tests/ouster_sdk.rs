@@ -1,0 +1,187 @@
+//! groundwork's decoding of Ouster captures against ouster-sdk's (PyPI `ouster-sdk` 1.0,
+//! Ouster's own SDK, which we did not write).
+//!
+//! The captures and their metadata are written at test time from a real KITTI scan by the
+//! packet layout of Ouster's documentation (`scripts/fixtures/ouster_pcap.py`: an OS1-64,
+//! 12.5 kB packets fragmented at a 1500-byte MTU); ouster-sdk decodes them
+//! (`scripts/fixtures/ouster_reference.py`). Frame by frame: the same frames, the same
+//! pixels with a range (matched by beam and column), positions within 1e-4 m, the column
+//! times equal.
+//!
+//! Needs a Python with ouster-sdk: `GROUNDWORK_PACKET_PEERS_PYTHON`, set by
+//! `crates/groundwork-py/test.sh` (see tests/velodyne_decoder.rs).
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use groundwork_packets::{
+    PacketReport, PacketScans, PcapSource, ScanPackets, SensorDecoder, ouster,
+};
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn peer_python() -> Option<PathBuf> {
+    match std::env::var_os("GROUNDWORK_PACKET_PEERS_PYTHON") {
+        Some(p) => Some(PathBuf::from(p)),
+        None => {
+            assert!(
+                std::env::var_os("GROUNDWORK_REQUIRE_PACKET_PEERS").is_none(),
+                "GROUNDWORK_REQUIRE_PACKET_PEERS is set but GROUNDWORK_PACKET_PEERS_PYTHON is not"
+            );
+            eprintln!("skipped: GROUNDWORK_PACKET_PEERS_PYTHON is not set");
+            None
+        }
+    }
+}
+
+fn run(python: &Path, args: &[String]) {
+    let out = Command::new(python).args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A reference frame: frame id and pixels (row, column, x, y, z, time).
+fn read_reference(path: &Path) -> Vec<(u32, Vec<[f64; 6]>)> {
+    let b = std::fs::read(path).unwrap();
+    let mut frames = Vec::new();
+    let mut at = 0;
+    while at < b.len() {
+        let n = u32::from_le_bytes(b[at..at + 4].try_into().unwrap()) as usize;
+        let id = u32::from_le_bytes(b[at + 4..at + 8].try_into().unwrap());
+        at += 8;
+        let px = (0..n)
+            .map(|i| {
+                std::array::from_fn(|c| {
+                    let o = at + (i * 6 + c) * 8;
+                    f64::from_le_bytes(b[o..o + 8].try_into().unwrap())
+                })
+            })
+            .collect();
+        at += n * 48;
+        frames.push((id, px));
+    }
+    frames
+}
+
+fn compare(extra: &[&str]) -> PacketReport {
+    compare_capture(extra, None)
+}
+
+/// As [`compare`], on a capture and its metadata if given (else written from KITTI).
+fn compare_capture(extra: &[&str], capture: Option<(&Path, &Path)>) -> PacketReport {
+    let Some(python) = peer_python() else {
+        return Default::default();
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (pcap, meta) = capture.map_or_else(
+        || (dir.path().join("os.pcap"), dir.path().join("os.json")),
+        |(p, m)| (p.to_path_buf(), m.to_path_buf()),
+    );
+    let reference = dir.path().join("reference.bin");
+    let scripts = root().join("scripts/fixtures");
+    let s = |p: &Path| p.display().to_string();
+    let mut args = vec![
+        s(&scripts.join("ouster_pcap.py")),
+        "--scan".into(),
+        s(&root().join("tests/data/semantickitti-00/velodyne/000002.bin")),
+        "--out".into(),
+        s(&pcap),
+        "--metadata-out".into(),
+        s(&meta),
+    ];
+    args.extend(extra.iter().map(|a| a.to_string()));
+    if capture.is_none() {
+        run(&python, &args);
+    }
+    run(
+        &python,
+        &[
+            s(&scripts.join("ouster_reference.py")),
+            s(&pcap),
+            "--metadata".into(),
+            s(&meta),
+            "--out".into(),
+            s(&reference),
+        ],
+    );
+    let expected = read_reference(&reference);
+
+    let decoder = ouster::Decoder::new(ouster::Metadata::read(&meta).unwrap());
+    let mut scans = PacketScans::new(SensorDecoder::Ouster(Box::new(decoder.clone())));
+    let mut source = PcapSource::open(&pcap, Some(ouster::LIDAR_PORT)).unwrap();
+    let mut got: Vec<Vec<ouster::Return>> = Vec::new();
+    let mut out = ScanPackets::default();
+    let mut take = |scans: &PacketScans, out: &ScanPackets| {
+        let mut px = Vec::new();
+        decoder.decode_scan(out, |r| px.push(r));
+        assert_eq!(px.len(), scans.count(out));
+        got.push(px);
+    };
+    while let Some(d) = source.next_datagram() {
+        if scans.push(&d.unwrap(), 0, &mut out) {
+            take(&scans, &out);
+        }
+    }
+    if scans.flush(0, &mut out) {
+        take(&scans, &out);
+    }
+    assert!(source.counters().fragments > 0, "fragmented datagrams");
+    assert_eq!(got.len(), expected.len(), "frames");
+    for (k, ((_, want), have)) in expected.iter().zip(&got).enumerate() {
+        assert_eq!(have.len(), want.len(), "frame {k}: pixels with a range");
+        assert!(want.len() > 200, "frame {k}: a real scan");
+        let by_pixel: HashMap<(u16, u16), &ouster::Return> =
+            have.iter().map(|r| ((r.row, r.column), r)).collect();
+        for w in want {
+            let h = by_pixel
+                .get(&(w[0] as u16, w[1] as u16))
+                .unwrap_or_else(|| panic!("frame {k}: no pixel {w:?}"));
+            for (c, v) in [h.x, h.y, h.z].into_iter().enumerate() {
+                assert!(
+                    (w[2 + c] - v as f64).abs() <= 1e-4,
+                    "frame {k} pixel {w:?}: {h:?}"
+                );
+            }
+            assert_eq!(w[5] as u64, h.time_ns, "frame {k} pixel {w:?}: time");
+        }
+    }
+    scans.report()
+}
+
+#[test]
+fn os1_64_rng19_with_a_lost_packet_and_stray_datagrams_matches_ouster_sdk() {
+    let report = compare(&["--faults", "--drop", "70"]);
+    if report.counters.packets > 0 {
+        assert_eq!(report.counters.lost, 1);
+        assert_eq!(report.refused.get("wrong size"), Some(&1));
+    }
+}
+
+#[test]
+fn os1_64_legacy_2048_matches_ouster_sdk() {
+    compare(&["--profile", "LEGACY", "--width", "2048", "--frames", "1.6"]);
+}
+
+/// The capture the replay tests use (tests/data/packets): an OS1-16 in 512x10.
+#[test]
+fn the_bundled_os1_16_capture_matches_ouster_sdk() {
+    let data = root().join("tests/data/packets");
+    let report = compare_capture(
+        &[],
+        Some((
+            &data.join("os1-16-kitti-000002.pcap"),
+            &data.join("os1-16-kitti-000002.json"),
+        )),
+    );
+    if report.counters.packets > 0 {
+        assert_eq!((report.counters.packets, report.counters.lost), (56, 1));
+    }
+}
