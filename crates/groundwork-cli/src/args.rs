@@ -144,9 +144,10 @@ pub struct PipelineArgs {
     /// Stop after this many scans (default: run until Ctrl-C).
     #[arg(long)]
     pub count: Option<u64>,
-    /// Producer rate, scans per second (0 = as fast as possible).
-    #[arg(long)]
-    pub rate: Option<f64>,
+    /// Producer rate, scans per second (0 = as fast as possible), or `recorded`: a
+    /// recording or capture at its recorded rate (their default).
+    #[arg(long, value_parser = parse_rate)]
+    pub rate: Option<Rate>,
     /// Consumer writes .prob/.ground files into this folder, or one recording
     /// (PointCloud2 with ground_probability) to a path ending in .mcap.
     #[arg(long)]
@@ -251,6 +252,34 @@ pub struct Ros2CmdArgs {
     pub count: Option<u64>,
 }
 
+/// A producer's pace: scans per second, or as recorded.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Rate {
+    /// Scans per second (0: as fast as possible).
+    Hz(f64),
+    /// A recording's or capture's own pace.
+    Recorded,
+}
+
+impl Rate {
+    /// Scans per second, None for the recorded pace.
+    pub fn hz(self) -> Option<f64> {
+        match self {
+            Self::Hz(r) => Some(r),
+            Self::Recorded => None,
+        }
+    }
+}
+
+fn parse_rate(s: &str) -> Result<Rate, String> {
+    if s == "recorded" {
+        return Ok(Rate::Recorded);
+    }
+    s.parse()
+        .map(Rate::Hz)
+        .map_err(|_| format!("{s}: scans per second (a number) or `recorded`"))
+}
+
 /// A sensor's packets as the source of scans (producer and pipeline).
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct PacketArgs {
@@ -289,9 +318,10 @@ pub struct ProducerArgs {
     /// Stop after this many scans.
     #[arg(long)]
     pub count: Option<u64>,
-    /// Scans per second (0 = as fast as possible); overrides the configuration.
-    #[arg(long)]
-    pub rate: Option<f64>,
+    /// Scans per second (0 = as fast as possible; overrides the configuration), or
+    /// `recorded`: a recording or capture at its recorded rate (their default).
+    #[arg(long, value_parser = parse_rate)]
+    pub rate: Option<Rate>,
     /// Publish generated scans of this many points instead of files.
     #[arg(long, conflicts_with = "data")]
     pub synthetic: Option<usize>,

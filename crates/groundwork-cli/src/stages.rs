@@ -14,7 +14,7 @@ use groundwork_service::{check_shared_memory, consumer, launcher, producer, segm
 use tracing::{error, info, warn};
 
 use crate::args::{
-    Common, ConsumerArgs, DetectorArgs, PacketArgs, PipelineArgs, ProducerArgs, Ros2Args,
+    Common, ConsumerArgs, DetectorArgs, PacketArgs, PipelineArgs, ProducerArgs, Rate, Ros2Args,
     Ros2CmdArgs, SegmenterArgs, ServiceArgs, ShmSizeArgs, ViewCmdArgs,
 };
 use crate::common::{load, load_methods, load_service, sample_data};
@@ -27,7 +27,7 @@ pub fn pipeline_command(a: PipelineArgs) -> Result<ExitCode> {
         &PipelineRun {
             data: a.data,
             count: a.count,
-            rate: a.rate,
+            rate: a.rate.and_then(Rate::hz),
             out: a.out,
             restart: a.restart,
             detector: !a.no_detector,
@@ -164,7 +164,8 @@ pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
         a.linger
     );
     let linger = Duration::try_from_secs_f64(a.linger).unwrap_or(Duration::MAX);
-    let packets = packet_source(&a.packets, cfg.sensor.as_deref(), a.rate)?;
+    let rate = a.rate.and_then(Rate::hz);
+    let packets = packet_source(&a.packets, cfg.sensor.as_deref(), rate)?;
     let source = match (a.synthetic, packets) {
         (_, Some(p)) => producer::Source::Packets(p),
         (Some(n), None) => producer::Source::Synthetic(n),
@@ -181,7 +182,7 @@ pub fn producer(a: ProducerArgs) -> Result<ExitCode> {
         &producer::ProducerOptions {
             source,
             count: a.count,
-            rate_hz: a.rate.filter(|_| a.packets.packets.is_none()),
+            rate_hz: rate.filter(|_| a.packets.packets.is_none()),
             malformed_every: a.malformed_every,
             linger,
         },

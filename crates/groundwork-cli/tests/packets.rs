@@ -266,6 +266,29 @@ fn bad_captures_and_missing_calibration_are_named() {
     assert_eq!(hdl.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("--sensor-config"), "{stderr}");
 
+    // Packets set their own pace: a rate other than recorded or 0 is refused.
+    let paced = groundwork()
+        .args([
+            "producer",
+            "--model",
+            "vlp16",
+            "--packets",
+            "velodyne",
+            "--rate",
+            "20",
+            "--pcap",
+        ])
+        .arg(capture())
+        .args(["--prefix", &prefix("paced")])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&paced.stderr);
+    assert_eq!(paced.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("--rate 20") && stderr.contains("recorded"),
+        "{stderr}"
+    );
+
     // A VLP-32C's decoder refuses every VLP-16 packet by its model byte: counted, named.
     let wrong = groundwork()
         .args([
