@@ -107,6 +107,12 @@ impl Calibration {
             if values.iter().any(|v| !v.is_finite()) {
                 return Err(format!("laser {k}: a correction is not a finite number"));
             }
+            if l.min_intensity.floor() > l.max_intensity.floor() {
+                return Err(format!(
+                    "laser {k}: min_intensity {} above max_intensity {}",
+                    l.min_intensity, l.max_intensity
+                ));
+            }
         }
         if ![16, 32, 64].contains(&lasers.len()) {
             return Err(format!(
@@ -346,6 +352,13 @@ mod tests {
         std::fs::write(&path, text.replace("laser_id: 3,", "laser_id: 4,")).unwrap();
         let e = Calibration::read(&path).unwrap_err().to_string();
         assert!(e.contains("cal.yaml") && e.contains("exactly once"), "{e}");
+        std::fs::write(
+            &path,
+            text.replace("laser_id: 5,", "laser_id: 5, min_intensity: 200, max_intensity: 100,"),
+        )
+        .unwrap();
+        let e = Calibration::read(&path).unwrap_err().to_string();
+        assert!(e.contains("laser 5: min_intensity 200 above max_intensity 100"), "{e}");
         std::fs::write(&path, "lasers: [").unwrap();
         let e = Calibration::read(&path).unwrap_err().to_string();
         assert!(e.contains("cal.yaml"), "{e}");

@@ -226,6 +226,10 @@ struct LaserTrig {
     sin_rot: f32,
     cos_vert: f32,
     sin_vert: f32,
+    /// The HDL-64E's intensity correction: (1 − focal distance / 131)², and the clamp.
+    focal_squared: f32,
+    min_intensity: f32,
+    max_intensity: f32,
 }
 
 impl Decoder {
@@ -260,11 +264,17 @@ impl Decoder {
         let lasers = calibration
             .lasers
             .iter()
-            .map(|l| LaserTrig {
-                cos_rot: l.rot_correction.cos(),
-                sin_rot: l.rot_correction.sin(),
-                cos_vert: l.vert_correction.cos(),
-                sin_vert: l.vert_correction.sin(),
+            .map(|l| {
+                let focal = 1.0 - l.focal_distance / 131.0;
+                LaserTrig {
+                    cos_rot: l.rot_correction.cos(),
+                    sin_rot: l.rot_correction.sin(),
+                    cos_vert: l.vert_correction.cos(),
+                    sin_vert: l.vert_correction.sin(),
+                    focal_squared: focal * focal,
+                    min_intensity: l.min_intensity.floor(),
+                    max_intensity: l.max_intensity.floor(),
+                }
             })
             .collect();
         Ok(Self {
@@ -350,7 +360,15 @@ impl Decoder {
         let rotation_rate = azimuth_diff / (self.timings[last][0] - self.timings[0][0]);
         let azimuth_at = |block: usize, dt: f32| -> u16 {
             let a = p.azimuth(block) as f32 + rotation_rate * dt;
-            ((a + TURN as f32).round() as i64).rem_euclid(TURN as i64) as u16
+            // Non-negative (the rate and dt are): a subtraction wraps it, save on a
+            // damaged packet whose rate is absurd.
+            let a = (a + TURN as f32).round() as i64;
+            let wrapped = if a < 2 * TURN as i64 {
+                a - TURN as i64 * i64::from(a >= TURN as i64)
+            } else {
+                a.rem_euclid(TURN as i64)
+            };
+            wrapped as u16
         };
         if self.model.is_hdl64e() {
             for i in 0..BLOCKS {
@@ -507,6 +525,10 @@ impl Decoder {
         const FAR_POINT: f32 = 25.04;
         const NEAR_X: f32 = 2.40;
         const NEAR_Y: f32 = 1.93;
+        // Products with the reciprocals, not divisions (a divide is the slowest step here;
+        // the results differ from the quotient's in the last bit at most).
+        const PER_X: f32 = 1.0 / (FAR_POINT - NEAR_X);
+        const PER_Y: f32 = 1.0 / (FAR_POINT - NEAR_Y);
         let measured = raw as f32 * self.calibration.distance_resolution;
         let (mut cx, mut cy, mut cz) = (c.dist_correction, c.dist_correction, c.dist_correction);
         let two_point = c.dist_correction_x != 0.0 && c.dist_correction_y != 0.0;
@@ -514,12 +536,12 @@ impl Decoder {
             let xy = corrected * t.cos_vert;
             let xx = (xy * sin_rot).abs();
             let yy = (xy * cos_rot).abs();
-            let kx = (xx - NEAR_X) / (FAR_POINT - NEAR_X);
-            let ky = (yy - NEAR_Y) / (FAR_POINT - NEAR_Y);
+            let kx = (xx - NEAR_X) * PER_X;
+            let ky = (yy - NEAR_Y) * PER_Y;
             cx = kx * c.dist_correction + (1.0 - kx) * c.dist_correction_x;
             cy = ky * c.dist_correction + (1.0 - ky) * c.dist_correction_y;
             // The mean of x and y for z (the manual's use of y alone reads as a slip).
-            cz = (cx + cy) / 2.0;
+            cz = (cx + cy) * 0.5;
         }
         let x_offset = c.horiz_offset_correction * -cos_rot;
         let y_offset = c.horiz_offset_correction * sin_rot;
@@ -527,15 +549,15 @@ impl Decoder {
         let mx = (measured + cx) * t.cos_vert * sin_rot + x_offset;
         let my = (measured + cy) * t.cos_vert * cos_rot + y_offset;
         let z = (measured + cz) * t.sin_vert + c.vert_offset_correction;
-        let focal = 1.0 - c.focal_distance / 131.0;
-        let near = 1.0 - raw as f32 / 65535.0;
+        let near = 1.0 - raw as f32 * (1.0 / 65535.0);
         let intensity =
-            reflectivity as f32 + 256.0 * c.focal_slope * (focal * focal - near * near).abs();
+            reflectivity as f32 + 256.0 * c.focal_slope * (t.focal_squared - near * near).abs();
         Return {
             x: my,
             y: -mx,
             z,
-            intensity: intensity.clamp(c.min_intensity.floor(), c.max_intensity.floor()),
+            // Bounds checked when the calibration was read (min ≤ max).
+            intensity: intensity.max(t.min_intensity).min(t.max_intensity),
             ring,
             time,
         }
