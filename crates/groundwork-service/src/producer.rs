@@ -635,6 +635,21 @@ impl Stage for ProducerStage {
 
     fn log_state(&self) {
         let r = &self.report;
+        if let Frames::Packets(p) = &self.frames {
+            // A live sensor's health: packets lost (azimuth or column gaps), late, refused.
+            let k = p.report();
+            info!(
+                published = r.published,
+                unreceived = r.unreceived,
+                packets = k.packets.counters.packets,
+                lost = k.packets.counters.lost,
+                out_of_order = k.packets.counters.out_of_order,
+                refused = k.packets.refused.values().sum::<u64>(),
+                scans_skipped = k.scans_skipped,
+                "producer state"
+            );
+            return;
+        }
         info!(
             published = r.published,
             unreceived = r.unreceived,
