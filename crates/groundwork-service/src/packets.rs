@@ -121,6 +121,10 @@ impl Drop for PacketStream {
     }
 }
 
+/// Complete scans waiting for the producer: a few, so that a slow publication does not
+/// make the socket's buffer overflow, and no more (each is its packets, about 0.5 MB).
+const SCANS_AHEAD: usize = 4;
+
 /// How long the producer waits for a scan before it looks at signals again.
 const SCAN_WAIT: Duration = Duration::from_millis(100);
 
@@ -132,7 +136,7 @@ impl PacketStream {
             PacketInput::Pcap(path) => Input::Pcap(Box::new(PcapSource::open(path, source.port)?)),
             PacketInput::Udp(addr) => Input::Udp(UdpSource::bind(*addr, SCAN_WAIT)?),
         };
-        let (tx, scans) = sync_channel(crate::producer::READ_AHEAD);
+        let (tx, scans) = sync_channel(SCANS_AHEAD);
         let (recycle, returned) = channel();
         let report = Arc::new(Mutex::new(PacketSourceReport::default()));
         let stop = Arc::new(AtomicBool::new(false));

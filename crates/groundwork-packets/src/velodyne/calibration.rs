@@ -354,11 +354,17 @@ mod tests {
         assert!(e.contains("cal.yaml") && e.contains("exactly once"), "{e}");
         std::fs::write(
             &path,
-            text.replace("laser_id: 5,", "laser_id: 5, min_intensity: 200, max_intensity: 100,"),
+            text.replace(
+                "laser_id: 5,",
+                "laser_id: 5, min_intensity: 200, max_intensity: 100,",
+            ),
         )
         .unwrap();
         let e = Calibration::read(&path).unwrap_err().to_string();
-        assert!(e.contains("laser 5: min_intensity 200 above max_intensity 100"), "{e}");
+        assert!(
+            e.contains("laser 5: min_intensity 200 above max_intensity 100"),
+            "{e}"
+        );
         std::fs::write(&path, "lasers: [").unwrap();
         let e = Calibration::read(&path).unwrap_err().to_string();
         assert!(e.contains("cal.yaml"), "{e}");
