@@ -125,6 +125,9 @@ impl Drop for PacketStream {
 /// make the socket's buffer overflow, and no more (each is its packets, about 0.5 MB).
 const SCANS_AHEAD: usize = 4;
 
+/// A capture replayed at its recorded rate is released in steps of about this much.
+const PACE_GRANULARITY: Duration = Duration::from_millis(1);
+
 /// How long the producer waits for a scan before it looks at signals again.
 const SCAN_WAIT: Duration = Duration::from_millis(100);
 
@@ -262,7 +265,13 @@ impl Receiving {
                     if self.recorded_rate {
                         let (t0, w0) = *origin.get_or_insert((d.time_ns, Instant::now()));
                         let due = w0 + Duration::from_nanos(d.time_ns.saturating_sub(t0));
-                        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+                        // Sleep only when a millisecond or more ahead: a wake-up per packet
+                        // (3 500 a second from a 64-beam sensor) would cost more CPU than
+                        // the decoding.
+                        let ahead = due.saturating_duration_since(Instant::now());
+                        if ahead >= PACE_GRANULARITY {
+                            std::thread::sleep(ahead);
+                        }
                     }
                     if self.scans.push(&d, monotonic_ns(), &mut out) && !self.hand_over(&mut out) {
                         return;
