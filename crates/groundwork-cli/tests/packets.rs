@@ -133,6 +133,30 @@ fn an_ouster_capture_replays_through_the_pipeline() {
     );
     assert_eq!(logged(&stderr, "producer: packets ", "lost"), 1);
     assert_eq!(logged(&stderr, "producer: packets ", "refused"), 1);
+    // A real sensor's frame (an OS1-32, ouster-sdk's test data): segmented.
+    let real = groundwork()
+        .args([
+            "pipeline",
+            "--sensor",
+            "os1-64",
+            "--packets",
+            "ouster",
+            "--pcap",
+        ])
+        .arg(data.join("OS-1-32-G_v2.1.1_1024x10.pcap"))
+        .arg("--sensor-config")
+        .arg(data.join("OS-1-32-G_v2.1.1_1024x10.json"))
+        .args(["--no-detector", "--prefix", &prefix("ouster-real")])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&real.stdout);
+    assert!(
+        real.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&real.stderr)
+    );
+    assert!(stdout.contains("1 masks (1 segmented"), "{stdout}");
+
     // Without its metadata an Ouster's packets cannot be read: said so.
     let bare = groundwork()
         .args(["producer", "--packets", "ouster", "--pcap"])
