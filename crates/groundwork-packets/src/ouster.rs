@@ -506,7 +506,7 @@ impl Assembler {
         }
         let mut complete = false;
         if self.frame.is_some_and(|f| f != packet.frame_id) && !self.current.is_empty() {
-            self.finish(now_ns, out);
+            self.current.hand_over(now_ns, out);
             complete = true;
         }
         self.frame = Some(packet.frame_id);
@@ -514,7 +514,7 @@ impl Assembler {
         self.counters.packets += 1;
         let last = m as usize + self.columns_per_packet - 1;
         if !complete && (m as usize..=last).contains(&self.last_column) {
-            self.finish(now_ns, out);
+            self.current.hand_over(now_ns, out);
             self.finished = Some(packet.frame_id);
             self.frame = None;
             return true;
@@ -527,15 +527,9 @@ impl Assembler {
         if self.current.is_empty() {
             return false;
         }
-        self.finish(now_ns, out);
+        self.current.hand_over(now_ns, out);
         self.frame = None;
         true
-    }
-
-    fn finish(&mut self, now_ns: u64, out: &mut ScanPackets) {
-        out.clear();
-        std::mem::swap(&mut self.current, out);
-        out.completed_at_ns = now_ns;
     }
 
     /// Counts lost and late packets; true if this one is late (and left out).

@@ -62,6 +62,13 @@ impl ScanPackets {
         self.sensor_ns.first().copied()
     }
 
+    /// Hands this finished scan to `out` and starts the next one empty in `out`'s buffers.
+    pub(crate) fn hand_over(&mut self, now_ns: u64, out: &mut ScanPackets) {
+        out.clear();
+        std::mem::swap(self, out);
+        out.completed_at_ns = now_ns;
+    }
+
     pub(crate) fn push(&mut self, bytes: &[u8], host_ns: u64, sensor_ns: u64) {
         self.bytes.extend_from_slice(bytes);
         self.sizes.push(bytes.len());
@@ -152,7 +159,7 @@ impl ScanAssembler {
                 .first()
                 .is_some_and(|&t0| host_ns.saturating_sub(t0) as f64 > MAX_SCAN_S * 1e9);
         if too_long {
-            self.finish(now_ns, out);
+            self.current.hand_over(now_ns, out);
             let start = previous_end.unwrap_or(last);
             self.start = Some(start);
             self.current.push(bytes, host_ns, sensor_ns);
@@ -169,7 +176,7 @@ impl ScanAssembler {
         if complete {
             self.start = Some(last);
             self.coverage = 0;
-            self.finish(now_ns, out);
+            self.current.hand_over(now_ns, out);
         }
         complete
     }
@@ -179,16 +186,10 @@ impl ScanAssembler {
         if self.current.is_empty() {
             return false;
         }
-        self.finish(now_ns, out);
+        self.current.hand_over(now_ns, out);
         self.start = None;
         self.coverage = 0;
         true
-    }
-
-    fn finish(&mut self, now_ns: u64, out: &mut ScanPackets) {
-        out.clear();
-        std::mem::swap(&mut self.current, out);
-        out.completed_at_ns = now_ns;
     }
 
     fn count_gaps(&mut self, packet: &PacketView) {
