@@ -211,14 +211,7 @@ impl Stream {
             .ok()?;
         let mut stream = Self {
             ahead: rx,
-            current: Frame {
-                points: Vec::new(),
-                pose: None,
-                index: 0,
-                log_time_ns: None,
-                stamp_ns: None,
-                frame_id: None,
-            },
+            current: NO_FRAME.clone(),
             next: None,
         };
         stream.current = stream.pull(skipped)?;
