@@ -13,63 +13,13 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
+mod peers;
+
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
-use groundwork_packets::{
-    PacketReport, PacketScans, PcapSource, ScanPackets, SensorDecoder, ouster,
-};
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn peer_python() -> Option<PathBuf> {
-    match std::env::var_os("GROUNDWORK_PACKET_PEERS_PYTHON") {
-        Some(p) => Some(PathBuf::from(p)),
-        None => {
-            assert!(
-                std::env::var_os("GROUNDWORK_REQUIRE_PACKET_PEERS").is_none(),
-                "GROUNDWORK_REQUIRE_PACKET_PEERS is set but GROUNDWORK_PACKET_PEERS_PYTHON is not"
-            );
-            eprintln!("skipped: GROUNDWORK_PACKET_PEERS_PYTHON is not set");
-            None
-        }
-    }
-}
-
-fn run(python: &Path, args: &[String]) {
-    let out = Command::new(python).args(args).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// A reference frame: frame id and pixels (row, column, x, y, z, time).
-fn read_reference(path: &Path) -> Vec<(u32, Vec<[f64; 6]>)> {
-    let b = std::fs::read(path).unwrap();
-    let mut frames = Vec::new();
-    let mut at = 0;
-    while at < b.len() {
-        let n = u32::from_le_bytes(b[at..at + 4].try_into().unwrap()) as usize;
-        let id = u32::from_le_bytes(b[at + 4..at + 8].try_into().unwrap());
-        at += 8;
-        let px = (0..n)
-            .map(|i| {
-                std::array::from_fn(|c| {
-                    let o = at + (i * 6 + c) * 8;
-                    f64::from_le_bytes(b[o..o + 8].try_into().unwrap())
-                })
-            })
-            .collect();
-        at += n * 48;
-        frames.push((id, px));
-    }
-    frames
-}
+use groundwork_packets::{PacketReport, PacketScans, SensorDecoder, ouster};
+use peers::{arg, for_each_scan, peer_python, read_reference, root, run, script};
 
 fn compare(extra: &[&str]) -> PacketReport {
     compare_capture(extra, None)
@@ -86,53 +36,42 @@ fn compare_capture(extra: &[&str], capture: Option<(&Path, &Path)>) -> PacketRep
         |(p, m)| (p.to_path_buf(), m.to_path_buf()),
     );
     let reference = dir.path().join("reference.bin");
-    let scripts = root().join("scripts/fixtures");
-    let s = |p: &Path| p.display().to_string();
-    let mut args = vec![
-        s(&scripts.join("ouster_pcap.py")),
-        "--scan".into(),
-        s(&root().join("tests/data/semantickitti-00/velodyne/000002.bin")),
-        "--out".into(),
-        s(&pcap),
-        "--metadata-out".into(),
-        s(&meta),
-    ];
-    args.extend(extra.iter().map(|a| a.to_string()));
     if capture.is_none() {
+        let mut args = vec![
+            script("ouster_pcap.py"),
+            "--scan".into(),
+            arg(&root().join("tests/data/semantickitti-00/velodyne/000002.bin")),
+            "--out".into(),
+            arg(&pcap),
+            "--metadata-out".into(),
+            arg(&meta),
+        ];
+        args.extend(extra.iter().map(|a| a.to_string()));
         run(&python, &args);
     }
     run(
         &python,
         &[
-            s(&scripts.join("ouster_reference.py")),
-            s(&pcap),
+            script("ouster_reference.py"),
+            arg(&pcap),
             "--metadata".into(),
-            s(&meta),
+            arg(&meta),
             "--out".into(),
-            s(&reference),
+            arg(&reference),
         ],
     );
-    let expected = read_reference(&reference);
+    // A frame: its id (the header) and pixels (row, column, x, y, z, time).
+    let expected = read_reference::<6>(&reference, 4, 8);
 
     let decoder = ouster::Decoder::new(ouster::Metadata::read(&meta).unwrap());
     let mut scans = PacketScans::new(SensorDecoder::Ouster(Box::new(decoder.clone())));
-    let mut source = PcapSource::open(&pcap, Some(ouster::LIDAR_PORT)).unwrap();
     let mut got: Vec<Vec<ouster::Return>> = Vec::new();
-    let mut out = ScanPackets::default();
-    let mut take = |scans: &PacketScans, out: &ScanPackets| {
+    let source = for_each_scan(&mut scans, &pcap, ouster::LIDAR_PORT, |scans, out| {
         let mut px = Vec::new();
         decoder.decode_scan(out, |r| px.push(r));
         assert_eq!(px.len(), scans.count(out));
         got.push(px);
-    };
-    while let Some(d) = source.next_datagram() {
-        if scans.push(&d.unwrap(), 0, &mut out) {
-            take(&scans, &out);
-        }
-    }
-    if scans.flush(0, &mut out) {
-        take(&scans, &out);
-    }
+    });
     // The captures written here travel in fragments (a 1500-byte MTU).
     assert!(
         capture.is_some() || source.counters().fragments > 0,

@@ -14,62 +14,12 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod peers;
 
-use groundwork_packets::{
-    Calibration, Decoder, Model, PacketScans, PcapSource, ScanPackets, SensorDecoder,
-};
+use std::path::Path;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn peer_python() -> Option<PathBuf> {
-    match std::env::var_os("GROUNDWORK_PACKET_PEERS_PYTHON") {
-        Some(p) => Some(PathBuf::from(p)),
-        None => {
-            assert!(
-                std::env::var_os("GROUNDWORK_REQUIRE_PACKET_PEERS").is_none(),
-                "GROUNDWORK_REQUIRE_PACKET_PEERS is set but GROUNDWORK_PACKET_PEERS_PYTHON is not"
-            );
-            eprintln!("skipped: GROUNDWORK_PACKET_PEERS_PYTHON is not set");
-            None
-        }
-    }
-}
-
-fn run(python: &Path, args: &[&str]) {
-    let out = Command::new(python).args(args).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// A reference scan: stamp (s) and points (x, y, z, intensity, ring, time).
-fn read_reference(path: &Path) -> Vec<(f64, Vec<[f32; 6]>)> {
-    let b = std::fs::read(path).unwrap();
-    let mut scans = Vec::new();
-    let mut at = 0;
-    while at < b.len() {
-        let n = u32::from_le_bytes(b[at..at + 4].try_into().unwrap()) as usize;
-        let stamp = f64::from_le_bytes(b[at + 4..at + 12].try_into().unwrap());
-        at += 12;
-        let points = (0..n)
-            .map(|i| {
-                std::array::from_fn(|c| {
-                    let o = at + (i * 6 + c) * 4;
-                    f32::from_le_bytes(b[o..o + 4].try_into().unwrap())
-                })
-            })
-            .collect();
-        at += n * 24;
-        scans.push((stamp, points));
-    }
-    scans
-}
+use groundwork_packets::{Calibration, Decoder, Model, PacketScans, SensorDecoder};
+use peers::{arg, for_each_scan, peer_python, read_reference, root, run, script};
 
 /// Writes a capture of `model` from KITTI frame 0, decodes it both ways, compares.
 fn compare(model: &str, extra: &[&str]) -> groundwork_packets::PacketReport {
@@ -93,70 +43,58 @@ fn compare_capture(
     let cal = dir.path().join("calibration.yaml");
     let reference = dir.path().join("reference.bin");
     let scan = root().join("tests/data/semantickitti-00/velodyne/000000.bin");
-    let script = |name: &str| root().join("scripts/fixtures").join(name);
-    let mut args: Vec<String> = vec![
-        script("velodyne_pcap.py").display().to_string(),
-        "--model".into(),
-        model.into(),
-        "--scan".into(),
-        scan.display().to_string(),
-        "--out".into(),
-        pcap.display().to_string(),
-        "--calibration-out".into(),
-        cal.display().to_string(),
-    ];
-    args.extend(extra.iter().map(|s| s.to_string()));
     if capture.is_none() {
-        run(
-            &python,
-            &args.iter().map(String::as_str).collect::<Vec<_>>(),
-        );
+        let mut args = vec![
+            script("velodyne_pcap.py"),
+            "--model".into(),
+            model.into(),
+            "--scan".into(),
+            arg(&scan),
+            "--out".into(),
+            arg(&pcap),
+            "--calibration-out".into(),
+            arg(&cal),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        run(&python, &args);
     }
     let mut args = vec![
-        script("velodyne_reference.py").display().to_string(),
-        pcap.display().to_string(),
+        script("velodyne_reference.py"),
+        arg(&pcap),
         "--out".into(),
-        reference.display().to_string(),
+        arg(&reference),
     ];
     let (model_id, calibration) = if model == "hdl64e" {
         args.extend([
             "--model".into(),
             "hdl64e".into(),
             "--calibration".into(),
-            cal.display().to_string(),
+            arg(&cal),
         ]);
         (Model::Hdl64eS3, Some(Calibration::read(&cal).unwrap()))
     } else {
         (Model::from_name(model).unwrap(), None)
     };
-    run(
-        &python,
-        &args.iter().map(String::as_str).collect::<Vec<_>>(),
-    );
-    let expected = read_reference(&reference);
+    run(&python, &args);
+    // A scan: stamp (s, the header's f64) and points (x, y, z, intensity, ring, time).
+    let expected: Vec<(f64, Vec<[f64; 6]>)> = read_reference::<6>(&reference, 8, 4)
+        .into_iter()
+        .map(|(h, p)| (f64::from_le_bytes(h.try_into().unwrap()), p))
+        .collect();
 
     let mut scans = PacketScans::new(SensorDecoder::Velodyne(Box::new(
         Decoder::new(model_id, calibration).unwrap(),
     )));
-    let mut source = PcapSource::open(&pcap, Some(2368)).unwrap();
-    let mut got: Vec<Vec<([f32; 6], u64)>> = Vec::new();
-    let mut out = ScanPackets::default();
-    let mut take = |scans: &PacketScans, out: &ScanPackets| {
+    let mut got: Vec<Vec<([f64; 6], u64)>> = Vec::new();
+    for_each_scan(&mut scans, &pcap, 2368, |scans, out| {
         let mut points = Vec::with_capacity(scans.count(out));
         scans.decode(out, |r| {
-            points.push(([r.x, r.y, r.z, r.intensity, r.ring as f32, 0.0], r.time_ns));
+            let p = [r.x, r.y, r.z, r.intensity, r.ring as f32, 0.0];
+            points.push((p.map(f64::from), r.time_ns));
         });
         assert_eq!(points.len(), scans.count(out), "count agrees with decode");
         got.push(points);
-    };
-    while let Some(d) = source.next_datagram() {
-        if scans.push(&d.unwrap(), 0, &mut out) {
-            take(&scans, &out);
-        }
-    }
-    if scans.flush(0, &mut out) {
-        take(&scans, &out);
-    }
+    });
     assert_eq!(got.len(), expected.len(), "{model}: scans");
     assert!(got.len() >= 2, "{model}: at least two scans");
     for (k, ((stamp, want), have)) in expected.iter().zip(&got).enumerate() {
@@ -174,7 +112,7 @@ fn compare_capture(
                 (w[3] - h[3]).abs() <= 1e-3,
                 "{model} scan {k} point {i}: intensity {w:?} against {h:?}"
             );
-            let want_t = stamp + w[5] as f64;
+            let want_t = stamp + w[5];
             let have_t = *t as f64 * 1e-9;
             assert!(
                 (want_t - have_t).abs() < 2e-6,
