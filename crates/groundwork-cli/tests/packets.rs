@@ -4,6 +4,7 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
+use std::ffi::OsString;
 use std::net::UdpSocket;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
@@ -25,6 +26,42 @@ fn groundwork() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_groundwork"));
     c.env("RUST_LOG", "info");
     c
+}
+
+/// Arguments of mixed kinds (text, paths) for [`run`].
+macro_rules! args {
+    ($($a:expr),* $(,)?) => { vec![$(OsString::from(&$a)),*] };
+}
+
+/// What a finished `groundwork` said.
+struct Ran {
+    code: Option<i32>,
+    stdout: String,
+    stderr: String,
+}
+
+/// Runs `groundwork` to its end.
+fn run(args: Vec<OsString>) -> Ran {
+    let out = groundwork().args(args).output().unwrap();
+    Ran {
+        code: out.status.code(),
+        stdout: String::from_utf8_lossy(&out.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+    }
+}
+
+/// Runs `groundwork`, which must succeed.
+fn run_ok(args: Vec<OsString>) -> Ran {
+    let ran = run(args);
+    assert_eq!(ran.code, Some(0), "{}\n{}", ran.stdout, ran.stderr);
+    ran
+}
+
+/// Runs `groundwork`, which must refuse (exit 2); its stderr.
+fn run_refused(args: Vec<OsString>) -> String {
+    let ran = run(args);
+    assert_eq!(ran.code, Some(2), "{}", ran.stderr);
+    ran.stderr
 }
 
 /// A number in a log line: `key=N` after `marker`.
@@ -49,23 +86,19 @@ fn logged(log: &str, marker: &str, key: &str) -> u64 {
 fn a_capture_replays_through_the_pipeline_with_every_scan_masked() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let out = groundwork()
-        .args([
-            "pipeline",
-            "--sensor",
-            "vlp16",
-            "--packets",
-            "velodyne",
-            "--pcap",
-        ])
-        .arg(capture())
-        .args(["--prefix", &prefix("replay"), "--out"])
-        .arg(tmp.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stdout}\n{stderr}");
+    let Ran { stdout, stderr, .. } = run_ok(args![
+        "pipeline",
+        "--sensor",
+        "vlp16",
+        "--packets",
+        "velodyne",
+        "--pcap",
+        capture(),
+        "--prefix",
+        prefix("replay"),
+        "--out",
+        tmp.path(),
+    ]);
     assert!(
         stdout.starts_with("pipeline: 3 scans of vlp16 packets from"),
         "{stdout}"
@@ -103,24 +136,23 @@ fn a_capture_replays_through_the_pipeline_with_every_scan_masked() {
 fn an_ouster_capture_replays_through_the_pipeline() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let data = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/packets");
-    let out = groundwork()
-        .args([
+    let ouster = |capture: &str, test: &str| {
+        run_ok(args![
             "pipeline",
             "--sensor",
             "os1-64",
             "--packets",
             "ouster",
             "--pcap",
+            data.join(format!("{capture}.pcap")),
+            "--sensor-config",
+            data.join(format!("{capture}.json")),
+            "--no-detector",
+            "--prefix",
+            prefix(test),
         ])
-        .arg(data.join("os1-16-kitti-000002.pcap"))
-        .arg("--sensor-config")
-        .arg(data.join("os1-16-kitti-000002.json"))
-        .args(["--no-detector", "--prefix", &prefix("ouster")])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stdout}\n{stderr}");
+    };
+    let Ran { stdout, stderr, .. } = ouster("os1-16-kitti-000002", "ouster");
     assert!(
         stdout.contains("3 masks (3 segmented")
             && stdout.contains("scan fate: 3 masked + 0 rejected + 0 unanswered + 0 dropped = 3"),
@@ -134,38 +166,19 @@ fn an_ouster_capture_replays_through_the_pipeline() {
     assert_eq!(logged(&stderr, "producer: packets ", "lost"), 1);
     assert_eq!(logged(&stderr, "producer: packets ", "refused"), 1);
     // A real sensor's frame (an OS1-32, ouster-sdk's test data): segmented.
-    let real = groundwork()
-        .args([
-            "pipeline",
-            "--sensor",
-            "os1-64",
-            "--packets",
-            "ouster",
-            "--pcap",
-        ])
-        .arg(data.join("OS-1-32-G_v2.1.1_1024x10.pcap"))
-        .arg("--sensor-config")
-        .arg(data.join("OS-1-32-G_v2.1.1_1024x10.json"))
-        .args(["--no-detector", "--prefix", &prefix("ouster-real")])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&real.stdout);
-    assert!(
-        real.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&real.stderr)
-    );
+    let Ran { stdout, .. } = ouster("OS-1-32-G_v2.1.1_1024x10", "ouster-real");
     assert!(stdout.contains("1 masks (1 segmented"), "{stdout}");
 
     // Without its metadata an Ouster's packets cannot be read: said so.
-    let bare = groundwork()
-        .args(["producer", "--packets", "ouster", "--pcap"])
-        .arg(data.join("os1-16-kitti-000002.pcap"))
-        .args(["--prefix", &prefix("ouster-bare")])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&bare.stderr);
-    assert_eq!(bare.status.code(), Some(2), "{stderr}");
+    let stderr = run_refused(args![
+        "producer",
+        "--packets",
+        "ouster",
+        "--pcap",
+        data.join("os1-16-kitti-000002.pcap"),
+        "--prefix",
+        prefix("ouster-bare"),
+    ]);
     assert!(stderr.contains("metadata JSON"), "{stderr}");
 }
 
@@ -234,100 +247,80 @@ fn bad_captures_and_missing_calibration_are_named() {
     let cut = tmp.path().join("cut.pcap");
     // Cut in the middle of the 70th record: one whole scan before it.
     std::fs::write(&cut, &bytes[..bytes.len() * 3 / 4 + 7]).unwrap();
-    let out = groundwork()
-        .args([
-            "pipeline",
-            "--sensor",
-            "vlp16",
-            "--packets",
-            "velodyne",
-            "--pcap",
-        ])
-        .arg(&cut)
-        .args(["--no-detector", "--prefix", &prefix("cut")])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stdout}\n{stderr}");
+    let Ran { stdout, stderr, .. } = run_ok(args![
+        "pipeline",
+        "--sensor",
+        "vlp16",
+        "--packets",
+        "velodyne",
+        "--pcap",
+        cut,
+        "--no-detector",
+        "--prefix",
+        prefix("cut"),
+    ]);
     assert!(
         stderr.contains("cut.pcap: record") && stderr.contains("truncated"),
         "{stderr}"
     );
     assert!(stdout.contains("2 masks (2 segmented"), "{stdout}");
 
-    let missing = groundwork()
-        .args([
-            "producer",
-            "--model",
-            "vlp16",
-            "--packets",
-            "velodyne",
-            "--pcap",
-        ])
-        .arg(tmp.path().join("none.pcap"))
-        .args(["--prefix", &prefix("missing")])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&missing.stderr);
-    assert_eq!(missing.status.code(), Some(2), "{stderr}");
+    let stderr = run_refused(args![
+        "producer",
+        "--model",
+        "vlp16",
+        "--packets",
+        "velodyne",
+        "--pcap",
+        tmp.path().join("none.pcap"),
+        "--prefix",
+        prefix("missing"),
+    ]);
     assert!(stderr.contains("none.pcap"), "{stderr}");
 
-    let hdl = groundwork()
-        .args([
-            "pipeline",
-            "--sensor",
-            "hdl64e",
-            "--packets",
-            "velodyne",
-            "--pcap",
-        ])
-        .arg(capture())
-        .args(["--prefix", &prefix("hdl")])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&hdl.stderr);
-    assert_eq!(hdl.status.code(), Some(2), "{stderr}");
+    let stderr = run_refused(args![
+        "pipeline",
+        "--sensor",
+        "hdl64e",
+        "--packets",
+        "velodyne",
+        "--pcap",
+        capture(),
+        "--prefix",
+        prefix("hdl"),
+    ]);
     assert!(stderr.contains("--sensor-config"), "{stderr}");
 
     // Packets set their own pace: a rate other than recorded or 0 is refused.
-    let paced = groundwork()
-        .args([
-            "producer",
-            "--model",
-            "vlp16",
-            "--packets",
-            "velodyne",
-            "--rate",
-            "20",
-            "--pcap",
-        ])
-        .arg(capture())
-        .args(["--prefix", &prefix("paced")])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&paced.stderr);
-    assert_eq!(paced.status.code(), Some(2), "{stderr}");
+    let stderr = run_refused(args![
+        "producer",
+        "--model",
+        "vlp16",
+        "--packets",
+        "velodyne",
+        "--rate",
+        "20",
+        "--pcap",
+        capture(),
+        "--prefix",
+        prefix("paced"),
+    ]);
     assert!(
         stderr.contains("--rate 20") && stderr.contains("recorded"),
         "{stderr}"
     );
 
     // A VLP-32C's decoder refuses every VLP-16 packet by its model byte: counted, named.
-    let wrong = groundwork()
-        .args([
-            "pipeline",
-            "--sensor",
-            "vlp32c",
-            "--packets",
-            "velodyne",
-            "--pcap",
-        ])
-        .arg(capture())
-        .args(["--prefix", &prefix("wrong")])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&wrong.stderr);
-    assert_eq!(wrong.status.code(), Some(2), "{stderr}");
+    let stderr = run_refused(args![
+        "pipeline",
+        "--sensor",
+        "vlp32c",
+        "--packets",
+        "velodyne",
+        "--pcap",
+        capture(),
+        "--prefix",
+        prefix("wrong"),
+    ]);
     assert!(stderr.contains("no scan in the capture"), "{stderr}");
 }
