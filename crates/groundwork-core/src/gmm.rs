@@ -566,11 +566,9 @@ fn summarise(
     let inv_edge = edge.map(|e| 1.0 / (e as f64 * SUMMARY_QUANTUM));
     let edge_f = edge.map(|e| e as f64);
     // Points arrive along the rings, and runs of them fall in one cell: a run is summed
-    // in registers and added to its cell (found by hash) when the run ends.
-    let mut run = Cell {
-        key: [i32::MIN; 3],
-        ..Cell::default()
-    };
+    // in registers and added to its cell (found by hash) when the run ends. The run lives
+    // in plain locals handed over by value: kept in a `Cell` that the flush borrowed, it
+    // went through memory every point (a store-to-load chain, most of this function).
     let flush = |run: &Cell, slots: &mut [u32], cells: &mut Vec<Cell>| {
         if run.n == 0 {
             return;
@@ -619,27 +617,43 @@ fn summarise(
     }
     let (kx, ky, kz) = (&s.keys[..n], &s.keys[n..2 * n], &s.keys[2 * n..]);
     let (px, py, pz) = (&s.places[..n], &s.places[n..2 * n], &s.places[2 * n..]);
+    let mut key = [i32::MIN; 3];
+    let (mut rn, mut r0, mut r1, mut r2) = (0u32, 0i64, 0i64, 0i64);
+    let (mut q0, mut q1, mut q2, mut q3, mut q4, mut q5) = (0i64, 0i64, 0i64, 0i64, 0i64, 0i64);
     for i in 0..n {
-        let key = [kx[i], ky[i], kz[i]];
-        let l = [px[i], py[i], pz[i]].map(i64::from);
-        if key != run.key {
-            flush(&run, &mut s.slots, &mut s.cells);
-            run = Cell {
+        let k = [kx[i], ky[i], kz[i]];
+        if k != key {
+            let run = Cell {
+                hash: 0,
                 key,
-                ..Cell::default()
+                n: rn,
+                s: [r0, r1, r2],
+                ss: [q0, q1, q2, q3, q4, q5],
             };
+            flush(&run, &mut s.slots, &mut s.cells);
+            key = k;
+            (rn, r0, r1, r2) = (0, 0, 0, 0);
+            (q0, q1, q2, q3, q4, q5) = (0, 0, 0, 0, 0, 0);
         }
-        run.n += 1;
-        for (s, l) in run.s.iter_mut().zip(l) {
-            *s += l;
-        }
-        run.ss[0] += l[0] * l[0];
-        run.ss[1] += l[0] * l[1];
-        run.ss[2] += l[0] * l[2];
-        run.ss[3] += l[1] * l[1];
-        run.ss[4] += l[1] * l[2];
-        run.ss[5] += l[2] * l[2];
+        let (l0, l1, l2) = (i64::from(px[i]), i64::from(py[i]), i64::from(pz[i]));
+        rn += 1;
+        r0 += l0;
+        r1 += l1;
+        r2 += l2;
+        q0 += l0 * l0;
+        q1 += l0 * l1;
+        q2 += l0 * l2;
+        q3 += l1 * l1;
+        q4 += l1 * l2;
+        q5 += l2 * l2;
     }
+    let run = Cell {
+        hash: 0,
+        key,
+        n: rn,
+        s: [r0, r1, r2],
+        ss: [q0, q1, q2, q3, q4, q5],
+    };
     flush(&run, &mut s.slots, &mut s.cells);
     // Cells in the order of their hash, then of their key (no two cells share one): (hash,
     // position in `cells`) pairs through the linear-time key sort, not the 96-byte cells

@@ -58,7 +58,9 @@ impl ProbabilityMap {
         }
         let last = (n - 1) as f32;
         let t = (p.clamp(0.0, 1.0) * last).min(last);
-        let i = (t as usize).min(n - 2);
+        // t is in [0, last] (`min` also turns NaN into `last`): converted through u32, the
+        // loop vectorises (a conversion to usize does not).
+        let i = (t as u32 as usize).min(n - 2);
         let (a, b) = (self.knots[i], self.knots[i + 1]);
         // `min`: a rounded step never passes the next knot (monotone across knots).
         (a + (t - i as f32) * (b - a)).min(b)
@@ -73,16 +75,16 @@ impl ProbabilityMap {
         if self.is_identity() {
             return;
         }
+        // Both sides worked out and one chosen, without a branch: which side a point is on
+        // follows the scene, and a branch on it mispredicted (most of this pass's time).
         for (i, p) in out.iter_mut().enumerate() {
-            if !judged(i) {
-                continue;
-            }
             let v = self.value(*p);
-            *p = if *p >= self.raw_threshold {
+            let mapped = if *p >= self.raw_threshold {
                 v.max(self.threshold)
             } else {
                 v.min(self.below)
             };
+            *p = if judged(i) { mapped } else { *p };
         }
     }
 }
