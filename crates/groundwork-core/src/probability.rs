@@ -268,5 +268,41 @@ mod tests {
                 if w[0].0 < w[1].0 { prop_assert!(w[0].1 <= w[1].1); }
             }
         }
+
+        /// The pass without a branch gives the bits of the plain form it replaced (a point
+        /// at a time, a branch on each side, the index through usize), for any value: out
+        /// of [0, 1], ±0, NaN, points not judged.
+        #[test]
+        fn apply_gives_the_bits_of_the_plain_form(
+            knots in proptest::collection::vec(0.0f32..1.0, 2..30),
+            threshold in 0.0f32..=1.0,
+            ps in proptest::collection::vec(prop_oneof![
+                4 => -0.5f32..1.5,
+                1 => Just(f32::NAN),
+                1 => Just(-0.0f32),
+                1 => Just(1.0f32),
+                1 => any::<f32>(),
+            ], 1..300),
+            judged in proptest::collection::vec(any::<bool>(), 300),
+        ) {
+            let mut knots = knots;
+            knots.sort_by(f32::total_cmp);
+            let m = map(&knots, threshold);
+            let plain = |p: f32| {
+                let n = m.knots.len();
+                let last = (n - 1) as f32;
+                let t = (p.clamp(0.0, 1.0) * last).min(last);
+                let i = (t as usize).min(n - 2);
+                let (a, b) = (m.knots[i], m.knots[i + 1]);
+                let v = (a + (t - i as f32) * (b - a)).min(b);
+                if p >= m.raw_threshold { v.max(m.threshold) } else { v.min(m.below) }
+            };
+            let mut out = ps.clone();
+            m.apply(&mut out, |i| judged[i]);
+            for (i, (&p, &o)) in ps.iter().zip(&out).enumerate() {
+                let want = if judged[i] { plain(p) } else { p };
+                prop_assert_eq!(o.to_bits(), want.to_bits(), "{} -> {} not {}", p, o, want);
+            }
+        }
     }
 }

@@ -354,6 +354,47 @@ pub(crate) fn follow_terrain(
 mod tests {
     use super::*;
 
+    /// The diamond angle by one division and selects gives the bits of the quadrant by
+    /// quadrant form it replaced, for any coordinates the step bins.
+    #[test]
+    fn the_diamond_angle_has_the_bits_of_the_quadrant_formula() {
+        let plain = |x: f64, y: f64| {
+            if y >= 0.0 {
+                if x >= 0.0 {
+                    y / (x + y)
+                } else {
+                    1.0 - x / (-x + y)
+                }
+            } else if x < 0.0 {
+                2.0 - y / (-x - y)
+            } else {
+                3.0 + x / (x - y)
+            }
+        };
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(90);
+        let special = [0.0, -0.0, 1e-300, -1e-300, 1.0, -1.0, 79.9, -0.3, 1e6];
+        let mut pairs: Vec<(f64, f64)> = special
+            .iter()
+            .flat_map(|&x| special.iter().map(move |&y| (x, y)))
+            .collect();
+        pairs.extend((0..100_000).map(|_| {
+            (
+                rng.random_range(-100.0..100.0),
+                rng.random_range(-100.0..100.0),
+            )
+        }));
+        for (x, y) in pairs {
+            let (a, b) = (diamond_angle(x, y), plain(x, y));
+            // Where r = 0 (both zero) the quotient is NaN either way and the point has no
+            // cell.
+            assert!(
+                a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
+                "({x}, {y}): {a} against {b}"
+            );
+        }
+    }
+
     /// A road falling at 5 % away from the sensor along +x, 4 m wide, a point every 0.25 m
     /// out to 45 m: confident (0.9) out to 20 m, left at 0 beyond (the mixtures lost it);
     /// and a car's skirt 0.3 m above the road at 12 m, called ground (0.9).
