@@ -567,13 +567,18 @@ fn summarise(
     let edge_f = edge.map(|e| e as f64);
     // Points arrive along the rings, and runs of them fall in one cell: a run is summed
     // in registers and added to its cell (found by hash) when the run ends. The run lives
-    // in plain locals handed over by value: kept in a `Cell` that the flush borrowed, it
-    // went through memory every point (a store-to-load chain, most of this function).
-    let flush = |run: &Cell, slots: &mut [u32], cells: &mut Vec<Cell>| {
-        if run.n == 0 {
+    // in plain locals handed over by value (count, sums, products): kept in a `Cell` that
+    // the flush borrowed, it went through memory every point (a store-to-load chain, most
+    // of this function).
+    let flush = |run: (u32, [i64; 3], [i64; 6]),
+                 key: [i32; 3],
+                 slots: &mut [u32],
+                 cells: &mut Vec<Cell>| {
+        let (rn, rs, rss) = run;
+        if rn == 0 {
             return;
         }
-        let hash = cube_hash(run.key[0], run.key[1], run.key[2]);
+        let hash = cube_hash(key[0], key[1], key[2]);
         let mut slot = hash as usize & mask;
         let c = loop {
             match slots[slot] {
@@ -581,21 +586,21 @@ fn summarise(
                     slots[slot] = cells.len() as u32;
                     cells.push(Cell {
                         hash,
-                        key: run.key,
+                        key,
                         ..Cell::default()
                     });
                     break cells.len() - 1;
                 }
-                c if cells[c as usize].key == run.key => break c as usize,
+                c if cells[c as usize].key == key => break c as usize,
                 _ => slot = (slot + 1) & mask,
             }
         };
         let c = &mut cells[c];
-        c.n += run.n;
-        for (a, b) in c.s.iter_mut().zip(run.s) {
+        c.n += rn;
+        for (a, b) in c.s.iter_mut().zip(rs) {
             *a += b;
         }
-        for (a, b) in c.ss.iter_mut().zip(run.ss) {
+        for (a, b) in c.ss.iter_mut().zip(rss) {
             *a += b;
         }
     };
@@ -623,14 +628,8 @@ fn summarise(
     for i in 0..n {
         let k = [kx[i], ky[i], kz[i]];
         if k != key {
-            let run = Cell {
-                hash: 0,
-                key,
-                n: rn,
-                s: [r0, r1, r2],
-                ss: [q0, q1, q2, q3, q4, q5],
-            };
-            flush(&run, &mut s.slots, &mut s.cells);
+            let run = (rn, [r0, r1, r2], [q0, q1, q2, q3, q4, q5]);
+            flush(run, key, &mut s.slots, &mut s.cells);
             key = k;
             (rn, r0, r1, r2) = (0, 0, 0, 0);
             (q0, q1, q2, q3, q4, q5) = (0, 0, 0, 0, 0, 0);
@@ -647,14 +646,8 @@ fn summarise(
         q4 += l1 * l2;
         q5 += l2 * l2;
     }
-    let run = Cell {
-        hash: 0,
-        key,
-        n: rn,
-        s: [r0, r1, r2],
-        ss: [q0, q1, q2, q3, q4, q5],
-    };
-    flush(&run, &mut s.slots, &mut s.cells);
+    let run = (rn, [r0, r1, r2], [q0, q1, q2, q3, q4, q5]);
+    flush(run, key, &mut s.slots, &mut s.cells);
     // Cells in the order of their hash, then of their key (no two cells share one): (hash,
     // position in `cells`) pairs through the linear-time key sort, not the 96-byte cells
     // through a comparison sort (2 % of a scan's time on one thread).
