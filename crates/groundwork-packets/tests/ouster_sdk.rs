@@ -113,17 +113,22 @@ fn os1_64_legacy_2048_matches_ouster_sdk() {
     compare(&["--profile", "LEGACY", "--width", "2048", "--frames", "1.6"]);
 }
 
+/// A capture bundled in tests/data/packets (`<stem>.pcap` with its metadata `<stem>.json`).
+fn compare_bundled(stem: &str) -> PacketReport {
+    let data = root().join("tests/data/packets");
+    compare_capture(
+        &[],
+        Some((
+            &data.join(format!("{stem}.pcap")),
+            &data.join(format!("{stem}.json")),
+        )),
+    )
+}
+
 /// The capture the replay tests use (tests/data/packets): an OS1-16 in 512x10.
 #[test]
 fn the_bundled_os1_16_capture_matches_ouster_sdk() {
-    let data = root().join("tests/data/packets");
-    let report = compare_capture(
-        &[],
-        Some((
-            &data.join("os1-16-kitti-000002.pcap"),
-            &data.join("os1-16-kitti-000002.json"),
-        )),
-    );
+    let report = compare_bundled("os1-16-kitti-000002");
     if report.counters.packets > 0 {
         assert_eq!((report.counters.packets, report.counters.lost), (56, 1));
     }
@@ -133,14 +138,7 @@ fn the_bundled_os1_16_capture_matches_ouster_sdk() {
 /// metadata of firmware 1.x/2.0), from ouster-sdk's own test data (tests/data/packets).
 #[test]
 fn a_real_os1_32_capture_matches_ouster_sdk() {
-    let data = root().join("tests/data/packets");
-    let report = compare_capture(
-        &[],
-        Some((
-            &data.join("OS-1-32-G_v2.1.1_1024x10.pcap"),
-            &data.join("OS-1-32-G_v2.1.1_1024x10.json"),
-        )),
-    );
+    let report = compare_bundled("OS-1-32-G_v2.1.1_1024x10");
     if report.counters.packets > 0 {
         assert_eq!((report.counters.packets, report.counters.lost), (64, 0));
         assert!(report.refused.is_empty(), "{report:?}");
