@@ -9,12 +9,12 @@ use groundwork_io::Sequence;
 use groundwork_io::load_config;
 use groundwork_tests::{hdl64e_preset, kitti_sequence};
 
-/// Measured 98.63 pooled ground IoU (gmm protocol) with the HDL-64E preset (terrain
-/// following, 4 components, 15 iterations), precision 99.37, scans 98.83 / 98.54 / 98.52
+/// Measured 98.66 pooled ground IoU (gmm protocol) with the HDL-64E preset (terrain
+/// following, 4 components, 15 iterations), precision 99.38, scans 98.83 / 98.59 / 98.55
 /// (98.33 with ground continuity and the paper's EM, the preset until 2026-12-07; 97.64
 /// with neither); the paper reports 95.37 on the whole of sequence 00, Patchwork++ 1.4.1
 /// scores 98.04 on these three frames. The floors are the measurement less 0.1.
-const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 98.53;
+const MIN_POOLED_IOU_SINGLE_FRAME: f64 = 98.56;
 
 #[test]
 fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
@@ -39,7 +39,7 @@ fn single_frame_pooled_ground_iou_on_frames_0_to_2() {
     assert!(m.precision >= 99.3, "precision {:.2}", m.precision);
     for s in &r.scans {
         let iou = s.metrics.unwrap().iou_ground;
-        assert!(iou >= 98.42, "scan {}: IoU {iou:.2}", s.name);
+        assert!(iou >= 98.45, "scan {}: IoU {iou:.2}", s.name);
     }
 }
 
@@ -107,9 +107,9 @@ fn terraseg_protocol_counts_vegetation_as_non_ground() {
     assert!(ts.pooled_metrics.miou > 85.0, "{:?}", ts.pooled_metrics);
 }
 
-/// Measured: pooled IoU 98.63 single-frame → 98.80 with 2 frames, 98.85 with 3, 4 and 16
-/// (frames 1 and 2 gain 0.35 and 0.31 IoU points) on the vendored frames; precision
-/// 99.36–99.37. The floor is the 2-frame measurement less 0.1.
+/// Measured: pooled IoU 98.66 single-frame → 98.81 with 2 frames, 98.86 with 3, 4 and 16
+/// (frames 1 and 2 gain 0.33 and 0.13 IoU points) on the vendored frames; precision
+/// 99.39. The floor is the 2-frame measurement less 0.1.
 #[test]
 fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
     let single = {
@@ -151,7 +151,7 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
             multi.pooled_metrics.iou_ground, multi.pooled_metrics.precision
         );
         assert!(
-            multi.pooled_metrics.iou_ground >= 98.70 && multi.pooled_metrics.precision >= 99.3,
+            multi.pooled_metrics.iou_ground >= 98.71 && multi.pooled_metrics.precision >= 99.3,
             "{:?}",
             multi.pooled_metrics
         );
@@ -159,15 +159,15 @@ fn multi_frame_is_never_worse_than_single_frame_on_frames_1_and_2() {
 }
 
 /// Three layouts of the zone model (`zones.layouts = 3`), their probabilities averaged.
-/// Measured on frames 0–2: single frame 99.04 pooled ground IoU, precision 99.48 (one
-/// layout: 98.63, 99.37); three frames of history 99.05 (98.85), precision 99.46. The floors
+/// Measured on frames 0–2: single frame 98.99 pooled ground IoU, precision 99.48 (one
+/// layout: 98.66, 99.38); three frames of history 99.04 (98.86), precision 99.46. The floors
 /// are these less 0.1. The output is exactly the mean, in layout order, of the three layouts segmented
 /// apart (`SegmenterConfig::layout`), and a reversed scan gets the same bits reversed.
 #[test]
 fn three_layouts_outvote_badly_placed_segment_borders() {
     let mut cfg = load_config(&hdl64e_preset()).unwrap();
     cfg.zones.layouts = 3;
-    for (frames, floor, min_precision) in [(1, 98.94, 99.38), (3, 98.95, 99.36)] {
+    for (frames, floor, min_precision) in [(1, 98.89, 99.38), (3, 98.94, 99.36)] {
         cfg.history.frames = frames;
         let mut seq = Sequence::open(&kitti_sequence(), None, None).unwrap();
         seq.limit = Some(3);
