@@ -83,6 +83,30 @@ fn diamond_angle(x: f64, y: f64) -> f64 {
     }
 }
 
+/// A ramp from 0 at `from` to 1 at `to`, as a multiplication by the reciprocal of its
+/// width: the per-point passes took two divisions a point through `rise`, and a division
+/// costs several times a multiplication (scalar in the raise/lower pass). Within an ulp of
+/// `rise`; a continuous ramp still, so stability does not hang on it.
+#[derive(Debug, Clone, Copy)]
+struct Ramp {
+    from: f64,
+    scale: f64,
+}
+
+impl Ramp {
+    fn new([from, to]: [f64; 2]) -> Self {
+        Self {
+            from,
+            scale: 1.0 / (to - from),
+        }
+    }
+
+    #[inline(always)]
+    fn at(self, v: f64) -> f64 {
+        ((v - self.from) * self.scale).clamp(0.0, 1.0)
+    }
+}
+
 /// Points changed across the threshold by the terrain: raised to ground, lowered from it.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub(crate) struct TerrainChange {
@@ -114,7 +138,7 @@ pub(crate) fn follow_terrain(
     scratch.terrain.resize(cells, TerrainCell::default());
     let per_sector = sectors as f64 / 4.0;
     let inv_cell = 1.0 / cfg.cell;
-    let [c0, c1] = cfg.confident;
+    let confidence = Ramp::new(cfg.confident);
     // Cells, weights and heights in one straight pass without a branch (it vectorises:
     // a third of this step's time went to a per-point loop with branches and pushes),
     // then the confident ground's sums.
@@ -136,7 +160,7 @@ pub(crate) fn follow_terrain(
         } else {
             u32::MAX
         };
-        let c = rise(f64::from(p), [c0, c1]);
+        let c = confidence.at(f64::from(p));
         *w = if inside { round_i32(c * WEIGHT_ONE) } else { 0 };
         *h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
     }
@@ -317,8 +341,7 @@ pub(crate) fn follow_terrain(
     // Raise the points at the terrain's height, lower those standing above it. The two
     // bands never meet (`tolerance` ends below where `veto` begins), so one formula serves
     // every point, continuous in its probability.
-    let [t0, t1] = cfg.tolerance;
-    let [v0, v1] = cfg.veto;
+    let (tolerance, veto) = (Ramp::new(cfg.tolerance), Ramp::new(cfg.veto));
     // Without a branch per point (which points have terrain, and which change, follow the
     // scene): a point without a cell reads cell 0 and keeps its value.
     let last = scratch.terrain.len() - 1;
@@ -334,10 +357,10 @@ pub(crate) fn follow_terrain(
         let above = z - f64::from(height);
         let trust = f64::from(raise);
         let old = *p;
-        let matched = 1.0 - rise(above.abs(), [t0, t1]);
+        let matched = 1.0 - tolerance.at(above.abs());
         let raised = f64::from(old).max(cfg.probability * matched * trust);
         let lowered = if cfg.lower {
-            f64::from(lower) * rise(above - f64::from(reach), [v0, v1])
+            f64::from(lower) * veto.at(above - f64::from(reach))
         } else {
             0.0
         };
