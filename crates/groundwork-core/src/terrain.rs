@@ -25,6 +25,8 @@ use crate::config::TerrainConfig;
 // The same fixed point and ramps as continuity's: weights and heights in 2⁻¹⁶.
 use crate::continuity::{HEIGHT_CLAMP, HEIGHT_ONE, WEIGHT_ONE, rise};
 use crate::fastmath::round_i32;
+use rayon::prelude::*;
+use wide::f64x4;
 
 /// The terrain of one scan, kept between scans for its buffers.
 #[derive(Debug, Default, Clone)]
@@ -37,10 +39,15 @@ pub(crate) struct TerrainScratch {
     terrain: Vec<TerrainCell>,
     /// Per sector with one: the height of its first cell of confident ground.
     first: Vec<f64>,
+    /// Per cell, then one more for points without a cell: its terrain as f64 lanes
+    /// (height, raise, lower, reach) for the last pass.
+    lanes: Vec<[f64; 4]>,
     /// Gap cells as the terrain beside them changes them (cell, its new terrain).
     beside: Vec<(usize, TerrainCell)>,
-    /// Per point: its cell (`u32::MAX`: none).
+    /// Per point: its cell (one past the last cell: none).
     cells: Vec<u32>,
+    /// Per cell: its mean height rounded down, fixed point (`i64::MIN`: no weight).
+    means: Vec<i64>,
     /// Per point: its confident weight and height, fixed point (for the lower mean).
     weights: Vec<i32>,
     heights: Vec<i32>,
@@ -105,6 +112,14 @@ impl Ramp {
     fn at(self, v: f64) -> f64 {
         ((v - self.from) * self.scale).clamp(0.0, 1.0)
     }
+
+    /// [`Ramp::at`] in four lanes, with the same bits (`fast_clamp` keeps a −0 as `clamp`
+    /// does; no lane is NaN: the scan's coordinates are finite).
+    #[inline(always)]
+    fn at4(self, v: f64x4) -> f64x4 {
+        ((v - f64x4::splat(self.from)) * f64x4::splat(self.scale))
+            .fast_clamp(f64x4::ZERO, f64x4::ONE)
+    }
 }
 
 /// Points changed across the threshold by the terrain: raised to ground, lowered from it.
@@ -125,78 +140,107 @@ pub(crate) fn follow_terrain(
     threshold: f32,
     scratch: &mut TerrainScratch,
 ) -> TerrainChange {
-    let mut change = TerrainChange::default();
     if !cfg.enabled || out.is_empty() {
-        return change;
+        return TerrainChange::default();
     }
     let sectors = cfg.sectors as usize;
     let bins = ((max_range / cfg.cell).ceil() as usize).max(1);
     let cells = sectors * bins;
-    scratch.sums.clear();
-    scratch.sums.resize(cells, [0, 0]);
-    scratch.terrain.clear();
-    scratch.terrain.resize(cells, TerrainCell::default());
     let per_sector = sectors as f64 / 4.0;
     let inv_cell = 1.0 / cfg.cell;
     let confidence = Ramp::new(cfg.confident);
-    // Cells, weights and heights in one straight pass without a branch (it vectorises:
-    // a third of this step's time went to a per-point loop with branches and pushes),
-    // then the confident ground's sums.
+    // The per-point passes run in as many parts as there are worker threads, each summing
+    // into its own cells (integer sums: the parts add up to the same cells in any split).
     let n = out.len();
+    let parts = rayon::current_num_threads().clamp(1, 8);
+    let part = n.div_ceil(parts);
     scratch.cells.resize(n, 0);
     scratch.weights.resize(n, 0);
     scratch.heights.resize(n, 0);
-    let points = x.iter().zip(y).zip(z).zip(out.iter());
-    let fixed = scratch.weights.iter_mut().zip(scratch.heights.iter_mut());
-    for ((cell, (w, h)), (((&px, &py), &pz), &p)) in scratch.cells.iter_mut().zip(fixed).zip(points)
-    {
-        let r = (px * px + py * py).sqrt();
-        // NaN fails the comparison: no cell.
-        let inside = (r >= cfg.cell * 0.5) & (r < max_range);
-        let q = ((diamond_angle(px, py) * per_sector) as u32).min(sectors as u32 - 1);
-        let b = ((r * inv_cell) as u32).min(bins as u32 - 1);
-        *cell = if inside {
-            q * bins as u32 + b
-        } else {
-            u32::MAX
-        };
-        let c = confidence.at(f64::from(p));
-        *w = if inside { round_i32(c * WEIGHT_ONE) } else { 0 };
-        *h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
-    }
-    for ((&cell, &w), &h) in scratch
+    // One more cell per part, where the points without a cell go (with weight 0): the
+    // sums then take every point without a branch.
+    let slots = cells + 1;
+    scratch.sums.clear();
+    scratch.sums.resize(parts * slots, [0, 0]);
+    scratch.lower.clear();
+    scratch.lower.resize(parts * slots, [0, 0]);
+    scratch.means.clear();
+    scratch.terrain.clear();
+    scratch.terrain.resize(cells, TerrainCell::default());
+    scratch
         .cells
-        .iter()
-        .zip(&scratch.weights)
-        .zip(&scratch.heights)
-    {
-        if w > 0 {
-            let s = &mut scratch.sums[cell as usize];
-            s[0] += i64::from(w);
-            s[1] += i64::from(w) * i64::from(h);
-        }
-    }
+        .par_chunks_mut(part)
+        .zip(scratch.weights.par_chunks_mut(part))
+        .zip(scratch.heights.par_chunks_mut(part))
+        .zip(scratch.sums.par_chunks_mut(slots))
+        .enumerate()
+        .for_each(|(k, (((part_cells, weights), heights), sums))| {
+            let r = k * part..(k * part + part_cells.len());
+            let points = x[r.clone()].iter().zip(&y[r.clone()]).zip(&z[r.clone()]);
+            let points = points.zip(&out[r]);
+            // Cells, weights and heights in one straight pass without a branch (it
+            // vectorises: a third of this step's time went to a per-point loop with
+            // branches and pushes), then the confident ground's sums.
+            let fixed = weights.iter_mut().zip(heights.iter_mut());
+            for ((cell, (w, h)), (((&px, &py), &pz), &p)) in
+                part_cells.iter_mut().zip(fixed).zip(points)
+            {
+                let r = (px * px + py * py).sqrt();
+                // NaN fails the comparison: no cell.
+                let inside = (r >= cfg.cell * 0.5) & (r < max_range);
+                let q = ((diamond_angle(px, py) * per_sector) as u32).min(sectors as u32 - 1);
+                let b = ((r * inv_cell) as u32).min(bins as u32 - 1);
+                *cell = if inside {
+                    q * bins as u32 + b
+                } else {
+                    cells as u32
+                };
+                let c = confidence.at(f64::from(p));
+                *w = if inside { round_i32(c * WEIGHT_ONE) } else { 0 };
+                *h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
+            }
+            for ((&cell, &w), &h) in part_cells.iter().zip(&*weights).zip(&*heights) {
+                let s = &mut sums[cell as usize];
+                s[0] += i64::from(w);
+                s[1] += i64::from(w) * i64::from(h);
+            }
+        });
+    let (sums, other_sums) = scratch.sums.split_at_mut(slots);
+    add_parts(sums, other_sums);
+    // Each cell's mean height rounded down: h ≤ Σwh / Σw exactly where h ≤ ⌊Σwh / Σw⌋ (h
+    // an integer, Σw > 0).
+    scratch.means.extend(sums.iter().map(
+        |&[sw, swh]| {
+            if sw > 0 { swh.div_euclid(sw) } else { i64::MIN }
+        },
+    ));
+    let means: &[i64] = &scratch.means;
     // The lower mean: again over the confident points at or below their cell's mean, so
     // that the few returns of a car's skirt among a cell's road do not lift it (the
     // confident ground of a cell is mostly road; what stands on it is above).
-    scratch.lower.clear();
-    scratch.lower.resize(cells, [0, 0]);
-    for ((&cell, &w), &h) in scratch
+    let sums: &[[i64; 2]] = sums;
+    scratch
         .cells
-        .iter()
-        .zip(&scratch.weights)
-        .zip(&scratch.heights)
-    {
-        if w > 0 {
-            let [sw, swh] = scratch.sums[cell as usize];
-            // h ≤ swh / sw, in integers (sw > 0).
-            if i128::from(h) * i128::from(sw) <= i128::from(swh) {
-                let l = &mut scratch.lower[cell as usize];
-                l[0] += i64::from(w);
-                l[1] += i64::from(w) * i64::from(h);
+        .par_chunks(part)
+        .zip(scratch.weights.par_chunks(part))
+        .zip(scratch.heights.par_chunks(part))
+        .zip(scratch.lower.par_chunks_mut(slots))
+        .for_each(|(((part_cells, weights), heights), lower)| {
+            for ((&cell, &w), &h) in part_cells.iter().zip(weights).zip(heights) {
+                let h = i64::from(h);
+                let w = if h <= means[cell as usize] {
+                    i64::from(w)
+                } else {
+                    0
+                };
+                let l = &mut lower[cell as usize];
+                l[0] += w;
+                l[1] += w * h;
             }
-        }
-    }
+        });
+    let (lower, other_lower) = scratch.lower.split_at_mut(slots);
+    add_parts(lower, other_lower);
+    let (sums, lower): (&[[i64; 2]], &[[i64; 2]]) = (sums, lower);
     // The ground at the sensor's foot: the median over the sectors of the first cell of
     // confident ground within `gap` (0, the mount's, if too few sectors have one). Not the
     // mount's height alone, which is only as right as the mount: the first cells beside a
@@ -204,8 +248,8 @@ pub(crate) fn follow_terrain(
     // A cell's confident ground, where it has enough to count (half of `support`): its
     // lower mean height.
     let confident = |cell: usize| {
-        let [lw, lwh] = scratch.lower[cell];
-        let weight = scratch.sums[cell][0] as f64 / WEIGHT_ONE;
+        let [lw, lwh] = lower[cell];
+        let weight = sums[cell][0] as f64 / WEIGHT_ONE;
         (lw > 0 && weight >= cfg.support * 0.5).then(|| lwh as f64 / lw as f64 / HEIGHT_ONE)
     };
     scratch.first.clear();
@@ -238,10 +282,7 @@ pub(crate) fn follow_terrain(
             let centre = (b as f64 + 0.5) * cfg.cell;
             let run = centre - last_b * cfg.cell;
             let predicted = last_h + slope * run;
-            let support = rise(
-                scratch.sums[row + b][0] as f64 / WEIGHT_ONE,
-                [0.0, cfg.support],
-            );
+            let support = rise(sums[row + b][0] as f64 / WEIGHT_ONE, [0.0, cfg.support]);
             let bound = if last_b < 0.0 {
                 from_foot(run)
             } else {
@@ -341,36 +382,106 @@ pub(crate) fn follow_terrain(
     // Raise the points at the terrain's height, lower those standing above it. The two
     // bands never meet (`tolerance` ends below where `veto` begins), so one formula serves
     // every point, continuous in its probability.
-    let (tolerance, veto) = (Ramp::new(cfg.tolerance), Ramp::new(cfg.veto));
-    // Without a branch per point (which points have terrain, and which change, follow the
-    // scene): a point without a cell reads cell 0 and keeps its value.
-    let last = scratch.terrain.len() - 1;
-    for ((p, &cell), &z) in out.iter_mut().zip(&scratch.cells).zip(z) {
-        let TerrainCell {
-            height,
-            raise,
-            lower,
-            reach,
-            ..
-        } = scratch.terrain[(cell as usize).min(last)];
-        let judged = (cell != u32::MAX) & (raise > 0.0);
-        let above = z - f64::from(height);
-        let trust = f64::from(raise);
-        let old = *p;
-        let matched = 1.0 - tolerance.at(above.abs());
-        let raised = f64::from(old).max(cfg.probability * matched * trust);
-        let lowered = if cfg.lower {
-            f64::from(lower) * veto.at(above - f64::from(reach))
+    let judge = Judge {
+        tolerance: Ramp::new(cfg.tolerance),
+        veto: Ramp::new(cfg.veto),
+        probability: cfg.probability,
+        lower: cfg.lower,
+    };
+    // A point without a cell reads the last entry, which has no terrain.
+    let no_cell = [0.0; 4];
+    let to_lanes = |c: &TerrainCell| [c.height, c.raise, c.lower, c.reach].map(f64::from);
+    scratch.lanes.clear();
+    scratch.lanes.extend(scratch.terrain.iter().map(to_lanes));
+    scratch.lanes.push(no_cell);
+    let lanes: &[[f64; 4]] = &scratch.lanes;
+    let [raised, lowered] = out
+        .par_chunks_mut(part)
+        .zip(scratch.cells.par_chunks(part))
+        .zip(z.par_chunks(part))
+        .map(|((out, part_cells), z)| {
+            let mut counts = [0usize; 2];
+            let mut judge_four = |p: &mut [f32], cells: [u32; 4], z: [f64; 4]| {
+                let old: [f32; 4] = std::array::from_fn(|k| p.get(k).copied().unwrap_or(0.0));
+                let new = judge.four(lanes, cells, z, old);
+                for ((p, old), new) in p.iter_mut().zip(old).zip(new) {
+                    counts[0] += usize::from((old < threshold) & (new >= threshold));
+                    counts[1] += usize::from((old >= threshold) & (new < threshold));
+                    *p = new;
+                }
+            };
+            // Four points at a time: each point's terrain gathered, then one formula over
+            // the four; a last partial four padded with points that have no cell.
+            let whole = out.len() / 4 * 4;
+            let (out, rest) = out.split_at_mut(whole);
+            let quads = out.chunks_exact_mut(4).zip(part_cells.chunks_exact(4));
+            for ((p, cells), z) in quads.zip(z.chunks_exact(4)) {
+                judge_four(
+                    p,
+                    std::array::from_fn(|k| cells[k]),
+                    std::array::from_fn(|k| z[k]),
+                );
+            }
+            let pad = |k: usize| whole + k;
+            judge_four(
+                rest,
+                std::array::from_fn(|k| part_cells.get(pad(k)).copied().unwrap_or(cells as u32)),
+                std::array::from_fn(|k| z.get(pad(k)).copied().unwrap_or(0.0)),
+            );
+            counts
+        })
+        .reduce(|| [0, 0], |a, b| [a[0] + b[0], a[1] + b[1]]);
+    TerrainChange { raised, lowered }
+}
+
+/// The raising and lowering rule of the last pass, its constants worked out once.
+#[derive(Debug, Clone, Copy)]
+struct Judge {
+    tolerance: Ramp,
+    veto: Ramp,
+    probability: f64,
+    lower: bool,
+}
+
+impl Judge {
+    /// The new probabilities of four points (their cells, heights and probabilities):
+    /// raised towards `probability` at the terrain's height, lowered above its reach. A
+    /// point its cell does not judge (no cell, or a cell without terrain) keeps its own,
+    /// as does one whose probability the rule leaves as it was. In f64 lanes, without a
+    /// branch: the same operations, in the same order, as one point at a time.
+    #[inline(always)]
+    fn four(&self, lanes: &[[f64; 4]], cells: [u32; 4], z: [f64; 4], old: [f32; 4]) -> [f32; 4] {
+        let none = lanes.len() - 1;
+        let t = cells.map(|c| f64x4::new(lanes[(c as usize).min(none)]));
+        let [height, trust, lower, reach] = f64x4::transpose(t);
+        let above = f64x4::new(z) - height;
+        let old64 = f64x4::new(old.map(f64::from));
+        let one = f64x4::ONE;
+        let matched = one - self.tolerance.at4(above.abs());
+        let raised = old64.fast_max(f64x4::splat(self.probability) * matched * trust);
+        let new = if self.lower {
+            raised * (one - lower * self.veto.at4(above - reach))
         } else {
-            0.0
+            raised * (one - f64x4::ZERO)
         };
-        let new = (raised * (1.0 - lowered)) as f32;
-        let moved = judged & (new != old);
-        change.raised += usize::from(moved & (old < threshold) & (new >= threshold));
-        change.lowered += usize::from(moved & (old >= threshold) & (new < threshold));
-        *p = if moved { new } else { old };
+        let judged = trust.simd_gt(f64x4::ZERO).to_bitmask();
+        let new = new.to_array().map(|v| v as f32);
+        // Selects, not branches: which points change follows the scene.
+        std::array::from_fn(|k| {
+            let moved = ((judged >> k) & 1 == 1) & (new[k] != old[k]);
+            if moved { new[k] } else { old[k] }
+        })
     }
-    change
+}
+
+/// Adds the sums of the other parts (`parts`, one run of `cells.len()` each) into `cells`.
+fn add_parts(cells: &mut [[i64; 2]], parts: &[[i64; 2]]) {
+    for other in parts.chunks_exact(cells.len()) {
+        for (c, o) in cells.iter_mut().zip(other) {
+            c[0] += o[0];
+            c[1] += o[1];
+        }
+    }
 }
 
 #[cfg(test)]
@@ -459,6 +570,43 @@ mod tests {
         p: &mut [f32],
     ) -> TerrainChange {
         follow_terrain(cfg, 80.0, (x, y, z), p, 0.5, &mut TerrainScratch::default())
+    }
+
+    /// The per-point passes split the scan into one part per worker thread: any number of
+    /// threads gives the same bits and counts, including a scan whose length is not a
+    /// multiple of four and points without a cell (at the foot, beyond the range).
+    #[test]
+    fn every_thread_count_gives_the_same_bits() {
+        let (mut x, mut y, mut z, mut p, _) = street();
+        for (px, py, pz, pp) in [
+            (0.1, 0.0, -0.1, 0.9),
+            (90.0, 1.0, -4.0, 0.3),
+            (0.0, 0.0, 0.0, 0.0),
+        ] {
+            x.push(px);
+            y.push(py);
+            z.push(pz);
+            p.push(pp);
+        }
+        assert_ne!(x.len() % 4, 0);
+        let cfg = TerrainConfig {
+            enabled: true,
+            ..TerrainConfig::default()
+        };
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut q = p.clone();
+            let change = pool.install(|| run(&cfg, (&x, &y, &z), &mut q));
+            (q.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), change)
+        };
+        let one = on(1);
+        assert!(one.1.raised > 100 && one.1.lowered > 0, "{:?}", one.1);
+        for threads in [2, 3, 5, 8] {
+            assert_eq!(on(threads), one, "{threads} threads");
+        }
     }
 
     #[test]
