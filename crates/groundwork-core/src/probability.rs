@@ -10,6 +10,7 @@
 //! every point on its side of it, rounding included.
 
 use crate::config::ProbabilityConfig;
+use rayon::prelude::*;
 
 /// The map of one configuration, ready to apply.
 #[derive(Debug, Clone, PartialEq)]
@@ -71,21 +72,26 @@ impl ProbabilityMap {
     /// [`ProbabilityMap::threshold`], one below it to less. Points the segmenter did not
     /// judge (`judged` false: inside the near edge or the ego radius, placeholders, beyond
     /// the coordinate bound) keep their 0.
-    pub fn apply(&self, out: &mut [f32], judged: impl Fn(usize) -> bool) {
+    pub fn apply(&self, out: &mut [f32], judged: impl Fn(usize) -> bool + Sync) {
         if self.is_identity() {
             return;
         }
-        // Both sides worked out and one chosen, without a branch: which side a point is on
-        // follows the scene, and a branch on it mispredicted (most of this pass's time).
-        for (i, p) in out.iter_mut().enumerate() {
-            let v = self.value(*p);
-            let mapped = if *p >= self.raw_threshold {
-                v.max(self.threshold)
-            } else {
-                v.min(self.below)
-            };
-            *p = if judged(i) { mapped } else { *p };
-        }
+        // In parts on the worker threads (each point on its own: the same bits on any).
+        const PART: usize = 16 * 1024;
+        out.par_chunks_mut(PART).enumerate().for_each(|(k, out)| {
+            // Both sides worked out and one chosen, without a branch: which side a point
+            // is on follows the scene, and a branch on it mispredicted (most of this
+            // pass's time).
+            for (i, p) in (k * PART..).zip(out.iter_mut()) {
+                let v = self.value(*p);
+                let mapped = if *p >= self.raw_threshold {
+                    v.max(self.threshold)
+                } else {
+                    v.min(self.below)
+                };
+                *p = if judged(i) { mapped } else { *p };
+            }
+        });
     }
 }
 
