@@ -15,6 +15,7 @@
 //! nodes, and the same output permuted.
 
 use rayon::prelude::*;
+use wide::f64x4;
 
 use crate::config::{ContinuityConfig, Sigmoid};
 use crate::fastmath::round_i32;
@@ -79,10 +80,36 @@ impl Elevation<'_> {
     }
 }
 
-/// Rises from 0 at `a` to 1 at `b`.
-#[inline(always)]
-pub(crate) fn rise(v: f64, [a, b]: [f64; 2]) -> f64 {
-    ((v - a) / (b - a)).clamp(0.0, 1.0)
+/// A ramp from 0 at `from` to 1 at `to`, continuous (so that no decision hangs on a
+/// rounding bit), as a multiplication by the reciprocal of its width: continuity's and the
+/// terrain's per-point rules take it once or twice a point, and a division costs several
+/// multiplications. Within about 1.5 ulp of (v − from) / (to − from), clamped.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Ramp {
+    from: f64,
+    scale: f64,
+}
+
+impl Ramp {
+    pub(crate) fn new([from, to]: [f64; 2]) -> Self {
+        Self {
+            from,
+            scale: 1.0 / (to - from),
+        }
+    }
+
+    #[inline(always)]
+    pub(crate) fn at(self, v: f64) -> f64 {
+        ((v - self.from) * self.scale).clamp(0.0, 1.0)
+    }
+
+    /// [`Ramp::at`] in four lanes, with the same bits (`fast_clamp` keeps a −0 as `clamp`
+    /// does; no lane is NaN: the scan's coordinates are finite).
+    #[inline(always)]
+    pub(crate) fn at4(self, v: f64x4) -> f64x4 {
+        ((v - f64x4::splat(self.from)) * f64x4::splat(self.scale))
+            .fast_clamp(f64x4::ZERO, f64x4::ONE)
+    }
 }
 
 /// Grid geometry: nodes `side × side`, node (i, j) at (origin + i·cell, origin + j·cell).
@@ -165,6 +192,7 @@ pub(crate) fn raise_continuous_ground(
             );
         });
     // Each node's height and trust, once; the sums are zeroed for the next scan.
+    let support = Ramp::new([0.0, cfg.support]);
     let (sums, nodes) = (&mut scratch.sums, &mut scratch.nodes);
     for (i, node) in nodes.iter_mut().enumerate() {
         let [mut w, mut wh] = [0i64, 0i64];
@@ -176,7 +204,7 @@ pub(crate) fn raise_continuous_ground(
         *node = if w > 0 {
             [
                 (wh as f64 / w as f64 / HEIGHT_ONE) as f32,
-                rise(w as f64 / WEIGHT_ONE, [0.0, cfg.support]) as f32,
+                support.at(w as f64 / WEIGHT_ONE) as f32,
             ]
         } else {
             [0.0, 0.0]
@@ -357,6 +385,8 @@ fn splat_confident(
 /// The raising rule with its constants worked out once.
 struct RaiseRule {
     uncertain: [f64; 2],
+    /// Rises from 0 to 1 across `uncertain`.
+    gate: Ramp,
     probability: f64,
     /// Nearness in node units: 1 within `full`, 0 from `zero` on.
     full: f64,
@@ -371,6 +401,7 @@ impl RaiseRule {
     fn new(cfg: &ContinuityConfig) -> Self {
         Self {
             uncertain: cfg.uncertain,
+            gate: Ramp::new(cfg.uncertain),
             probability: cfg.probability,
             full: cfg.reach / cfg.cell / 2.0,
             zero: cfg.reach / cfg.cell,
@@ -401,7 +432,7 @@ impl RaiseRule {
             return None;
         }
         let p64 = f64::from(p);
-        let gate = rise(p64, self.uncertain);
+        let gate = self.gate.at(p64);
         let (u, v) = grid.place(x, y)?;
         let side = grid.side as isize;
         let (zero, full) = (self.zero, self.full);

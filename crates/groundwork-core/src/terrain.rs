@@ -23,7 +23,7 @@
 
 use crate::config::TerrainConfig;
 // The same fixed point and ramps as continuity's: weights and heights in 2⁻¹⁶.
-use crate::continuity::{HEIGHT_CLAMP, HEIGHT_ONE, WEIGHT_ONE, rise};
+use crate::continuity::{HEIGHT_CLAMP, HEIGHT_ONE, Ramp, WEIGHT_ONE};
 use crate::fastmath::round_i32;
 use rayon::prelude::*;
 use wide::f64x4;
@@ -87,38 +87,6 @@ fn diamond_angle(x: f64, y: f64) -> f64 {
         (true, false) => 1.0 - f,
         (false, false) => 2.0 - f,
         (false, true) => 3.0 + f,
-    }
-}
-
-/// A ramp from 0 at `from` to 1 at `to`, as a multiplication by the reciprocal of its
-/// width: the per-point passes took two divisions a point through `rise`, and a division
-/// costs several times a multiplication (scalar in the raise/lower pass). Within an ulp of
-/// `rise`; a continuous ramp still, so stability does not hang on it.
-#[derive(Debug, Clone, Copy)]
-struct Ramp {
-    from: f64,
-    scale: f64,
-}
-
-impl Ramp {
-    fn new([from, to]: [f64; 2]) -> Self {
-        Self {
-            from,
-            scale: 1.0 / (to - from),
-        }
-    }
-
-    #[inline(always)]
-    fn at(self, v: f64) -> f64 {
-        ((v - self.from) * self.scale).clamp(0.0, 1.0)
-    }
-
-    /// [`Ramp::at`] in four lanes, with the same bits (`fast_clamp` keeps a −0 as `clamp`
-    /// does; no lane is NaN: the scan's coordinates are finite).
-    #[inline(always)]
-    fn at4(self, v: f64x4) -> f64x4 {
-        ((v - f64x4::splat(self.from)) * f64x4::splat(self.scale))
-            .fast_clamp(f64x4::ZERO, f64x4::ONE)
     }
 }
 
@@ -275,6 +243,7 @@ pub(crate) fn follow_terrain(
         cfg.step + cfg.grade * run * run.min(cfg.gap) / (2.0 * cfg.gap.max(f64::MIN_POSITIVE))
     };
     // Each sector, outward from the sensor's foot.
+    let (full_support, over_gap) = (Ramp::new([0.0, cfg.support]), Ramp::new([0.0, cfg.gap]));
     for q in 0..sectors {
         let row = q * bins;
         let (mut last_b, mut last_h, mut slope) = (-0.5f64, foot, 0.0f64);
@@ -282,7 +251,7 @@ pub(crate) fn follow_terrain(
             let centre = (b as f64 + 0.5) * cfg.cell;
             let run = centre - last_b * cfg.cell;
             let predicted = last_h + slope * run;
-            let support = rise(sums[row + b][0] as f64 / WEIGHT_ONE, [0.0, cfg.support]);
+            let support = full_support.at(sums[row + b][0] as f64 / WEIGHT_ONE);
             let bound = if last_b < 0.0 {
                 from_foot(run)
             } else {
@@ -304,7 +273,7 @@ pub(crate) fn follow_terrain(
                 }
                 _ => {
                     let gap = run - 0.5 * cfg.cell;
-                    let trust = 1.0 - rise(gap, [0.0, cfg.gap]);
+                    let trust = 1.0 - over_gap.at(gap);
                     // How far the ground could have risen since the last confident cell:
                     // from the steepest fall to the steepest climb over the gap (from the
                     // foot, as above).
