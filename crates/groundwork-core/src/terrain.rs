@@ -303,6 +303,14 @@ pub(crate) fn follow_terrain(
     let sector_width = std::f64::consts::TAU / sectors as f64;
     scratch.beside.clear();
     for q in 0..sectors {
+        // The sectors either way, k = 1..=LATERAL, nearer first (worked out once a sector:
+        // a modulo per gap cell and neighbour was a tenth of this step).
+        let sides: [[usize; 2]; LATERAL] = std::array::from_fn(|i| {
+            [
+                (q + i + 1) % sectors,
+                (q + sectors - (i + 1) % sectors) % sectors,
+            ]
+        });
         for b in 0..bins {
             let cell = scratch.terrain[q * bins + b];
             if cell.continued {
@@ -311,8 +319,8 @@ pub(crate) fn follow_terrain(
             let across = (b as f64 + 0.5) * cfg.cell * sector_width;
             let mut ceiling = (f64::from(cell.height) + f64::from(cell.reach), cell.lower);
             let mut near: Option<(f32, f32)> = None;
-            for k in 1..=LATERAL {
-                for n in [(q + k) % sectors, (q + sectors - k % sectors) % sectors] {
+            for (k, pair) in (1..=LATERAL).zip(sides) {
+                for n in pair {
                     let side = scratch.terrain[n * bins + b];
                     let (hn, support) = (side.height, side.lower);
                     if !side.continued || support <= 0.0 {
