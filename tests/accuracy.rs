@@ -208,8 +208,11 @@ fn three_layouts_outvote_badly_placed_segment_borders() {
         }
     }
     mean.iter_mut().for_each(|m| *m /= 3.0);
-    ProbabilityMap::new(&cfg.probability, cfg.ground.ground_threshold)
-        .apply(&mut mean, |i| judged[i]);
+    ProbabilityMap::new(&cfg.probability, cfg.ground.ground_threshold).apply(
+        &mut mean,
+        &judged,
+        |&j| j,
+    );
     assert_eq!(together, mean, "the layouts' mean, in layout order");
     assert!(together.iter().all(|p| (0.0..=1.0).contains(p)));
     // The layouts disagree somewhere: otherwise they would be one layout three times.

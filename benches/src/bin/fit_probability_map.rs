@@ -76,7 +76,7 @@ fn main() -> anyhow::Result<()> {
         .iter()
         .map(|&(p, t)| {
             let mut o = [p];
-            fitted.apply(&mut o, |_| true);
+            fitted.apply(&mut o, &[true], |&j| j);
             (o[0], t)
         })
         .collect();

@@ -490,7 +490,7 @@ impl Segmenter {
     /// into a segment (the others keep their 0).
     fn calibrate_output(&self, out: &mut [f32]) {
         let bins = &self.bins[..out.len()];
-        self.map.apply(out, |i| bins[i] != NEAR);
+        self.map.apply(out, bins, |&b| b != NEAR);
     }
 
     /// Layouts 1.. on the same scan, their probabilities averaged with layout 0's in `out`.

@@ -90,6 +90,58 @@ fn diamond_angle(x: f64, y: f64) -> f64 {
     }
 }
 
+/// Where the points fall among the cells, and their weights and heights in fixed point.
+#[derive(Debug, Clone, Copy)]
+struct Placement {
+    half_cell: f64,
+    max_range: f64,
+    per_sector: f64,
+    last_sector: u32,
+    inv_cell: f64,
+    bins: u32,
+    /// The cell of a point without one (one past the last).
+    none: u32,
+    confidence: Ramp,
+}
+
+impl Placement {
+    /// Each point's cell, confident weight and height, in one straight pass without a
+    /// branch (it vectorises: a third of the step's time went to a per-point loop with
+    /// branches and pushes). A function of its own with the constants in locals: as a
+    /// closure's body it read them again for every point and was not vectorised.
+    fn place(
+        self,
+        (x, y, z, p): (&[f64], &[f64], &[f64], &[f32]),
+        cells: &mut [u32],
+        weights: &mut [i32],
+        heights: &mut [i32],
+    ) {
+        let Placement {
+            half_cell,
+            max_range,
+            per_sector,
+            last_sector,
+            inv_cell,
+            bins,
+            none,
+            confidence,
+        } = self;
+        let points = x.iter().zip(y).zip(z).zip(p);
+        let fixed = weights.iter_mut().zip(heights.iter_mut());
+        for ((cell, (w, h)), (((&px, &py), &pz), &p)) in cells.iter_mut().zip(fixed).zip(points) {
+            let r = (px * px + py * py).sqrt();
+            // NaN fails the comparison: no cell.
+            let inside = (r >= half_cell) & (r < max_range);
+            let q = ((diamond_angle(px, py) * per_sector) as u32).min(last_sector);
+            let b = ((r * inv_cell) as u32).min(bins - 1);
+            *cell = if inside { q * bins + b } else { none };
+            let c = confidence.at(f64::from(p));
+            *w = if inside { round_i32(c * WEIGHT_ONE) } else { 0 };
+            *h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
+        }
+    }
+}
+
 /// Points changed across the threshold by the terrain: raised to ground, lowered from it.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub(crate) struct TerrainChange {
@@ -114,9 +166,16 @@ pub(crate) fn follow_terrain(
     let sectors = cfg.sectors as usize;
     let bins = ((max_range / cfg.cell).ceil() as usize).max(1);
     let cells = sectors * bins;
-    let per_sector = sectors as f64 / 4.0;
-    let inv_cell = 1.0 / cfg.cell;
-    let confidence = Ramp::new(cfg.confident);
+    let placement = Placement {
+        half_cell: cfg.cell * 0.5,
+        max_range,
+        per_sector: sectors as f64 / 4.0,
+        last_sector: sectors as u32 - 1,
+        inv_cell: 1.0 / cfg.cell,
+        bins: bins as u32,
+        none: cells as u32,
+        confidence: Ramp::new(cfg.confident),
+    };
     // The per-point passes run in as many parts as there are worker threads, each summing
     // into its own cells (integer sums: the parts add up to the same cells in any split).
     let n = out.len();
@@ -144,29 +203,9 @@ pub(crate) fn follow_terrain(
         .enumerate()
         .for_each(|(k, (((part_cells, weights), heights), sums))| {
             let r = k * part..(k * part + part_cells.len());
-            let points = x[r.clone()].iter().zip(&y[r.clone()]).zip(&z[r.clone()]);
-            let points = points.zip(&out[r]);
-            // Cells, weights and heights in one straight pass without a branch (it
-            // vectorises: a third of this step's time went to a per-point loop with
-            // branches and pushes), then the confident ground's sums.
-            let fixed = weights.iter_mut().zip(heights.iter_mut());
-            for ((cell, (w, h)), (((&px, &py), &pz), &p)) in
-                part_cells.iter_mut().zip(fixed).zip(points)
-            {
-                let r = (px * px + py * py).sqrt();
-                // NaN fails the comparison: no cell.
-                let inside = (r >= cfg.cell * 0.5) & (r < max_range);
-                let q = ((diamond_angle(px, py) * per_sector) as u32).min(sectors as u32 - 1);
-                let b = ((r * inv_cell) as u32).min(bins as u32 - 1);
-                *cell = if inside {
-                    q * bins as u32 + b
-                } else {
-                    cells as u32
-                };
-                let c = confidence.at(f64::from(p));
-                *w = if inside { round_i32(c * WEIGHT_ONE) } else { 0 };
-                *h = round_i32(pz.clamp(-HEIGHT_CLAMP, HEIGHT_CLAMP) * HEIGHT_ONE);
-            }
+            let points = (&x[r.clone()], &y[r.clone()], &z[r.clone()], &out[r]);
+            // Cells, weights and heights, then the confident ground's sums.
+            placement.place(points, part_cells, weights, heights);
             for ((&cell, &w), &h) in part_cells.iter().zip(&*weights).zip(&*heights) {
                 let s = &mut sums[cell as usize];
                 s[0] += i64::from(w);
