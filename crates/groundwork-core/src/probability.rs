@@ -73,6 +73,7 @@ impl ProbabilityMap {
     /// point; points the segmenter did not judge (`judged` of their mark false: inside the
     /// near edge or the ego radius, placeholders, beyond the coordinate bound) keep their 0.
     pub fn apply<M: Sync>(&self, out: &mut [f32], marks: &[M], judged: impl Fn(&M) -> bool + Sync) {
+        debug_assert_eq!(marks.len(), out.len(), "one mark per point");
         if self.is_identity() {
             return;
         }

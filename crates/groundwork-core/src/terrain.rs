@@ -438,12 +438,16 @@ pub(crate) fn follow_terrain(
                     std::array::from_fn(|k| z[k]),
                 );
             }
-            let pad = |k: usize| whole + k;
-            judge_four(
-                rest,
-                std::array::from_fn(|k| part_cells.get(pad(k)).copied().unwrap_or(cells as u32)),
-                std::array::from_fn(|k| z.get(pad(k)).copied().unwrap_or(0.0)),
-            );
+            if !rest.is_empty() {
+                let pad = |k: usize| whole + k;
+                judge_four(
+                    rest,
+                    std::array::from_fn(|k| {
+                        part_cells.get(pad(k)).copied().unwrap_or(cells as u32)
+                    }),
+                    std::array::from_fn(|k| z.get(pad(k)).copied().unwrap_or(0.0)),
+                );
+            }
             counts
         })
         .reduce(|| [0, 0], |a, b| [a[0] + b[0], a[1] + b[1]]);
@@ -478,7 +482,7 @@ impl Judge {
         let new = if self.lower {
             raised * (one - lower * self.veto.at4(above - reach))
         } else {
-            raised * (one - f64x4::ZERO)
+            raised
         };
         let judged = trust.simd_gt(f64x4::ZERO).to_bitmask();
         let new = new.to_array().map(|v| v as f32);
