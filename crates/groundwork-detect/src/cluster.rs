@@ -176,8 +176,9 @@ fn sort_by_height(run: &mut [Entry]) {
     }
 }
 
-/// The grid rows around the current query row, dense: a ring of 2·`reach_max` + 1 rows,
-/// each an occupancy bitmap and, per occupied column, its cell. Queries come
+/// The grid rows around the current query row, dense: a ring of at least 2·`reach_max` + 1
+/// rows (a power of two: a row's place is a mask, not a division), each an occupancy bitmap
+/// and, per occupied column, its cell. Queries come
 /// in ascending row order, so each row is loaded once; a look at a neighbour is a bit test
 /// in a row that stays in cache (a dense grid of the whole scan, 13.7 MB, cost a cache
 /// miss per look).
@@ -199,7 +200,7 @@ impl RowRing {
     fn reset(&mut self, side: usize, reach_max: i32) {
         self.reach_max = reach_max;
         self.side = side;
-        self.rows = 2 * reach_max as usize + 1;
+        self.rows = (2 * reach_max as usize + 1).next_power_of_two();
         self.words = side.div_ceil(64) + 1;
         self.bits.clear();
         self.bits.resize(self.rows * self.words, 0);
@@ -228,7 +229,7 @@ impl RowRing {
         let mut bits = 0;
         let mut base = 0;
         if (0..self.side as i32).contains(&row) && c0 <= c1 {
-            let k = row as usize % self.rows;
+            let k = row as usize & (self.rows - 1);
             if self.held[k] != row {
                 self.load(occupied, k, row);
             }
@@ -522,6 +523,9 @@ fn link_near(
 
 /// Joins `b`'s set to the set whose root is `root`; returns the joined set's root.
 fn link(parent: &mut [u32], root: u32, b: u32) -> u32 {
+    if parent[b as usize] == root {
+        return root; // joined before (the common case among a crowd's cells)
+    }
     let rb = find(parent, b);
     // The smaller root wins: the result does not depend on the order of unions.
     if root < rb {

@@ -267,16 +267,16 @@ impl Grouped {
     }
 }
 
-/// The candidates of `pieces` and their clusters (`labels`, in the same order).
+/// The candidates of `batches` and their clusters (`labels`, in the same order).
 fn labelled<'a>(
-    pieces: &'a [Piece],
+    batches: &'a [Batch],
     labels: &'a [u32],
 ) -> impl Iterator<Item = (&'a Maybe, u32)> + Clone {
-    let candidates = pieces.iter().flat_map(|p| p.candidates.iter());
+    let candidates = batches.iter().flat_map(|b| b.candidates.iter());
     candidates.zip(labels.iter().copied())
 }
 
-/// The members of the clusters: the candidates (in two parts, the pieces' first ones and
+/// The members of the clusters: the candidates (in two parts, the batches' first ones and
 /// the others, grouped on two cores), then the uncertain ground points joining them.
 #[derive(Debug, Default)]
 struct Members {
@@ -308,13 +308,27 @@ struct Piece {
     ground: Vec<(u32, f32)>,
     /// Its non-ground and uncertain ground points.
     maybe: Vec<Maybe>,
-    /// Those of them in the height band: to cluster, and to join.
-    candidates: Vec<Maybe>,
-    joiners: Vec<Maybe>,
-    /// The candidates' clustering cells (numbered within the piece).
-    entries: Vec<Entry>,
     /// Every point of the piece finite, every probability in [0, 1].
     valid: bool,
+}
+
+/// Non-ground and uncertain ground points per batch of the second pass. They crowd into a
+/// few pieces (on a KITTI scan the first two pieces hold most of them): batches of equal
+/// size keep both cores busy where pieces left one idle.
+const BATCH: usize = 2048;
+
+/// One batch of the second pass: up to [`BATCH`] of one piece's non-ground and uncertain
+/// ground points.
+#[derive(Debug, Default)]
+struct Batch {
+    /// Its piece, and where in the piece's points it starts.
+    piece: usize,
+    start: usize,
+    /// Those of its points in the height band: to cluster, and to join.
+    candidates: Vec<Maybe>,
+    joiners: Vec<Maybe>,
+    /// The candidates' clustering cells (numbered within the batch).
+    entries: Vec<Entry>,
 }
 
 /// The detector, with scratch reused from scan to scan.
@@ -327,6 +341,7 @@ pub struct Detector {
     grid: ClusterGrid,
     ground: GroundMap,
     pieces: Vec<Piece>,
+    batches: Vec<Batch>,
     /// The uncertain ground points in the height band, and their coordinates (looked up
     /// while the candidates are grouped).
     joiners: Vec<Maybe>,
@@ -367,6 +382,7 @@ impl Detector {
             threshold,
             min_range,
             pieces: Vec::new(),
+            batches: Vec::new(),
             joiners: Vec::new(),
             joiner_xyz: Vec::new(),
             labels: Vec::new(),
@@ -485,12 +501,24 @@ impl Detector {
         // Non-ground points within the height band above the local ground are clustered;
         // uncertain ground points there may join a cluster they touch. Where the ground is
         // unknown, the segmenter's word alone decides.
-        let (ground, grid) = (&self.ground, &self.grid);
-        self.pieces[..pieces].par_iter_mut().for_each(|piece| {
-            piece.candidates.clear();
-            piece.joiners.clear();
-            piece.entries.clear();
-            for m in &piece.maybe {
+        let mut batches = 0;
+        for (k, piece) in self.pieces[..pieces].iter().enumerate() {
+            for start in (0..piece.maybe.len()).step_by(BATCH) {
+                if self.batches.len() == batches {
+                    self.batches.push(Batch::default());
+                }
+                (self.batches[batches].piece, self.batches[batches].start) = (k, start);
+                batches += 1;
+            }
+        }
+        let batches = &mut self.batches[..batches];
+        let (ground, grid, all) = (&self.ground, &self.grid, &self.pieces);
+        batches.par_iter_mut().for_each(|batch| {
+            batch.candidates.clear();
+            batch.joiners.clear();
+            batch.entries.clear();
+            let maybe = &all[batch.piece].maybe[batch.start..];
+            for m in &maybe[..maybe.len().min(BATCH)] {
                 if let Some(g) = ground.height(m.xyz[0], m.xyz[1]) {
                     let h = m.xyz[2] - g;
                     if h < cfg.min_height || h > cfg.max_height {
@@ -500,21 +528,22 @@ impl Detector {
                     continue;
                 }
                 if m.ground {
-                    piece.joiners.push(*m);
+                    batch.joiners.push(*m);
                 } else {
                     // Its cell for the clustering, here on all cores.
-                    let k = piece.candidates.len() as u32;
-                    piece.entries.extend(grid.entry(m.xyz, k));
-                    piece.candidates.push(*m);
+                    let k = batch.candidates.len() as u32;
+                    batch.entries.extend(grid.entry(m.xyz, k));
+                    batch.candidates.push(*m);
                 }
             }
         });
+        let batches = &*batches;
         self.joiners.clear();
-        for piece in &self.pieces[..pieces] {
-            self.joiners.extend_from_slice(&piece.joiners);
+        for batch in batches {
+            self.joiners.extend_from_slice(&batch.joiners);
         }
         let mut candidates = 0;
-        let runs: Vec<(&[Entry], u32)> = self.pieces[..pieces]
+        let runs: Vec<(&[Entry], u32)> = batches
             .iter()
             .map(|p| {
                 candidates += p.candidates.len() as u32;
@@ -526,20 +555,20 @@ impl Detector {
             .grid
             .cluster_runs(&runs, candidates, cfg, &mut self.labels);
 
-        // The candidates grouped by cluster, in two parts (the first pieces with about half
+        // The candidates grouped by cluster, in two parts (the first batches with about half
         // of them, and the others) on two cores, and meanwhile the cluster each uncertain
         // ground point touches; then those grouped.
         self.joiner_xyz.clear();
         self.joiner_xyz.extend(self.joiners.iter().map(|m| m.xyz));
         let (grid, joiner_xyz, touched) = (&mut self.grid, &self.joiner_xyz, &mut self.touched);
         let (mut half, mut before) = (0, 0);
-        for p in &self.pieces[..pieces] {
+        for p in batches {
             if 2 * before >= candidates {
                 break;
             }
             (half, before) = (half + 1, before + p.candidates.len());
         }
-        let (first, second) = self.pieces[..pieces].split_at(half);
+        let (first, second) = batches.split_at(half);
         let (labels0, labels1) = self.labels.split_at(before);
         let [part0, part1] = &mut self.members.parts;
         rayon::join(
@@ -727,6 +756,54 @@ mod tests {
         assert!(out.proposals[0].centroid[1].abs() < out.proposals[1].centroid[1].abs());
         // Road points carry no id.
         assert!(out.clusters[..2400].iter().all(|&c| c == 0));
+    }
+
+    #[test]
+    fn the_thread_count_and_the_scan_cut_into_pieces_and_batches_change_nothing() {
+        // A road of 40 000 points, then 120 cars' faces (the non-ground points crowd into
+        // the last pieces, some batches short), some of them uncertain ground: every
+        // thread count gives the same ids and proposals.
+        let (mut pts, mut probs) = (Vec::new(), Vec::new());
+        for i in 0..200 {
+            for j in 0..200 {
+                pts.push(pt(-40.0 + 0.4 * i as f32, -40.0 + 0.4 * j as f32, 0.0));
+                probs.push(0.95);
+            }
+        }
+        for k in 0..120 {
+            let (cx, cy) = (-36.0 + 6.0 * (k % 12) as f32, -36.0 + 7.0 * (k / 12) as f32);
+            for a in 0..30 {
+                for b in 0..10 {
+                    pts.push(pt(cx + 0.14 * a as f32, cy, 0.1 + 0.15 * b as f32));
+                    probs.push(if b == 2 { 0.6 } else { 0.05 });
+                }
+            }
+        }
+        assert!(pts.len() > 4 * PIECE && pts.len() - 40_000 > 8 * BATCH);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut d =
+                Detector::new(DetectorConfig::default(), &SegmenterConfig::default()).unwrap();
+            let mut out = Detections::default();
+            let r = pool.install(|| d.detect(&pts, &probs, &mut out)).unwrap();
+            (r.clusters, r.joined, out)
+        };
+        let one = run(1);
+        assert!(
+            one.0 >= 100 && one.1 > 0,
+            "{} clusters, {} joined",
+            one.0,
+            one.1
+        );
+        for threads in [2, 3, 5] {
+            let other = run(threads);
+            assert_eq!((one.0, one.1), (other.0, other.1), "{threads} threads");
+            assert_eq!(one.2.clusters, other.2.clusters, "{threads} threads");
+            assert_eq!(one.2.proposals, other.2.proposals, "{threads} threads");
+        }
     }
 
     #[test]
