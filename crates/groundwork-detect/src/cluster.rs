@@ -512,6 +512,9 @@ fn link_near(
     inv_dv: f32,
 ) -> u32 {
     for t in b.first..b.first + b.len {
+        if parent[t as usize] == root {
+            continue; // joined before (the common case among a crowd's cells)
+        }
         let sb = segments[t as usize];
         let v = (sa.z_min - sb.z_max).max(sb.z_min - sa.z_max).max(0.0) * inv_dv;
         if h + v * v <= 1.0 {
@@ -523,9 +526,6 @@ fn link_near(
 
 /// Joins `b`'s set to the set whose root is `root`; returns the joined set's root.
 fn link(parent: &mut [u32], root: u32, b: u32) -> u32 {
-    if parent[b as usize] == root {
-        return root; // joined before (the common case among a crowd's cells)
-    }
     let rb = find(parent, b);
     // The smaller root wins: the result does not depend on the order of unions.
     if root < rb {
