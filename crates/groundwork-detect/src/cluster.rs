@@ -235,9 +235,10 @@ impl RowRing {
             }
             let words = &self.bits[k * self.words..(k + 1) * self.words];
             bits = if c0 >= 0 {
+                // Two words as one: a double shift, no branch on the bit offset.
                 let (w, b) = ((c0 / 64) as usize, (c0 % 64) as u32);
-                let high = if b == 0 { 0 } else { words[w + 1] << (64 - b) };
-                (words[w] >> b) | high
+                let pair = (u128::from(words[w + 1]) << 64) | u128::from(words[w]);
+                (pair >> b) as u64
             } else {
                 words[0].checked_shl((-c0) as u32).unwrap_or(0) // columns below 0 are empty
             };
