@@ -184,6 +184,13 @@ pub struct EmScratch {
     /// Every point's summary cell and place in it (quanta from the corner), x, y, z blocks.
     keys: Vec<i32>,
     places: Vec<i32>,
+    /// EM's components, the M-step's next ones, their support and their E-step forms:
+    /// reused from iteration to iteration and segment to segment (a `Vec` each per
+    /// iteration was about 2,800 allocations a KITTI scan).
+    comps: Vec<Gaussian>,
+    next: Vec<Gaussian>,
+    owned: Vec<u32>,
+    lanes: Vec<Lanes>,
 }
 
 /// Sorts `src` into `dst[..src.len()]` (`dst` grows as needed, never shrinks: refilling it
@@ -849,14 +856,22 @@ pub fn fit_segment_with(
     };
     let scale = n as f64 / total_weight;
     let np = s.pad_to_lanes(summary);
-    let mut comps = initial_components(n, (zmin, zmax), centroid[2], cfg);
+    // Taken out of the scratch for the loop (the passes borrow the rest of it), put back
+    // after.
+    let (mut comps, mut next, mut owned, mut lanes) = (
+        std::mem::take(&mut s.comps),
+        std::mem::take(&mut s.next),
+        std::mem::take(&mut s.owned),
+        std::mem::take(&mut s.lanes),
+    );
+    initial_components(n, (zmin, zmax), centroid[2], cfg, &mut comps);
     s.resp.resize(comps.len() * np, 0.0);
+    owned.clear();
+    owned.resize(comps.len(), 0);
 
     let mut prev_ll = f64::NEG_INFINITY;
     let mut mean_ll = f64::NEG_INFINITY;
     let mut iterations = 0;
-    let mut owned = vec![0u32; comps.len()];
-    let mut lanes: Vec<Lanes> = Vec::with_capacity(comps.len());
     for _ in 0..cfg.max_iterations {
         iterations += 1;
         let k = comps.len();
@@ -869,9 +884,10 @@ pub fn fit_segment_with(
         let ll = normalise_responsibilities(s, summary);
         support(s, &mut owned[..k], scale);
         // M-step (closed form, paper eq. 2), pruning weakly supported components.
-        let next = m_step(s, &lanes, &owned, cfg, np, summary);
+        m_step(s, &lanes, &owned, cfg, np, summary, &mut next);
         let pruned = next.len() != comps.len();
-        comps = weights_summing_to_one(next);
+        std::mem::swap(&mut comps, &mut next);
+        weights_summing_to_one(&mut comps);
         mean_ll = ll / total_weight;
         if comps.is_empty() {
             break;
@@ -888,11 +904,13 @@ pub fn fit_segment_with(
             *m += c;
         }
     }
-    SegmentFit {
-        components: comps,
+    let fit = SegmentFit {
+        components: comps.clone(),
         iterations,
         mean_log_likelihood: mean_ll,
-    }
+    };
+    (s.comps, s.next, s.owned, s.lanes) = (comps, next, owned, lanes);
+    fit
 }
 
 impl EmScratch {
@@ -922,14 +940,15 @@ fn initial_components(
     z_range: (f64, f64),
     z_centre: f64,
     cfg: &GmmConfig,
-) -> Vec<Gaussian> {
+    comps: &mut Vec<Gaussian>,
+) {
     let (zmin, zmax) = z_range;
     let k0 = n
         .div_ceil(cfg.n_min as usize)
         .min(cfg.k_max as usize)
         .max(1);
-    (0..k0)
-        .map(|k| {
+    comps.clear();
+    comps.extend((0..k0).map(|k| {
             let t = if k0 == 1 {
                 0.5
             } else {
@@ -940,8 +959,7 @@ fn initial_components(
                 mean: [0.0, 0.0, zmin + t * (zmax - zmin) - z_centre],
                 covariance: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
             }
-        })
-        .collect()
+        }));
 }
 
 /// Each component in the E-step's f32 form. With reg > 0 every covariance is positive
@@ -1091,9 +1109,10 @@ fn m_step(
     cfg: &GmmConfig,
     np: usize,
     summary: bool,
-) -> Vec<Gaussian> {
+    next: &mut Vec<Gaussian>,
+) {
     let reg = cfg.covariance_regularization;
-    let mut next = Vec::with_capacity(lanes.len());
+    next.clear();
     for (c, lc) in lanes.iter().enumerate() {
         if owned[c] < cfg.tau_n {
             continue;
@@ -1137,19 +1156,17 @@ fn m_step(
             ],
         });
     }
-    next
 }
 
 /// The weights normalised: removed components' mass is shared out (and f32 rounding
 /// undone) so that they sum to one.
-fn weights_summing_to_one(mut comps: Vec<Gaussian>) -> Vec<Gaussian> {
+fn weights_summing_to_one(comps: &mut [Gaussian]) {
     let total: f64 = comps.iter().map(|g| g.weight).sum();
     if total > 0.0 {
-        for g in &mut comps {
+        for g in comps {
             g.weight /= total;
         }
     }
-    comps
 }
 
 #[cfg(test)]
