@@ -949,17 +949,17 @@ fn initial_components(
         .max(1);
     comps.clear();
     comps.extend((0..k0).map(|k| {
-            let t = if k0 == 1 {
-                0.5
-            } else {
-                k as f64 / (k0 - 1) as f64
-            };
-            Gaussian {
-                weight: 1.0 / k0 as f64,
-                mean: [0.0, 0.0, zmin + t * (zmax - zmin) - z_centre],
-                covariance: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
-            }
-        }));
+        let t = if k0 == 1 {
+            0.5
+        } else {
+            k as f64 / (k0 - 1) as f64
+        };
+        Gaussian {
+            weight: 1.0 / k0 as f64,
+            mean: [0.0, 0.0, zmin + t * (zmax - zmin) - z_centre],
+            covariance: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
+        }
+    }));
 }
 
 /// Each component in the E-step's f32 form. With reg > 0 every covariance is positive
